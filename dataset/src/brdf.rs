@@ -1,0 +1,140 @@
+//! The learnable cosine-polynomial BRDF family M1–M6 (scalar f64 reference).
+//!
+//! Convention (the reference renderer's): `f` returns the reflected fraction *including* the cos i factor, and the
+//! image is `I = E · V_sun · f(p; geometry)`. Raw per-pixel parameters pass through LeakyReLU(0.01) inside `f`.
+//! Terms are ordered (cos i, cos g, …) — the GeoTIFF band descriptions name them in this order.
+//! A surface facing away from the sun (cos i ≤ 0) or from the camera (cos e ≤ 0) reflects nothing toward it: f = 0.
+
+use crate::geometry::{Cosines, HalfDiffCosines};
+
+/// Negative slope of the LeakyReLU applied to every raw parameter.
+pub const LEAKY_SLOPE: f64 = 0.01;
+
+#[inline]
+pub fn leaky_relu(x: f64) -> f64 {
+    if x >= 0.0 {
+        x
+    } else {
+        LEAKY_SLOPE * x
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum BrdfModel {
+    M1,
+    M2,
+    M3,
+    M4,
+    M5,
+    M6,
+}
+
+impl BrdfModel {
+    pub const ALL: [BrdfModel; 6] = [Self::M1, Self::M2, Self::M3, Self::M4, Self::M5, Self::M6];
+
+    pub fn param_count(self) -> usize {
+        self.term_names().len()
+    }
+
+    /// Name of the geometric term each parameter multiplies, in parameter order ("1" = constant).
+    pub fn term_names(self) -> &'static [&'static str] {
+        match self {
+            Self::M1 => &["cos_i", "cos_g"],
+            Self::M2 => &["cos_i", "cos_g", "1"],
+            Self::M3 => &["cos_i", "cos_g", "cos_i*cos_g", "1"],
+            Self::M4 => &["cos_i", "cos_g", "cos_i^2", "1"],
+            Self::M5 => &["cos_i", "cos_g", "cos_g^2", "1"],
+            Self::M6 => &["cos_theta_h", "cos_theta_d", "cos_phi_h", "cos_phi_d"],
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::M1 => "m1",
+            Self::M2 => "m2",
+            Self::M3 => "m3",
+            Self::M4 => "m4",
+            Self::M5 => "m5",
+            Self::M6 => "m6",
+        }
+    }
+
+    /// The geometric terms (the basis functions) for this geometry, in parameter order.
+    pub fn terms(self, c: &Cosines, hd: &HalfDiffCosines) -> [f64; 4] {
+        match self {
+            Self::M1 => [c.cos_i, c.cos_g, 0.0, 0.0],
+            Self::M2 => [c.cos_i, c.cos_g, 1.0, 0.0],
+            Self::M3 => [c.cos_i, c.cos_g, c.cos_i * c.cos_g, 1.0],
+            Self::M4 => [c.cos_i, c.cos_g, c.cos_i * c.cos_i, 1.0],
+            Self::M5 => [c.cos_i, c.cos_g, c.cos_g * c.cos_g, 1.0],
+            Self::M6 => [hd.cos_theta_h, hd.cos_theta_d, hd.cos_phi_h, hd.cos_phi_d],
+        }
+    }
+
+    /// Reflected fraction f(p; geometry). `raw_params` has [`Self::param_count`] entries (before LeakyReLU).
+    pub fn evaluate(self, raw_params: &[f64], c: &Cosines, hd: &HalfDiffCosines) -> f64 {
+        debug_assert_eq!(raw_params.len(), self.param_count());
+        if c.cos_i <= 0.0 || c.cos_e <= 0.0 {
+            return 0.0;
+        }
+        let terms = self.terms(c, hd);
+        raw_params.iter().zip(terms).map(|(&p, t)| leaky_relu(p) * t).sum()
+    }
+}
+
+impl std::str::FromStr for BrdfModel {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        Self::ALL
+            .into_iter()
+            .find(|m| m.name().eq_ignore_ascii_case(s))
+            .ok_or_else(|| format!("unknown BRDF model '{s}': use one of m1, m2, m3, m4, m5, m6"))
+    }
+}
+
+/// Rendered pixel value `I = E · V_sun · f`.
+pub fn render_pixel(model: BrdfModel, raw_params: &[f64], c: &Cosines, hd: &HalfDiffCosines, irradiance: f64, lit_fraction: f64) -> f64 {
+    irradiance * lit_fraction * model.evaluate(raw_params, c, hd)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::DVec3;
+
+    #[test]
+    fn m2_matches_hand_value() {
+        let (n, s, v) = (DVec3::Z, DVec3::new(0.6, 0.0, 0.8), DVec3::Z);
+        let c = Cosines::new(n, s, v);
+        let hd = HalfDiffCosines::new(n, s, v);
+        // a·0.8 + b·0.8 + c with (a, b, c) = (0.5, -2 → -0.02, 0.1)
+        let f = BrdfModel::M2.evaluate(&[0.5, -2.0, 0.1], &c, &hd);
+        assert!((f - (0.5 * 0.8 - 0.02 * 0.8 + 0.1)).abs() < 1e-15);
+    }
+
+    #[test]
+    fn backfacing_reflects_nothing() {
+        let (n, s, v) = (DVec3::Z, DVec3::new(1.0, 0.0, -0.1).normalize(), DVec3::Z);
+        let c = Cosines::new(n, s, v);
+        let hd = HalfDiffCosines::new(n, s, v);
+        for m in BrdfModel::ALL {
+            assert_eq!(m.evaluate(&vec![1.0; m.param_count()], &c, &hd), 0.0);
+        }
+    }
+
+    #[test]
+    fn m6_at_nadir_is_finite_and_by_continuity() {
+        let n = DVec3::Z;
+        let c = Cosines::new(n, n, n);
+        let hd = HalfDiffCosines::new(n, n, n);
+        let f = BrdfModel::M6.evaluate(&[1.0, 1.0, 1.0, 1.0], &c, &hd);
+        assert_eq!(f, 4.0);
+    }
+
+    #[test]
+    fn parse_model_names() {
+        assert_eq!("M3".parse::<BrdfModel>().unwrap(), BrdfModel::M3);
+        assert!("m7".parse::<BrdfModel>().unwrap_err().contains("m1"));
+    }
+}

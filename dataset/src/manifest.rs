@@ -1,0 +1,139 @@
+//! Manifests: what a published dataset (or a generated world) contains, with blake3 checksums of every file.
+//!
+//! Maps are `BTreeMap`s so serialised manifests never depend on hash-map iteration order.
+
+use std::collections::BTreeMap;
+use std::io;
+use std::path::{Path, PathBuf};
+
+use crate::schema::SCHEMA_VERSION;
+
+/// blake3 of a file's bytes, hex.
+pub fn hash_file(path: &Path) -> io::Result<String> {
+    let mut hasher = blake3::Hasher::new();
+    hasher.update_reader(std::fs::File::open(path)?)?;
+    Ok(hasher.finalize().to_hex().to_string())
+}
+
+/// One Parquet shard of a published dataset.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct ShardEntry {
+    /// File name relative to the dataset directory.
+    pub path: String,
+    pub bytes: u64,
+    pub rows: u64,
+    pub row_groups: u64,
+    pub blake3: String,
+}
+
+/// Any other file listed with its checksum (rasters, metadata, truth maps).
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct FileEntry {
+    pub path: String,
+    pub bytes: u64,
+    pub blake3: String,
+}
+
+impl FileEntry {
+    pub fn of(root: &Path, relative: &str) -> io::Result<Self> {
+        let full = root.join(relative);
+        Ok(Self { path: relative.to_string(), bytes: std::fs::metadata(&full)?.len(), blake3: hash_file(&full)? })
+    }
+}
+
+/// `manifest.json` of a published dataset (DESIGN §5).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct DatasetManifest {
+    pub schema_version: String,
+    pub name: String,
+    pub license: String,
+    pub seed: u64,
+    /// Map CRS of the source rasters (PROJ/WKT definition).
+    pub crs: String,
+    pub split_counts: BTreeMap<String, u64>,
+    pub shards: Vec<ShardEntry>,
+    /// Dataset-wide DEM height std (after per-crop mean removal), from the train split only.
+    pub dem_std_m: f64,
+    pub pipeline_lock_blake3: String,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ManifestError {
+    #[error("{path}: {source}")]
+    Io { path: PathBuf, source: io::Error },
+    #[error("{path}: not a valid manifest ({source}); regenerate it with the pipeline's publish stage")]
+    Parse { path: PathBuf, source: serde_json::Error },
+    #[error("{path}: manifest schema {found} does not match this build's {SCHEMA_VERSION}; rebuild the dataset")]
+    SchemaVersion { path: PathBuf, found: String },
+}
+
+impl DatasetManifest {
+    pub fn load(path: &Path) -> Result<Self, ManifestError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ManifestError::Io { path: path.to_path_buf(), source })?;
+        let manifest: Self = serde_json::from_str(&text).map_err(|source| ManifestError::Parse { path: path.to_path_buf(), source })?;
+        if manifest.schema_version.split('.').next() != SCHEMA_VERSION.split('.').next() {
+            return Err(ManifestError::SchemaVersion { path: path.to_path_buf(), found: manifest.schema_version });
+        }
+        Ok(manifest)
+    }
+
+    /// Check every shard's size and blake3 against the files in `dir`; returns one line per mismatch.
+    pub fn verify(&self, dir: &Path) -> Vec<String> {
+        let mut problems = Vec::new();
+        for shard in &self.shards {
+            let path = dir.join(&shard.path);
+            match std::fs::metadata(&path) {
+                Err(_) => problems.push(format!("{}: missing", path.display())),
+                Ok(m) if m.len() != shard.bytes => {
+                    problems.push(format!("{}: {} bytes, manifest says {} (truncated?)", path.display(), m.len(), shard.bytes))
+                }
+                Ok(_) => match hash_file(&path) {
+                    Ok(h) if h == shard.blake3 => {}
+                    Ok(h) => problems.push(format!("{}: blake3 {h} does not match the manifest (tampered?)", path.display())),
+                    Err(e) => problems.push(format!("{}: {e}", path.display())),
+                },
+            }
+        }
+        problems
+    }
+}
+
+/// Write JSON atomically (temp name, then rename), pretty-printed with a trailing newline.
+pub fn write_json_atomic<T: serde::Serialize>(path: &Path, value: &T) -> io::Result<()> {
+    let tmp = crate::raster::tmp_path(path);
+    let mut text = serde_json::to_string_pretty(value).map_err(io::Error::other)?;
+    text.push('\n');
+    std::fs::write(&tmp, text)?;
+    std::fs::rename(&tmp, path)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn verify_detects_tampering_and_truncation() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("a.parquet"), b"hello shard").unwrap();
+        let entry = FileEntry::of(dir.path(), "a.parquet").unwrap();
+        let manifest = DatasetManifest {
+            schema_version: SCHEMA_VERSION.into(),
+            name: "t".into(),
+            license: "CC-BY-4.0".into(),
+            seed: 1,
+            crs: "x".into(),
+            split_counts: BTreeMap::new(),
+            shards: vec![ShardEntry { path: entry.path, bytes: entry.bytes, rows: 1, row_groups: 1, blake3: entry.blake3 }],
+            dem_std_m: 1.0,
+            pipeline_lock_blake3: String::new(),
+        };
+        assert!(manifest.verify(dir.path()).is_empty());
+        std::fs::write(dir.path().join("a.parquet"), b"hello shard!").unwrap();
+        assert!(manifest.verify(dir.path())[0].contains("truncated"));
+        std::fs::write(dir.path().join("a.parquet"), b"hellO shard").unwrap();
+        assert!(manifest.verify(dir.path())[0].contains("tampered"));
+        let path = dir.path().join("manifest.json");
+        write_json_atomic(&path, &manifest).unwrap();
+        assert_eq!(DatasetManifest::load(&path).unwrap(), manifest);
+    }
+}

@@ -1,0 +1,285 @@
+//! Georeferenced rasters: the pixel-centre convention and GeoTIFF IO through GDAL.
+//!
+//! **Pixel-centre convention (used everywhere):** pixel (col, row) covers the square whose top-left corner is the
+//! geotransform applied to (col, row); its centre — where its value is defined — is the geotransform at
+//! (col + 0.5, row + 0.5). Rows run north to south (negative y pixel size).
+
+use std::path::{Path, PathBuf};
+
+use gdal::raster::{Buffer, RasterCreationOptions};
+use gdal::spatial_ref::SpatialRef;
+use gdal::{Dataset, DriverManager, Metadata};
+
+use crate::crs::{LunarCrs, MOON_RADIUS_M};
+
+/// North-up affine georeferencing: origin is the top-left corner of pixel (0, 0).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct GeoTransform {
+    pub origin_x: f64,
+    pub origin_y: f64,
+    pub pixel_width: f64,
+    /// Negative for north-up rasters.
+    pub pixel_height: f64,
+}
+
+impl GeoTransform {
+    pub fn north_up(origin_x: f64, origin_y: f64, gsd_m: f64) -> Self {
+        Self { origin_x, origin_y, pixel_width: gsd_m, pixel_height: -gsd_m }
+    }
+
+    /// Map coordinates of the centre of pixel (col, row).
+    pub fn pixel_center(&self, col: f64, row: f64) -> (f64, f64) {
+        (self.origin_x + (col + 0.5) * self.pixel_width, self.origin_y + (row + 0.5) * self.pixel_height)
+    }
+
+    /// Continuous pixel coordinates (col, row) whose *centre* is at map (x, y): the inverse of [`Self::pixel_center`].
+    pub fn map_to_pixel(&self, x: f64, y: f64) -> (f64, f64) {
+        ((x - self.origin_x) / self.pixel_width - 0.5, (y - self.origin_y) / self.pixel_height - 0.5)
+    }
+
+    pub fn gsd_m(&self) -> f64 {
+        self.pixel_width.abs()
+    }
+
+    pub fn to_gdal(&self) -> [f64; 6] {
+        [self.origin_x, self.pixel_width, 0.0, self.origin_y, 0.0, self.pixel_height]
+    }
+
+    pub fn from_gdal(gt: &[f64; 6]) -> Option<Self> {
+        (gt[2] == 0.0 && gt[4] == 0.0).then_some(Self {
+            origin_x: gt[0],
+            origin_y: gt[3],
+            pixel_width: gt[1],
+            pixel_height: gt[5],
+        })
+    }
+}
+
+/// A single-band f32 raster in memory, row-major, north-up.
+#[derive(Debug, Clone)]
+pub struct Raster {
+    pub width: usize,
+    pub height: usize,
+    pub transform: GeoTransform,
+    pub crs: LunarCrs,
+    /// NaN marks nodata in memory; on disk it becomes [`Raster::nodata`].
+    pub data: Vec<f32>,
+    pub nodata: f32,
+    pub description: String,
+}
+
+impl Raster {
+    pub fn new(width: usize, height: usize, transform: GeoTransform, crs: LunarCrs, fill: f32) -> Self {
+        Self { width, height, transform, crs, data: vec![fill; width * height], nodata: -32768.0, description: String::new() }
+    }
+
+    #[inline]
+    pub fn get(&self, col: usize, row: usize) -> f32 {
+        self.data[row * self.width + col]
+    }
+
+    /// Bilinear sample at continuous pixel coordinates (pixel-centre convention), clamped at the edges.
+    #[inline]
+    pub fn bilinear(&self, col: f64, row: f64) -> f32 {
+        bilinear(&self.data, self.width, self.height, col, row)
+    }
+}
+
+/// Bilinear interpolation on a row-major grid at continuous (col, row) centre coordinates, clamped at the edges.
+#[inline]
+pub fn bilinear(data: &[f32], width: usize, height: usize, col: f64, row: f64) -> f32 {
+    let c = col.clamp(0.0, (width - 1) as f64);
+    let r = row.clamp(0.0, (height - 1) as f64);
+    let (c0, r0) = (c.floor() as usize, r.floor() as usize);
+    let (c1, r1) = ((c0 + 1).min(width - 1), (r0 + 1).min(height - 1));
+    let (fc, fr) = ((c - c0 as f64) as f32, (r - r0 as f64) as f32);
+    let top = data[r0 * width + c0] * (1.0 - fc) + data[r0 * width + c1] * fc;
+    let bottom = data[r1 * width + c0] * (1.0 - fc) + data[r1 * width + c1] * fc;
+    top * (1.0 - fr) + bottom * fr
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum RasterError {
+    #[error("{path}: cannot open raster ({reason}); check the path and that it is a GDAL-readable file")]
+    Open { path: PathBuf, reason: String },
+    #[error("{path}: has no CRS; assign a lunar one, e.g. gdal_edit.py -a_srs '+proj=eqc +R=1737400 ...' {path}")]
+    NoCrs { path: PathBuf },
+    #[error("{path}: CRS is not the lunar sphere (semi-major axis {semi_major_m} m, expected {MOON_RADIUS_M} m); reproject with gdalwarp -t_srs to a lunar CRS (IAU_2015:30100 family)")]
+    NotLunar { path: PathBuf, semi_major_m: f64 },
+    #[error("{path}: geotransform is rotated or missing; warp to a north-up grid with gdalwarp")]
+    NotNorthUp { path: PathBuf },
+    #[error("{path}: GDAL error ({reason})")]
+    Gdal { path: PathBuf, reason: String },
+}
+
+fn gdal_err(path: &Path) -> impl Fn(gdal::errors::GdalError) -> RasterError + '_ {
+    move |e| RasterError::Gdal { path: path.to_path_buf(), reason: e.to_string() }
+}
+
+/// Check a GDAL spatial reference is on the lunar sphere (any projection).
+fn check_lunar(path: &Path, srs: &SpatialRef) -> Result<(), RasterError> {
+    let semi_major_m = srs.semi_major().map_err(gdal_err(path))?;
+    if (semi_major_m - MOON_RADIUS_M).abs() > 1.0 {
+        return Err(RasterError::NotLunar { path: path.to_path_buf(), semi_major_m });
+    }
+    Ok(())
+}
+
+/// Header of a GeoTIFF (no pixel data read): size, georeferencing, CRS and nodata of band 1.
+#[derive(Debug, Clone)]
+pub struct RasterInfo {
+    pub width: usize,
+    pub height: usize,
+    pub transform: GeoTransform,
+    pub crs: LunarCrs,
+    pub nodata: Option<f64>,
+}
+
+/// Open a raster and validate what every stage relies on: a lunar CRS and a north-up geotransform.
+pub fn open_lunar(path: &Path) -> Result<(Dataset, RasterInfo), RasterError> {
+    if !path.exists() {
+        return Err(RasterError::Open { path: path.to_path_buf(), reason: "file does not exist".into() });
+    }
+    let ds = Dataset::open(path).map_err(|e| RasterError::Open { path: path.to_path_buf(), reason: e.to_string() })?;
+    let srs = ds.spatial_ref().map_err(|_| RasterError::NoCrs { path: path.to_path_buf() })?;
+    check_lunar(path, &srs)?;
+    let gt = ds.geo_transform().map_err(|_| RasterError::NotNorthUp { path: path.to_path_buf() })?;
+    let transform = GeoTransform::from_gdal(&gt)
+        .filter(|t| t.pixel_width > 0.0 && t.pixel_height < 0.0)
+        .ok_or_else(|| RasterError::NotNorthUp { path: path.to_path_buf() })?;
+    let (width, height) = ds.raster_size();
+    let nodata = ds.rasterband(1).map_err(gdal_err(path))?.no_data_value();
+    let wkt = srs.to_wkt().map_err(gdal_err(path))?;
+    Ok((ds, RasterInfo { width, height, transform, crs: LunarCrs::new(wkt), nodata }))
+}
+
+/// Read band 1 of a lunar GeoTIFF; nodata values become NaN.
+pub fn read_raster(path: &Path) -> Result<Raster, RasterError> {
+    let (ds, info) = open_lunar(path)?;
+    let band = ds.rasterband(1).map_err(gdal_err(path))?;
+    let buf = band.read_as::<f32>((0, 0), (info.width, info.height), (info.width, info.height), None).map_err(gdal_err(path))?;
+    let description = band.description().unwrap_or_default();
+    let (_, mut data) = buf.into_shape_and_vec();
+    let nodata = info.nodata.map(|v| v as f32);
+    if let Some(nd) = nodata {
+        for v in &mut data {
+            if *v == nd {
+                *v = f32::NAN;
+            }
+        }
+    }
+    Ok(Raster {
+        width: info.width,
+        height: info.height,
+        transform: info.transform,
+        crs: info.crs,
+        data,
+        nodata: nodata.unwrap_or(f32::NAN),
+        description,
+    })
+}
+
+/// One band to write: its values (NaN = nodata) and a description QGIS shows as the band name.
+pub struct BandOut<'a> {
+    pub data: &'a [f32],
+    pub description: &'a str,
+}
+
+/// Write a tiled, DEFLATE-compressed Float32 GeoTIFF with CRS, nodata and band descriptions.
+///
+/// Written to `path.tmp` then renamed, so an interrupted write never leaves a finished-looking file.
+pub fn write_geotiff(
+    path: &Path,
+    width: usize,
+    height: usize,
+    transform: &GeoTransform,
+    crs: &LunarCrs,
+    nodata: f32,
+    bands: &[BandOut<'_>],
+    metadata: &[(&str, String)],
+) -> Result<(), RasterError> {
+    let tmp = tmp_path(path);
+    let driver = DriverManager::get_driver_by_name("GTiff").map_err(gdal_err(path))?;
+    let options = RasterCreationOptions::from_iter(["TILED=YES", "COMPRESS=DEFLATE", "PREDICTOR=3", "ZLEVEL=1", "BIGTIFF=IF_SAFER"]);
+    {
+        let mut ds = driver
+            .create_with_band_type_with_options::<f32, _>(&tmp, width, height, bands.len(), &options)
+            .map_err(gdal_err(path))?;
+        ds.set_geo_transform(&transform.to_gdal()).map_err(gdal_err(path))?;
+        let srs = SpatialRef::from_definition(&crs.definition).map_err(gdal_err(path))?;
+        ds.set_spatial_ref(&srs).map_err(gdal_err(path))?;
+        for (key, value) in metadata {
+            ds.set_metadata_item(key, value, "").map_err(gdal_err(path))?;
+        }
+        for (i, band_out) in bands.iter().enumerate() {
+            assert_eq!(band_out.data.len(), width * height, "band {i} of {} has the wrong size", path.display());
+            let mut band = ds.rasterband(i + 1).map_err(gdal_err(path))?;
+            band.set_no_data_value(Some(nodata as f64)).map_err(gdal_err(path))?;
+            band.set_description(band_out.description).map_err(gdal_err(path))?;
+            let values: Vec<f32> = band_out.data.iter().map(|&v| if v.is_finite() { v } else { nodata }).collect();
+            let mut buffer = Buffer::new((width, height), values);
+            band.write((0, 0), (width, height), &mut buffer).map_err(gdal_err(path))?;
+        }
+        ds.close().map_err(gdal_err(path))?;
+    }
+    std::fs::rename(&tmp, path).map_err(|e| RasterError::Gdal { path: path.to_path_buf(), reason: e.to_string() })
+}
+
+/// Convenience: write a single-band [`Raster`].
+pub fn write_raster(path: &Path, raster: &Raster, metadata: &[(&str, String)]) -> Result<(), RasterError> {
+    write_geotiff(
+        path,
+        raster.width,
+        raster.height,
+        &raster.transform,
+        &raster.crs,
+        raster.nodata,
+        &[BandOut { data: &raster.data, description: &raster.description }],
+        metadata,
+    )
+}
+
+/// The temporary name an output is written under before the atomic rename.
+pub fn tmp_path(path: &Path) -> PathBuf {
+    let mut name = path.file_name().map(|n| n.to_os_string()).unwrap_or_default();
+    name.push(".tmp");
+    path.with_file_name(name)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pixel_center_roundtrip() {
+        let gt = GeoTransform::north_up(1000.0, 5000.0, 5.0);
+        assert_eq!(gt.pixel_center(0.0, 0.0), (1002.5, 4997.5));
+        let (c, r) = gt.map_to_pixel(1002.5 + 5.0 * 7.0, 4997.5 - 5.0 * 3.0);
+        assert!((c - 7.0).abs() < 1e-12 && (r - 3.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn bilinear_is_exact_on_planes() {
+        let (w, h) = (6, 5);
+        let data: Vec<f32> = (0..w * h).map(|i| (2 * (i % w) + 3 * (i / w)) as f32).collect();
+        let v = bilinear(&data, w, h, 2.25, 1.5);
+        assert!((v - (2.0 * 2.25 + 3.0 * 1.5) as f32).abs() < 1e-5);
+    }
+
+    #[test]
+    fn geotiff_roundtrip_keeps_crs_transform_and_nodata() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("a.tif");
+        let crs = LunarCrs::equirectangular(-43.3, -11.2);
+        let mut raster = Raster::new(7, 4, GeoTransform::north_up(-1000.0, -1_300_000.0, 5.0), crs, 1.5);
+        raster.data[3] = f32::NAN;
+        raster.description = "height_m".into();
+        write_raster(&path, &raster, &[("UNITS", "m".into())]).unwrap();
+        assert!(!tmp_path(&path).exists());
+        let back = read_raster(&path).unwrap();
+        assert_eq!((back.width, back.height), (7, 4));
+        assert_eq!(back.transform, raster.transform);
+        assert!(back.data[3].is_nan() && back.data[4] == 1.5);
+        assert_eq!(back.description, "height_m");
+    }
+}

@@ -1,0 +1,250 @@
+//! The sample schema: one Parquet row = one DEM–image pair. Declared once, here, and documented from here
+//! (every field carries `description` and `unit` metadata that pyarrow shows as field metadata).
+
+use std::collections::HashMap;
+use std::sync::Arc;
+
+use arrow::array::{
+    Array, ArrayRef, FixedSizeListArray, Float32Array, Float64Array, RecordBatch, StringArray, UInt8Array,
+};
+use arrow::datatypes::{DataType, Field, Schema, SchemaRef};
+
+/// Bumped on any incompatible change; readers refuse other major versions.
+pub const SCHEMA_VERSION: &str = "1.0.0";
+/// Crop edge in pixels (the network's input/output size).
+pub const CROP_PX: usize = 128;
+/// DEM edge in pixels: the crop plus a 1-pixel apron on every side, so border normals are exact.
+pub const DEM_PX: usize = CROP_PX + 2;
+
+/// One training sample. Tensors are row-major, north row first.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Sample {
+    /// Stable id: `{ortho_id}:{center_col}:{center_row}` in DEM pixels.
+    pub sample_id: String,
+    pub split: String,
+    pub tile_id: String,
+    pub ortho_id: String,
+    pub center_x_m: f64,
+    pub center_y_m: f64,
+    pub center_lon_deg: f64,
+    pub center_lat_deg: f64,
+    /// Footprint corners (NW, NE, SE, SW) as lon, lat pairs in degrees.
+    pub footprint_lonlat_deg: [f64; 8],
+    /// DEM_PX² heights above the lunar sphere, metres.
+    pub dem_m: Vec<f32>,
+    /// CROP_PX² reflectance (I/F), NaN-free (invalid pixels hold 0 and are masked by `valid`).
+    pub image: Vec<f32>,
+    /// CROP_PX² mask: 1 where the image pixel is usable.
+    pub valid: Vec<u8>,
+    /// CROP_PX² visible fraction of the sun disk, from the full DEM.
+    pub sun_lit: Vec<f32>,
+    pub sun_dir_enu: [f64; 3],
+    pub camera_pos_enu_m: [f64; 3],
+    /// Camera attitude quaternion (w, x, y, z), body-fixed to camera.
+    pub camera_att: [f64; 4],
+    pub fov_deg: f64,
+    pub gsd_m: f64,
+    pub incidence_deg: f64,
+    pub emission_deg: f64,
+    pub phase_deg: f64,
+    /// Acquisition time, ISO 8601 UTC, from the image metadata.
+    pub acq_time: String,
+    /// Pipeline code version and params hash that produced the row.
+    pub provenance: String,
+}
+
+fn field(name: &str, data_type: DataType, description: &str, unit: &str) -> Field {
+    Field::new(name, data_type, false).with_metadata(HashMap::from([
+        ("description".to_string(), description.to_string()),
+        ("unit".to_string(), unit.to_string()),
+    ]))
+}
+
+fn fixed_list(item: DataType, len: usize) -> DataType {
+    DataType::FixedSizeList(Arc::new(Field::new("item", item, false)), len as i32)
+}
+
+/// Float tensor columns (written with BYTE_STREAM_SPLIT).
+pub const FLOAT_TENSOR_COLUMNS: [&str; 3] = ["dem", "image", "sun_lit"];
+
+pub fn sample_schema() -> SchemaRef {
+    let fields = vec![
+        field("sample_id", DataType::Utf8, "stable id: ortho_id:center_col:center_row (DEM pixels)", ""),
+        field("split", DataType::Utf8, "train | val | test", ""),
+        field("tile_id", DataType::Utf8, "geographic split tile containing the footprint", ""),
+        field("ortho_id", DataType::Utf8, "source orthoimage id", ""),
+        field("center_x", DataType::Float64, "crop centre, map x (pixel-centre convention)", "m"),
+        field("center_y", DataType::Float64, "crop centre, map y", "m"),
+        field("center_lon", DataType::Float64, "crop centre longitude, planetocentric", "deg"),
+        field("center_lat", DataType::Float64, "crop centre latitude, planetocentric", "deg"),
+        field("footprint_lonlat", fixed_list(DataType::Float64, 8), "footprint corners NW,NE,SE,SW as lon,lat", "deg"),
+        field("dem", fixed_list(DataType::Float32, DEM_PX * DEM_PX), "130x130 heights above the 1737400 m sphere, 1-px apron, row-major north first", "m"),
+        field("image", fixed_list(DataType::Float32, CROP_PX * CROP_PX), "128x128 reflectance I/F, 0 where not valid", "1"),
+        field("valid", fixed_list(DataType::UInt8, CROP_PX * CROP_PX), "128x128 mask, 1 = usable pixel", "1"),
+        field("sun_lit", fixed_list(DataType::Float32, CROP_PX * CROP_PX), "128x128 visible fraction of the sun disk from the full DEM", "1"),
+        field("sun_dir_enu", fixed_list(DataType::Float64, 3), "unit vector toward the sun in the crop's local ENU frame", "1"),
+        field("camera_pos_enu", fixed_list(DataType::Float64, 3), "camera position in the crop's local ENU frame", "m"),
+        field("camera_att", fixed_list(DataType::Float64, 4), "camera attitude quaternion w,x,y,z (body-fixed to camera)", "1"),
+        field("fov_deg", DataType::Float64, "camera field of view", "deg"),
+        field("gsd_m", DataType::Float64, "crop ground sample distance", "m"),
+        field("incidence_deg", DataType::Float64, "sun incidence at the crop centre on the sphere", "deg"),
+        field("emission_deg", DataType::Float64, "emission at the crop centre on the sphere", "deg"),
+        field("phase_deg", DataType::Float64, "phase angle at the crop centre", "deg"),
+        field("acq_time", DataType::Utf8, "acquisition time, ISO 8601 UTC", ""),
+        field("provenance", DataType::Utf8, "pipeline code version and params hash", ""),
+    ];
+    let metadata = HashMap::from([
+        ("g2r.schema_version".to_string(), SCHEMA_VERSION.to_string()),
+        ("g2r.crop_px".to_string(), CROP_PX.to_string()),
+        ("g2r.dem_px".to_string(), DEM_PX.to_string()),
+    ]);
+    Arc::new(Schema::new_with_metadata(fields, metadata))
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum SchemaError {
+    #[error("column '{0}' is missing or has the wrong type")]
+    Column(&'static str),
+    #[error("tensor '{name}' has {got} values, expected {expected}")]
+    TensorLength { name: &'static str, got: usize, expected: usize },
+    #[error(transparent)]
+    Arrow(#[from] arrow::error::ArrowError),
+}
+
+fn f64s(values: impl Iterator<Item = f64>) -> ArrayRef {
+    Arc::new(Float64Array::from_iter_values(values))
+}
+
+fn strings<'a>(values: impl Iterator<Item = &'a str>) -> ArrayRef {
+    Arc::new(StringArray::from_iter_values(values))
+}
+
+fn list_of(values: ArrayRef, len: usize, item: DataType) -> ArrayRef {
+    Arc::new(FixedSizeListArray::new(Arc::new(Field::new("item", item, false)), len as i32, values, None))
+}
+
+fn check_len(name: &'static str, got: usize, expected: usize) -> Result<(), SchemaError> {
+    (got == expected).then_some(()).ok_or(SchemaError::TensorLength { name, got, expected })
+}
+
+/// Build one record batch from samples (all tensors length-checked).
+pub fn samples_to_batch(samples: &[Sample]) -> Result<RecordBatch, SchemaError> {
+    for s in samples {
+        check_len("dem", s.dem_m.len(), DEM_PX * DEM_PX)?;
+        check_len("image", s.image.len(), CROP_PX * CROP_PX)?;
+        check_len("valid", s.valid.len(), CROP_PX * CROP_PX)?;
+        check_len("sun_lit", s.sun_lit.len(), CROP_PX * CROP_PX)?;
+    }
+    let f32_list = |get: fn(&Sample) -> &[f32], len: usize| {
+        let flat: Vec<f32> = samples.iter().flat_map(|s| get(s).iter().copied()).collect();
+        list_of(Arc::new(Float32Array::from(flat)), len, DataType::Float32)
+    };
+    let f64_list = |get: fn(&Sample) -> &[f64], len: usize| {
+        let flat: Vec<f64> = samples.iter().flat_map(|s| get(s).iter().copied()).collect();
+        list_of(Arc::new(Float64Array::from(flat)), len, DataType::Float64)
+    };
+    let valid: Vec<u8> = samples.iter().flat_map(|s| s.valid.iter().copied()).collect();
+    let columns: Vec<ArrayRef> = vec![
+        strings(samples.iter().map(|s| s.sample_id.as_str())),
+        strings(samples.iter().map(|s| s.split.as_str())),
+        strings(samples.iter().map(|s| s.tile_id.as_str())),
+        strings(samples.iter().map(|s| s.ortho_id.as_str())),
+        f64s(samples.iter().map(|s| s.center_x_m)),
+        f64s(samples.iter().map(|s| s.center_y_m)),
+        f64s(samples.iter().map(|s| s.center_lon_deg)),
+        f64s(samples.iter().map(|s| s.center_lat_deg)),
+        f64_list(|s| &s.footprint_lonlat_deg, 8),
+        f32_list(|s| &s.dem_m, DEM_PX * DEM_PX),
+        f32_list(|s| &s.image, CROP_PX * CROP_PX),
+        list_of(Arc::new(UInt8Array::from(valid)), CROP_PX * CROP_PX, DataType::UInt8),
+        f32_list(|s| &s.sun_lit, CROP_PX * CROP_PX),
+        f64_list(|s| &s.sun_dir_enu, 3),
+        f64_list(|s| &s.camera_pos_enu_m, 3),
+        f64_list(|s| &s.camera_att, 4),
+        f64s(samples.iter().map(|s| s.fov_deg)),
+        f64s(samples.iter().map(|s| s.gsd_m)),
+        f64s(samples.iter().map(|s| s.incidence_deg)),
+        f64s(samples.iter().map(|s| s.emission_deg)),
+        f64s(samples.iter().map(|s| s.phase_deg)),
+        strings(samples.iter().map(|s| s.acq_time.as_str())),
+        strings(samples.iter().map(|s| s.provenance.as_str())),
+    ];
+    Ok(RecordBatch::try_new(sample_schema(), columns)?)
+}
+
+fn column<'a, T: 'static>(batch: &'a RecordBatch, name: &'static str) -> Result<&'a T, SchemaError> {
+    batch.column_by_name(name).and_then(|c| c.as_any().downcast_ref::<T>()).ok_or(SchemaError::Column(name))
+}
+
+fn list_values<'a, T: 'static>(batch: &'a RecordBatch, name: &'static str) -> Result<(&'a T, usize), SchemaError> {
+    let list: &FixedSizeListArray = column(batch, name)?;
+    let values = list.values().as_any().downcast_ref::<T>().ok_or(SchemaError::Column(name))?;
+    Ok((values, list.value_length() as usize))
+}
+
+/// Decode a record batch back into samples.
+pub fn batch_to_samples(batch: &RecordBatch) -> Result<Vec<Sample>, SchemaError> {
+    let s = |name| column::<StringArray>(batch, name);
+    let f = |name| column::<Float64Array>(batch, name);
+    let (sample_id, split, tile_id, ortho_id, acq_time, provenance) =
+        (s("sample_id")?, s("split")?, s("tile_id")?, s("ortho_id")?, s("acq_time")?, s("provenance")?);
+    let (cx, cy, clon, clat) = (f("center_x")?, f("center_y")?, f("center_lon")?, f("center_lat")?);
+    let (fov, gsd, inc, emi, pha) = (f("fov_deg")?, f("gsd_m")?, f("incidence_deg")?, f("emission_deg")?, f("phase_deg")?);
+    let (foot, _) = list_values::<Float64Array>(batch, "footprint_lonlat")?;
+    let (dem, dem_len) = list_values::<Float32Array>(batch, "dem")?;
+    let (image, img_len) = list_values::<Float32Array>(batch, "image")?;
+    let (valid, valid_len) = list_values::<UInt8Array>(batch, "valid")?;
+    let (lit, lit_len) = list_values::<Float32Array>(batch, "sun_lit")?;
+    let (sun, _) = list_values::<Float64Array>(batch, "sun_dir_enu")?;
+    let (cam, _) = list_values::<Float64Array>(batch, "camera_pos_enu")?;
+    let (att, _) = list_values::<Float64Array>(batch, "camera_att")?;
+    check_len("dem", dem_len, DEM_PX * DEM_PX)?;
+    check_len("image", img_len, CROP_PX * CROP_PX)?;
+    check_len("valid", valid_len, CROP_PX * CROP_PX)?;
+    check_len("sun_lit", lit_len, CROP_PX * CROP_PX)?;
+    let arr = |a: &Float64Array, i: usize, n: usize| a.values()[i * n..(i + 1) * n].to_vec();
+    Ok((0..batch.num_rows())
+        .map(|i| Sample {
+            sample_id: sample_id.value(i).to_string(),
+            split: split.value(i).to_string(),
+            tile_id: tile_id.value(i).to_string(),
+            ortho_id: ortho_id.value(i).to_string(),
+            center_x_m: cx.value(i),
+            center_y_m: cy.value(i),
+            center_lon_deg: clon.value(i),
+            center_lat_deg: clat.value(i),
+            footprint_lonlat_deg: arr(foot, i, 8).try_into().expect("length checked by type"),
+            dem_m: dem.values()[i * dem_len..(i + 1) * dem_len].to_vec(),
+            image: image.values()[i * img_len..(i + 1) * img_len].to_vec(),
+            valid: valid.values()[i * valid_len..(i + 1) * valid_len].to_vec(),
+            sun_lit: lit.values()[i * lit_len..(i + 1) * lit_len].to_vec(),
+            sun_dir_enu: arr(sun, i, 3).try_into().expect("length checked by type"),
+            camera_pos_enu_m: arr(cam, i, 3).try_into().expect("length checked by type"),
+            camera_att: arr(att, i, 4).try_into().expect("length checked by type"),
+            fov_deg: fov.value(i),
+            gsd_m: gsd.value(i),
+            incidence_deg: inc.value(i),
+            emission_deg: emi.value(i),
+            phase_deg: pha.value(i),
+            acq_time: acq_time.value(i).to_string(),
+            provenance: provenance.value(i).to_string(),
+        })
+        .collect())
+}
+
+/// A human-readable table of the schema (for `g2r-dataset schema` and the dataset card).
+pub fn schema_markdown() -> String {
+    let schema = sample_schema();
+    let mut out = String::from("| column | type | unit | description |\n|---|---|---|---|\n");
+    for f in schema.fields() {
+        let md = f.metadata();
+        out.push_str(&format!(
+            "| `{}` | {} | {} | {} |\n",
+            f.name(),
+            f.data_type(),
+            md.get("unit").map(String::as_str).unwrap_or(""),
+            md.get("description").map(String::as_str).unwrap_or("")
+        ));
+    }
+    out
+}

@@ -1,0 +1,212 @@
+//! Parquet shard IO: float tensors with BYTE_STREAM_SPLIT + zstd, ~256-row row groups (one range read per random
+//! access), written under a temporary name and renamed when complete.
+
+use std::fs::File;
+use std::path::{Path, PathBuf};
+
+use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
+use parquet::arrow::{ArrowSchemaConverter, ArrowWriter};
+use parquet::basic::{Compression, Encoding, Type as PhysicalType, ZstdLevel};
+use parquet::file::properties::WriterProperties;
+
+use crate::manifest::{hash_file, ShardEntry};
+use crate::raster::tmp_path;
+use crate::schema::{batch_to_samples, sample_schema, samples_to_batch, Sample, SchemaError, FLOAT_TENSOR_COLUMNS, SCHEMA_VERSION};
+
+/// Rows per row group: ~256 samples ≈ 40 MB uncompressed, one HTTP range read for random access.
+pub const ROW_GROUP_ROWS: usize = 256;
+
+#[derive(Debug, thiserror::Error)]
+pub enum ShardError {
+    #[error("{path}: {source}")]
+    Io { path: PathBuf, source: std::io::Error },
+    #[error("{path}: Parquet error ({source}); the shard may be truncated: re-run the publish stage")]
+    Parquet { path: PathBuf, source: parquet::errors::ParquetError },
+    #[error("{path}: {source}")]
+    Schema { path: PathBuf, source: SchemaError },
+    #[error("{path}: written with schema {found}, this build reads {SCHEMA_VERSION}; rebuild the dataset or use a matching g2r version")]
+    SchemaVersion { path: PathBuf, found: String },
+}
+
+/// Writer properties: zstd everywhere, BYTE_STREAM_SPLIT (no dictionary) on the float tensor leaves.
+pub fn writer_properties() -> WriterProperties {
+    let schema = sample_schema();
+    let descriptor = ArrowSchemaConverter::new().convert(&schema).expect("the sample schema converts to Parquet");
+    let mut builder = WriterProperties::builder()
+        .set_compression(Compression::ZSTD(ZstdLevel::try_new(3).expect("valid zstd level")))
+        .set_max_row_group_row_count(Some(ROW_GROUP_ROWS))
+        .set_created_by(format!("g2r-dataset {} (schema {SCHEMA_VERSION})", env!("CARGO_PKG_VERSION")));
+    for column in descriptor.columns() {
+        let path = column.path().clone();
+        let is_tensor = FLOAT_TENSOR_COLUMNS.contains(&path.parts()[0].as_str());
+        if is_tensor && matches!(column.physical_type(), PhysicalType::FLOAT | PhysicalType::DOUBLE) {
+            builder = builder
+                .set_column_dictionary_enabled(path.clone(), false)
+                .set_column_encoding(path, Encoding::BYTE_STREAM_SPLIT);
+        }
+    }
+    builder.build()
+}
+
+/// Streams samples into one shard file; nothing at `path` until [`ShardWriter::finish`] succeeds.
+pub struct ShardWriter {
+    path: PathBuf,
+    tmp: PathBuf,
+    writer: ArrowWriter<File>,
+    rows: usize,
+}
+
+impl ShardWriter {
+    pub fn create(path: &Path) -> Result<Self, ShardError> {
+        let tmp = tmp_path(path);
+        let file = File::create(&tmp).map_err(|source| ShardError::Io { path: tmp.clone(), source })?;
+        let writer = ArrowWriter::try_new(file, sample_schema(), Some(writer_properties()))
+            .map_err(|source| ShardError::Parquet { path: path.to_path_buf(), source })?;
+        Ok(Self { path: path.to_path_buf(), tmp, writer, rows: 0 })
+    }
+
+    pub fn write(&mut self, samples: &[Sample]) -> Result<(), ShardError> {
+        let batch = samples_to_batch(samples).map_err(|source| ShardError::Schema { path: self.path.clone(), source })?;
+        self.writer.write(&batch).map_err(|source| ShardError::Parquet { path: self.path.clone(), source })?;
+        self.rows += samples.len();
+        Ok(())
+    }
+
+    /// Close, rename into place, and describe the finished shard (size, rows, row groups, blake3).
+    pub fn finish(self) -> Result<ShardEntry, ShardError> {
+        let metadata = self.writer.close().map_err(|source| ShardError::Parquet { path: self.path.clone(), source })?;
+        std::fs::rename(&self.tmp, &self.path).map_err(|source| ShardError::Io { path: self.path.clone(), source })?;
+        let bytes = std::fs::metadata(&self.path).map_err(|source| ShardError::Io { path: self.path.clone(), source })?.len();
+        let blake3 = hash_file(&self.path).map_err(|source| ShardError::Io { path: self.path.clone(), source })?;
+        Ok(ShardEntry {
+            path: self.path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default(),
+            bytes,
+            rows: self.rows as u64,
+            row_groups: metadata.num_row_groups() as u64,
+            blake3,
+        })
+    }
+}
+
+fn open_reader(path: &Path) -> Result<ParquetRecordBatchReaderBuilder<File>, ShardError> {
+    let file = File::open(path).map_err(|source| ShardError::Io { path: path.to_path_buf(), source })?;
+    let builder = ParquetRecordBatchReaderBuilder::try_new(file)
+        .map_err(|source| ShardError::Parquet { path: path.to_path_buf(), source })?;
+    let found = builder.schema().metadata().get("g2r.schema_version").cloned().unwrap_or_else(|| "none".into());
+    if found.split('.').next() != SCHEMA_VERSION.split('.').next() {
+        return Err(ShardError::SchemaVersion { path: path.to_path_buf(), found });
+    }
+    Ok(builder)
+}
+
+fn collect(path: &Path, builder: ParquetRecordBatchReaderBuilder<File>) -> Result<Vec<Sample>, ShardError> {
+    let reader = builder.build().map_err(|source| ShardError::Parquet { path: path.to_path_buf(), source })?;
+    let mut out = Vec::new();
+    for batch in reader {
+        let batch = batch.map_err(|e| ShardError::Parquet { path: path.to_path_buf(), source: e.into() })?;
+        out.extend(batch_to_samples(&batch).map_err(|source| ShardError::Schema { path: path.to_path_buf(), source })?);
+    }
+    Ok(out)
+}
+
+/// Read every sample of a shard.
+pub fn read_shard(path: &Path) -> Result<Vec<Sample>, ShardError> {
+    collect(path, open_reader(path)?)
+}
+
+/// Read one row group (random access reads only that group's column chunks).
+pub fn read_row_group(path: &Path, row_group: usize) -> Result<Vec<Sample>, ShardError> {
+    collect(path, open_reader(path)?.with_row_groups(vec![row_group]))
+}
+
+/// Row count per row group, from the footer only.
+pub fn row_group_sizes(path: &Path) -> Result<Vec<usize>, ShardError> {
+    let builder = open_reader(path)?;
+    Ok(builder.metadata().row_groups().iter().map(|rg| rg.num_rows() as usize).collect())
+}
+
+/// Shard file name for index `i` of `n` in a split: `{split}-{i:05}-of-{n:05}.parquet`.
+pub fn shard_name(split: &str, index: usize, count: usize) -> String {
+    format!("{split}-{index:05}-of-{count:05}.parquet")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::schema::{CROP_PX, DEM_PX};
+
+    pub(crate) fn synthetic_sample(i: usize) -> Sample {
+        let n = CROP_PX * CROP_PX;
+        Sample {
+            sample_id: format!("ortho_{i}:{}:{}", 100 + i, 200 + i),
+            split: "train".into(),
+            tile_id: "t_3_4".into(),
+            ortho_id: format!("ortho_{i}"),
+            center_x_m: 1000.0 + i as f64,
+            center_y_m: -1_300_000.0,
+            center_lon_deg: -11.2,
+            center_lat_deg: -43.3,
+            footprint_lonlat_deg: [0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0],
+            dem_m: (0..DEM_PX * DEM_PX).map(|k| (k as f32 * 0.01 + i as f32).sin() * 30.0 - 1500.0).collect(),
+            image: (0..n).map(|k| (k % 97) as f32 / 97.0).collect(),
+            valid: (0..n).map(|k| (k % 13 != 0) as u8).collect(),
+            sun_lit: (0..n).map(|k| ((k % 7) as f32 / 6.0).min(1.0)).collect(),
+            sun_dir_enu: [0.5, 0.0, 0.866],
+            camera_pos_enu_m: [10.0, -20.0, 50_000.0],
+            camera_att: [1.0, 0.0, 0.0, 0.0],
+            fov_deg: 2.85,
+            gsd_m: 5.0,
+            incidence_deg: 60.0,
+            emission_deg: 1.0,
+            phase_deg: 59.0,
+            acq_time: "2011-05-01T12:00:00Z".into(),
+            provenance: "test".into(),
+        }
+    }
+
+    #[test]
+    fn shard_roundtrip_with_row_groups_and_checksum() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join(shard_name("train", 0, 1));
+        let samples: Vec<Sample> = (0..300).map(synthetic_sample).collect();
+        let mut w = ShardWriter::create(&path).unwrap();
+        w.write(&samples[..100]).unwrap();
+        assert!(!path.exists(), "nothing finished-looking before finish()");
+        w.write(&samples[100..]).unwrap();
+        let entry = w.finish().unwrap();
+        assert_eq!((entry.rows, entry.row_groups), (300, 2));
+        assert_eq!(row_group_sizes(&path).unwrap(), vec![256, 44]);
+        assert_eq!(entry.blake3, hash_file(&path).unwrap());
+        assert_eq!(read_shard(&path).unwrap(), samples);
+        assert_eq!(read_row_group(&path, 1).unwrap(), samples[256..]);
+    }
+
+    #[test]
+    fn wrong_tensor_length_is_rejected() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut s = synthetic_sample(0);
+        s.image.pop();
+        let mut w = ShardWriter::create(&dir.path().join("x.parquet")).unwrap();
+        assert!(w.write(&[s]).unwrap_err().to_string().contains("image"));
+    }
+
+    #[test]
+    fn float_tensors_use_byte_stream_split() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("a.parquet");
+        let mut w = ShardWriter::create(&path).unwrap();
+        w.write(&[synthetic_sample(1)]).unwrap();
+        w.finish().unwrap();
+        let reader = parquet::file::reader::SerializedFileReader::new(File::open(&path).unwrap()).unwrap();
+        use parquet::file::reader::FileReader;
+        let rg = reader.metadata().row_group(0);
+        for col in rg.columns() {
+            let name = col.column_path().parts()[0].clone();
+            let encodings: Vec<Encoding> = col.encodings().collect();
+            if FLOAT_TENSOR_COLUMNS.contains(&name.as_str()) {
+                assert!(encodings.contains(&Encoding::BYTE_STREAM_SPLIT), "{name}: {encodings:?}");
+            }
+            assert!(matches!(col.compression(), Compression::ZSTD(_)), "{name}: {:?}", col.compression());
+        }
+    }
+}
