@@ -4,6 +4,7 @@
 //! convention) → [`geometry`] (normals, cosines, half/difference angles) → [`horizon`] (cast shadows, visibility)
 //! → [`brdf`] and [`hapke`] (photometry reference in f64) → [`schema`] → [`shard`] → [`manifest`].
 
+pub mod acquisition;
 pub mod brdf;
 pub mod crs;
 pub mod geometry;

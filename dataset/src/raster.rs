@@ -181,8 +181,14 @@ pub fn read_raster(path: &Path) -> Result<Raster, RasterError> {
 
 /// One band to write: its values (NaN = nodata) and a description QGIS shows as the band name.
 pub struct BandOut<'a> {
-    pub data: &'a [f32],
+    pub values: BandValues<'a>,
     pub description: &'a str,
+}
+
+/// Pixel values of a band: a full grid, or one value everywhere (written with a fill, no buffer).
+pub enum BandValues<'a> {
+    Grid(&'a [f32]),
+    Constant(f32),
 }
 
 /// Write a tiled, DEFLATE-compressed Float32 GeoTIFF with CRS, nodata and band descriptions.
@@ -212,13 +218,26 @@ pub fn write_geotiff(
             ds.set_metadata_item(key, value, "").map_err(gdal_err(path))?;
         }
         for (i, band_out) in bands.iter().enumerate() {
-            assert_eq!(band_out.data.len(), width * height, "band {i} of {} has the wrong size", path.display());
             let mut band = ds.rasterband(i + 1).map_err(gdal_err(path))?;
             band.set_no_data_value(Some(nodata as f64)).map_err(gdal_err(path))?;
             band.set_description(band_out.description).map_err(gdal_err(path))?;
-            let values: Vec<f32> = band_out.data.iter().map(|&v| if v.is_finite() { v } else { nodata }).collect();
-            let mut buffer = Buffer::new((width, height), values);
-            band.write((0, 0), (width, height), &mut buffer).map_err(gdal_err(path))?;
+            match band_out.values {
+                BandValues::Constant(v) => band.fill(v as f64, None).map_err(gdal_err(path))?,
+                BandValues::Grid(data) => {
+                    assert_eq!(data.len(), width * height, "band {i} of {} has the wrong size", path.display());
+                    // Write in strips of rows so a large raster never needs a second full-size copy.
+                    let strip = (4_000_000 / width.max(1)).max(1);
+                    for row0 in (0..height).step_by(strip) {
+                        let rows = strip.min(height - row0);
+                        let values: Vec<f32> = data[row0 * width..(row0 + rows) * width]
+                            .iter()
+                            .map(|&v| if v.is_finite() { v } else { nodata })
+                            .collect();
+                        let mut buffer = Buffer::new((width, rows), values);
+                        band.write((0, row0 as isize), (width, rows), &mut buffer).map_err(gdal_err(path))?;
+                    }
+                }
+            }
         }
         ds.close().map_err(gdal_err(path))?;
     }
@@ -234,7 +253,7 @@ pub fn write_raster(path: &Path, raster: &Raster, metadata: &[(&str, String)]) -
         &raster.transform,
         &raster.crs,
         raster.nodata,
-        &[BandOut { data: &raster.data, description: &raster.description }],
+        &[BandOut { values: BandValues::Grid(&raster.data), description: &raster.description }],
         metadata,
     )
 }

@@ -1,0 +1,158 @@
+//! World configuration, read from `manifests/world-*.toml` (every knob of the synthetic Moon lives there).
+
+use serde::{Deserialize, Serialize};
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct WorldConfig {
+    pub world: WorldExtent,
+    pub terrain: TerrainConfig,
+    pub complex_crater: Option<ComplexCraterConfig>,
+    pub reflectance: ReflectanceConfig,
+    pub acquisitions: AcquisitionConfig,
+    pub dem_product: DemProductConfig,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct WorldExtent {
+    pub name: String,
+    /// Scene centre, planetocentric degrees (the map CRS is equirectangular, true scale at this latitude).
+    pub center_lon_deg: f64,
+    pub center_lat_deg: f64,
+    pub width_m: f64,
+    pub height_m: f64,
+    /// Grid of the true (fine) DEM and reflectance maps.
+    pub fine_gsd_m: f64,
+    /// Grid of the delivered stereo-like DEM (an integer multiple of `fine_gsd_m`).
+    pub dem_gsd_m: f64,
+    /// Mean height of the scene above the 1737400 m sphere.
+    pub base_height_m: f64,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TerrainConfig {
+    pub hurst: f64,
+    /// Amplitude of the largest fBm octave, metres.
+    pub fbm_amplitude_m: f64,
+    pub fbm_largest_wavelength_m: f64,
+    pub crater_min_diameter_m: f64,
+    pub crater_max_diameter_m: f64,
+    /// Exponent of the cumulative size–frequency distribution N(>D) ∝ D^slope (≈ −2 near equilibrium).
+    pub sfd_cumulative_slope: f64,
+    /// N(>1 km) per km² (density scale of the SFD).
+    pub density_per_km2_above_1km: f64,
+    /// Rim-to-floor depth over diameter of a fresh simple crater.
+    pub depth_to_diameter: f64,
+    /// Rim height over diameter (0.036–0.043 for fresh simple craters).
+    pub rim_height_to_diameter: f64,
+    /// Diffusion length of the oldest craters, metres: craters much smaller than this are erased.
+    pub max_diffusion_length_m: f64,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ComplexCraterConfig {
+    pub diameter_m: f64,
+    /// Centre offset from the scene centre, metres (east, north).
+    pub offset_east_m: f64,
+    pub offset_north_m: f64,
+    pub depth_to_diameter: f64,
+    pub terraces: u32,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ReflectanceConfig {
+    pub w_mare: f64,
+    pub w_highland: f64,
+    /// Wavelength of the mare/highland mixing pattern, metres.
+    pub unit_wavelength_m: f64,
+    /// Relative brightening of fresh ejecta and rims (0.2–1.0 = +20–100 %).
+    pub fresh_brightening: f64,
+    /// Relative brightening of slopes steeper than `steep_slope_deg`.
+    pub steep_brightening: f64,
+    pub steep_slope_deg: f64,
+    /// Relative darkening of impact-melt floors.
+    pub melt_darkening: f64,
+    /// Amplitude of the albedo component no DEM can predict (0.05–0.10).
+    pub independent_variation: f64,
+    pub independent_wavelength_m: f64,
+    pub b: f64,
+    pub c: f64,
+    pub b_s0: f64,
+    pub h_s: f64,
+    pub theta_bar_deg: f64,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AcquisitionConfig {
+    pub count: usize,
+    pub ortho_gsd_m: f64,
+    pub strip_width_m: f64,
+    /// Strip length as a fraction of the scene height (strips run roughly north–south, like polar-orbit NACs).
+    pub strip_length_fraction: f64,
+    pub max_heading_deg: f64,
+    pub incidence_min_deg: f64,
+    pub incidence_max_deg: f64,
+    /// Share of slewed (off-nadir) acquisitions and their roll range.
+    pub slewed_fraction: f64,
+    pub slew_min_deg: f64,
+    pub slew_max_deg: f64,
+    pub altitude_m: f64,
+    /// Amplitude of the irregular nodata border, metres.
+    pub border_roughness_m: f64,
+    /// Relative (shot-like) and absolute (read) noise, I/F units.
+    pub noise_relative: f64,
+    pub noise_absolute: f64,
+    /// Elevation samples across the sun's disk for soft shadows.
+    pub sun_disk_samples: usize,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DemProductConfig {
+    /// Gaussian smoothing of the stereo product, in DEM pixels.
+    pub smoothing_sigma_px: f64,
+    pub noise_m: f64,
+    /// Long-wavelength stereo error amplitude, metres.
+    pub correlated_error_m: f64,
+    pub correlated_error_wavelength_m: f64,
+    /// Matching blunders (pits/spikes) and nodata holes.
+    pub blunders: usize,
+    pub holes: usize,
+}
+
+/// Built-in presets: the manifests shipped in `manifests/`, embedded so the binary works from anywhere.
+pub fn preset(name: &str) -> Option<&'static str> {
+    match name {
+        "demo" => Some(include_str!("../../../manifests/world-demo.toml")),
+        "tycho-full" => Some(include_str!("../../../manifests/world-tycho-full.toml")),
+        _ => None,
+    }
+}
+
+impl WorldConfig {
+    pub fn from_toml(text: &str) -> Result<Self, toml::de::Error> {
+        toml::from_str(text)
+    }
+
+    /// Reject configurations the generator can't honour, with the field to fix.
+    pub fn validate(&self) -> Result<(), String> {
+        let w = &self.world;
+        let ratio = w.dem_gsd_m / w.fine_gsd_m;
+        if (ratio - ratio.round()).abs() > 1e-9 || ratio < 1.0 {
+            return Err(format!("world.dem_gsd_m ({}) must be an integer multiple of world.fine_gsd_m ({})", w.dem_gsd_m, w.fine_gsd_m));
+        }
+        if self.terrain.crater_min_diameter_m < 4.0 * w.fine_gsd_m {
+            return Err("terrain.crater_min_diameter_m must be at least 4 fine pixels".into());
+        }
+        let a = &self.acquisitions;
+        if !(0.0..90.0).contains(&a.incidence_min_deg) || a.incidence_max_deg >= 90.0 || a.incidence_min_deg > a.incidence_max_deg {
+            return Err("acquisitions.incidence_min_deg..incidence_max_deg must lie in [0, 90) (sun above the horizon)".into());
+        }
+        Ok(())
+    }
+}
