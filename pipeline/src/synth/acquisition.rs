@@ -39,8 +39,16 @@ impl Strip {
         let rel = DVec2::new(x, y) - self.start_map;
         let u = rel.dot(self.axis);
         let v = rel.perp_dot(self.axis); // cross-track, positive to the left of the axis
-        let wobble = |t: f64, lane: u64| self.border_roughness_m * gradient_noise(t / 400.0, lane as f64 * 7.3, self.border_key.wrapping_add(lane));
         let half = self.width_m / 2.0;
+        // Gradient noise stays within ±1.5 (tested), so pixels this far from every border are inside outright.
+        let sure = 1.5 * self.border_roughness_m;
+        if u > sure && u < self.length_m - sure && v.abs() < half - sure {
+            return true;
+        }
+        if u < -sure || u > self.length_m + sure || v.abs() > half + sure {
+            return false;
+        }
+        let wobble = |t: f64, lane: u64| self.border_roughness_m * gradient_noise(t / 400.0, lane as f64 * 7.3, self.border_key.wrapping_add(lane));
         u > wobble(v, 1) && u < self.length_m + wobble(v, 2) && v > -half + wobble(u, 3) && v < half + wobble(u, 4)
     }
 }
@@ -65,8 +73,11 @@ fn plan_one(cfg: &AcquisitionConfig, scene: &Grid, crs: &LunarCrs, base_height_m
     let start_map = center - axis * (length_m / 2.0);
     let stop_map = center + axis * (length_m / 2.0);
 
-    // Sun: incidence uniform in range, azimuth from the east or west (morning/evening) ± 40°.
-    let incidence_deg = rng.random_range(cfg.incidence_min_deg..=cfg.incidence_max_deg);
+    // Sun: incidence stratified over the range (bin = a fixed permutation of k, jittered within the bin) so every
+    // world has both low-sun and high-sun images; azimuth from the east or west (morning/evening) ± 40°.
+    let bin = (k * 7 + 3) % cfg.count;
+    let bin_width = (cfg.incidence_max_deg - cfg.incidence_min_deg) / cfg.count as f64;
+    let incidence_deg = cfg.incidence_min_deg + bin_width * (bin as f64 + rng.random_range(0.0..1.0));
     let from_east = rng.random::<bool>();
     let azimuth_deg: f64 = if from_east { 90.0 } else { 270.0 } + rng.random_range(-40.0..40.0); // clockwise from north
     let frame = LocalFrame::new(crs, cx, cy, base_height_m).expect("scene CRS is valid");
