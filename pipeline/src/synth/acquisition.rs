@@ -55,10 +55,13 @@ impl Strip {
 
 /// Plan `cfg.count` strips over the scene `scene` (map grid of the world).
 pub fn plan(cfg: &AcquisitionConfig, scene: &Grid, crs: &LunarCrs, base_height_m: f64, seed: u64) -> Vec<Strip> {
-    (0..cfg.count).map(|k| plan_one(cfg, scene, crs, base_height_m, seed, k)).collect()
+    use rand::seq::SliceRandom;
+    let mut incidence_bins: Vec<usize> = (0..cfg.count).collect();
+    incidence_bins.shuffle(&mut keyed_rng(seed, "incidence-bins", 0));
+    (0..cfg.count).map(|k| plan_one(cfg, scene, crs, base_height_m, seed, k, incidence_bins[k])).collect()
 }
 
-fn plan_one(cfg: &AcquisitionConfig, scene: &Grid, crs: &LunarCrs, base_height_m: f64, seed: u64, k: usize) -> Strip {
+fn plan_one(cfg: &AcquisitionConfig, scene: &Grid, crs: &LunarCrs, base_height_m: f64, seed: u64, k: usize, bin: usize) -> Strip {
     let mut rng = keyed_rng(seed, "acquisition", k as u64);
     let scene_w = scene.max_x() - scene.min_x;
     let scene_h = scene.max_y - scene.min_y();
@@ -73,9 +76,8 @@ fn plan_one(cfg: &AcquisitionConfig, scene: &Grid, crs: &LunarCrs, base_height_m
     let start_map = center - axis * (length_m / 2.0);
     let stop_map = center + axis * (length_m / 2.0);
 
-    // Sun: incidence stratified over the range (bin = a fixed permutation of k, jittered within the bin) so every
+    // Sun: incidence stratified over the range (a keyed shuffle of equal bins, jittered within the bin) so every
     // world has both low-sun and high-sun images; azimuth from the east or west (morning/evening) ± 40°.
-    let bin = (k * 7 + 3) % cfg.count;
     let bin_width = (cfg.incidence_max_deg - cfg.incidence_min_deg) / cfg.count as f64;
     let incidence_deg = cfg.incidence_min_deg + bin_width * (bin as f64 + rng.random_range(0.0..1.0));
     let from_east = rng.random::<bool>();

@@ -1,0 +1,70 @@
+//! A shard written by `dataset` reads back with pyarrow and no custom code (pip install pyarrow).
+
+use std::process::Command;
+
+use dataset::schema::{Sample, CROP_PX, DEM_PX};
+use dataset::shard::ShardWriter;
+
+fn sample(i: usize) -> Sample {
+    let n = CROP_PX * CROP_PX;
+    Sample {
+        sample_id: format!("M0000001:{i}:7"),
+        split: if i % 2 == 0 { "train".into() } else { "val".into() },
+        tile_id: "t_0_0".into(),
+        ortho_id: "M0000001".into(),
+        center_x_m: i as f64 * 5.0,
+        center_y_m: -1_300_000.0,
+        center_lon_deg: -11.3,
+        center_lat_deg: -43.3,
+        footprint_lonlat_deg: [0.0; 8],
+        dem_m: (0..DEM_PX * DEM_PX).map(|k| k as f32 * 0.5 - 1200.0).collect(),
+        image: (0..n).map(|k| (k + i) as f32 / n as f32).collect(),
+        valid: (0..n).map(|k| (k % 5 != 0) as u8).collect(),
+        sun_lit: vec![1.0; n],
+        sun_dir_enu: [0.6, 0.0, 0.8],
+        camera_pos_enu_m: [0.0, 10.0, 50_000.0],
+        camera_att: [1.0, 0.0, 0.0, 0.0],
+        fov_deg: 2.85,
+        gsd_m: 5.0,
+        incidence_deg: 36.87,
+        emission_deg: 0.01,
+        phase_deg: 36.86,
+        acq_time: "2010-01-01T00:00:00.000Z".into(),
+        provenance: "interop-test".into(),
+    }
+}
+
+#[test]
+fn shard_reads_back_with_pyarrow_without_custom_code() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join(dataset::shard::shard_name("train", 0, 1));
+    let mut writer = ShardWriter::create(&path).unwrap();
+    writer.write(&(0..300).map(sample).collect::<Vec<_>>()).unwrap();
+    writer.finish().unwrap();
+    let script = r#"
+import sys, pyarrow.parquet as pq
+f = pq.ParquetFile(sys.argv[1])
+t = pq.read_table(sys.argv[1])
+assert t.num_rows == 300, t.num_rows
+assert f.metadata.num_row_groups == 2, f.metadata.num_row_groups
+assert f.schema_arrow.metadata[b"g2r.schema_version"] == b"1.0.0", f.schema_arrow.metadata
+dem = t.column("dem")[3].values.to_numpy()
+assert dem.shape == (130 * 130,), dem.shape
+assert abs(float(dem[10]) - (10 * 0.5 - 1200.0)) < 1e-6
+img = t.column("image")[7].values.to_numpy().reshape(128, 128)
+assert abs(float(img[0, 5]) - (5 + 7) / 16384) < 1e-7
+assert t.column("valid")[0].values.to_numpy().sum() == 16384 - 16384 // 5 - 1
+assert t.column("split").to_pylist()[:2] == ["train", "val"]
+assert t.schema.field("dem").metadata[b"unit"] == b"m"
+encodings = f.metadata.row_group(0).column(t.schema.get_field_index("dem")).encodings
+print("ok", encodings)
+"#;
+    let output = Command::new("python3").arg("-c").arg(script).arg(&path).output().expect("python3 must be installed (see README)");
+    assert!(
+        output.status.success(),
+        "pyarrow could not read the shard (install it with `pip install pyarrow`):\n{}{}",
+        String::from_utf8_lossy(&output.stdout),
+        String::from_utf8_lossy(&output.stderr)
+    );
+    assert!(String::from_utf8_lossy(&output.stdout).contains("BYTE_STREAM_SPLIT"), "{}", String::from_utf8_lossy(&output.stdout));
+}
