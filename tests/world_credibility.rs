@@ -174,12 +174,15 @@ fn brightness_correlates_with_but_is_not_determined_by_dem_features() {
         }
         let r2 = r_squared(&rows);
         println!("{id}: incidence {:.1}°, R² of I/F ~ 1 + LS + cos i on the delivered DEM = {r2:.3} ({} cells)", ortho["incidence_deg"].as_f64().unwrap(), rows.len());
-        r2s.push(r2);
+        r2s.push((ortho["incidence_deg"].as_f64().unwrap(), r2));
     }
-    let mean = r2s.iter().sum::<f64>() / r2s.len() as f64;
+    let mean = r2s.iter().map(|r| r.1).sum::<f64>() / r2s.len() as f64;
     println!("mean R² over {} orthos: {mean:.3}", r2s.len());
-    // Correlated (geometry explains a good share) but not determined (albedo, shadows, DEM error remain).
-    assert!(r2s.iter().all(|&r| (0.1..0.9).contains(&r)), "R² values {r2s:?}");
+    // Not determined: albedo variation, cast shadows, DEM error and noise always leave a share unexplained.
+    assert!(r2s.iter().all(|&(_, r)| r < 0.9), "R² (incidence, R²) {r2s:?}");
+    // Correlated where topography dominates: under a low sun (i > 50°) shading by slopes is strong. Under a high
+    // sun shading is weak and albedo dominates, so R² there is low — as on the real Moon near full phase.
+    assert!(r2s.iter().filter(|(i, _)| *i > 50.0).all(|&(_, r)| r > 0.3), "R² (incidence, R²) {r2s:?}");
     assert!((0.25..0.85).contains(&mean), "mean R² {mean}");
 }
 
