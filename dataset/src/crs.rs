@@ -12,9 +12,6 @@ use proj::Proj;
 /// IAU 2015 mean radius of the Moon, the sphere every lunar CRS here must use.
 pub const MOON_RADIUS_M: f64 = 1_737_400.0;
 
-/// Geographic lunar CRS used as the target of every map-to-lon/lat conversion.
-const LUNAR_LONLAT: &str = "+proj=longlat +R=1737400 +no_defs +type=crs";
-
 #[derive(Debug, thiserror::Error)]
 pub enum CrsError {
     #[error("CRS '{definition}' is not understood by PROJ ({reason}): use an IAU_2015 code or a '+proj=... +R=1737400' string")]
@@ -39,10 +36,17 @@ impl LunarCrs {
         Self { definition: definition.into() }
     }
 
-    /// Equirectangular projection with true scale at `lat_ts_deg`, centred on `lon0_deg` (as LROC NAC DTMs use).
+    /// Equirectangular projection on the lunar sphere with true scale at `lat_ts_deg`, centred on `lon0_deg`
+    /// (as LROC NAC DTMs use). Written as named WKT so GIS tools show a lunar CRS, not "unknown".
     pub fn equirectangular(lat_ts_deg: f64, lon0_deg: f64) -> Self {
         Self::new(format!(
-            "+proj=eqc +lat_ts={lat_ts_deg} +lat_0=0 +lon_0={lon0_deg} +x_0=0 +y_0=0 +R={MOON_RADIUS_M} +units=m +no_defs +type=crs"
+            "PROJCS[\"Moon2015 Equirectangular lat_ts={lat_ts_deg} lon_0={lon0_deg}\",\
+GEOGCS[\"Moon (2015) - Sphere / Ocentric\",DATUM[\"Moon (2015) - Sphere\",\
+SPHEROID[\"Moon (2015) - Sphere\",{MOON_RADIUS_M},0]],PRIMEM[\"Reference Meridian\",0],\
+UNIT[\"degree\",0.0174532925199433]],PROJECTION[\"Equirectangular\"],\
+PARAMETER[\"standard_parallel_1\",{lat_ts_deg}],PARAMETER[\"central_meridian\",{lon0_deg}],\
+PARAMETER[\"false_easting\",0],PARAMETER[\"false_northing\",0],UNIT[\"metre\",1],\
+AXIS[\"Easting\",EAST],AXIS[\"Northing\",NORTH]]"
         ))
     }
 
@@ -52,9 +56,16 @@ impl LunarCrs {
             if let Some((_, proj)) = cache.iter().find(|(d, _)| d == &self.definition) {
                 return f(proj);
             }
-            let proj = Proj::new_known_crs(&self.definition, LUNAR_LONLAT, None).map_err(|e| {
-                CrsError::Unparseable { definition: self.definition.clone(), reason: e.to_string() }
-            })?;
+            let unparseable = |reason: String| CrsError::Unparseable { definition: self.definition.clone(), reason };
+            // Any definition (IAU code, WKT, proj string) → its map projection as a PROJ.4 string. Using the bare
+            // projection (forward/inverse) rather than a CRS-to-CRS transform avoids PROJ's datum matching, which
+            // refuses a named lunar datum against an anonymous sphere of the same radius.
+            let srs = gdal::spatial_ref::SpatialRef::from_definition(&self.definition).map_err(|e| unparseable(e.to_string()))?;
+            let proj4 = srs.to_proj4().map_err(|e| unparseable(e.to_string()))?.replace("+type=crs", "");
+            if !proj4.contains("+R=1737400") && !proj4.contains("+a=1737400") {
+                return Err(unparseable(format!("not on the lunar sphere: {}", proj4.trim())));
+            }
+            let proj = Proj::new(proj4.trim()).map_err(|e| unparseable(e.to_string()))?;
             let out = f(&proj);
             cache.push((self.definition.clone(), proj));
             out
@@ -64,19 +75,20 @@ impl LunarCrs {
     /// Map metres → (longitude, latitude) in degrees, planetocentric.
     pub fn to_lonlat_deg(&self, x: f64, y: f64) -> Result<(f64, f64), CrsError> {
         self.with_proj(|proj| {
-            proj.convert((x, y)).map_err(|e| CrsError::Conversion {
+            let (lon, lat) = proj.project((x, y), true).map_err(|e| CrsError::Conversion {
                 definition: self.definition.clone(),
                 x,
                 y,
                 reason: e.to_string(),
-            })
+            })?;
+            Ok((lon.to_degrees(), lat.to_degrees()))
         })
     }
 
     /// (longitude, latitude) in degrees → map metres.
     pub fn from_lonlat_deg(&self, lon_deg: f64, lat_deg: f64) -> Result<(f64, f64), CrsError> {
         self.with_proj(|proj| {
-            proj.project((lon_deg, lat_deg), true).map_err(|e| CrsError::Conversion {
+            proj.project((lon_deg.to_radians(), lat_deg.to_radians()), false).map_err(|e| CrsError::Conversion {
                 definition: self.definition.clone(),
                 x: lon_deg,
                 y: lat_deg,
@@ -289,8 +301,30 @@ mod tests {
     }
 
     #[test]
+    fn named_wkt_equals_the_proj_string_definition() {
+        let wkt = tycho_crs();
+        let proj_string = LunarCrs::new(format!("+proj=eqc +lat_ts=-43.3 +lat_0=0 +lon_0=-11.2 +R={MOON_RADIUS_M} +units=m +no_defs +type=crs"));
+        for (x, y) in [(0.0, -1_313_000.0), (12_345.0, -1_300_000.0), (-40_000.0, -1_350_000.0)] {
+            let (a, b) = (wkt.to_lonlat_deg(x, y).unwrap(), proj_string.to_lonlat_deg(x, y).unwrap());
+            assert!((a.0 - b.0).abs() < 1e-12 && (a.1 - b.1).abs() < 1e-12, "{a:?} vs {b:?}");
+        }
+    }
+
+    #[test]
+    fn iau_2015_codes_work_like_real_lunar_products() {
+        // IAU_2015:30110 is the Moon 2015 sphere, equirectangular at lon_0 = 0: x = R·λ, y = R·φ.
+        let crs = LunarCrs::new("IAU_2015:30110");
+        let (x, y) = crs.from_lonlat_deg(-11.36, -43.31).unwrap();
+        let k = MOON_RADIUS_M * std::f64::consts::PI / 180.0;
+        assert!((x - (-11.36 * k)).abs() < 1e-6 && (y - (-43.31 * k)).abs() < 1e-6, "{x} {y}");
+    }
+
+    #[test]
     fn bad_crs_is_a_clear_error() {
         let err = LunarCrs::new("+proj=nonsense").validate().unwrap_err();
         assert!(err.to_string().contains("IAU_2015"), "{err}");
+        // An Earth CRS is refused: never assume Earth ellipsoids.
+        let err = LunarCrs::new("EPSG:32633").validate().unwrap_err();
+        assert!(err.to_string().contains("lunar sphere"), "{err}");
     }
 }
