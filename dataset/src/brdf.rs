@@ -132,6 +132,39 @@ mod tests {
         assert_eq!(f, 4.0);
     }
 
+    use proptest::prelude::*;
+
+    /// Unit vectors including the degenerate alignments: zenith, horizon, exact opposites, tiny offsets.
+    fn hard_unit() -> impl Strategy<Value = DVec3> {
+        prop_oneof![
+            Just(DVec3::Z),
+            Just(DVec3::X),
+            Just(-DVec3::Z),
+            Just(DVec3::new(1e-9, 0.0, 1.0).normalize()),
+            Just(DVec3::new(1.0, 0.0, 1e-12).normalize()),
+            (-1.0f64..1.0, -1.0f64..1.0, -1.0f64..1.0).prop_filter_map("non-zero", |(x, y, z)| {
+                let v = DVec3::new(x, y, z);
+                (v.length() > 1e-3).then(|| v.normalize())
+            }),
+        ]
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(3000))]
+        #[test]
+        fn every_model_is_finite_on_hard_geometries(n in hard_unit(), s in hard_unit(), v in hard_unit(), p in prop::collection::vec(-10.0f64..10.0, 4)) {
+            let c = Cosines::new(n, s, v);
+            let hd = HalfDiffCosines::new(n, s, v);
+            for cos in [hd.cos_theta_h, hd.cos_theta_d, hd.cos_phi_h, hd.cos_phi_d] {
+                prop_assert!(cos.is_finite() && (-1.0..=1.0).contains(&cos), "{hd:?}");
+            }
+            for m in BrdfModel::ALL {
+                let f = m.evaluate(&p[..m.param_count()], &c, &hd);
+                prop_assert!(f.is_finite(), "{m:?} gives {f} at n={n:?} s={s:?} v={v:?}");
+            }
+        }
+    }
+
     #[test]
     fn parse_model_names() {
         assert_eq!("M3".parse::<BrdfModel>().unwrap(), BrdfModel::M3);

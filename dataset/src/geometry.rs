@@ -204,6 +204,30 @@ mod tests {
     }
 
     #[test]
+    fn sun_and_camera_vectors_from_body_fixed_positions() {
+        // A crop at Tycho; the sun placed 1 AU away at incidence 60° toward local east, the spacecraft 50 km
+        // above a point 5 km north: expect i = 60° on flat ground and a view vector tilted 5.7° toward north.
+        let crs = LunarCrs::equirectangular(-43.31, -11.36);
+        let (x, y) = crs.from_lonlat_deg(-11.36, -43.31).unwrap();
+        let frame = LocalFrame::new(&crs, x, y, -1200.0).unwrap();
+        let toward_sun = DVec3::new(deg(60.0).sin(), 0.0, deg(60.0).cos());
+        let sun_body = frame.origin_body + frame.body_to_enu.transpose() * toward_sun * 1.496e11;
+        let s = frame.sun_dir_enu(sun_body);
+        assert!((s - toward_sun).length() < 1e-9);
+        let camera_body = crs.body_fixed(x, y + 5000.0, -1200.0 + 50_000.0).unwrap();
+        let v = frame.body_point_to_enu(camera_body).normalize();
+        let c = Cosines::new(DVec3::Z, s, v);
+        assert!((c.cos_i - 0.5).abs() < 1e-9);
+        // Exact on the sphere: the equirectangular y offset of 5 km is an arc θ = 5000/R; the camera sits at radius
+        // Rc = R − 1200 + 50 000 above it, the crop at R0 = R − 1200. (Flat-Earth atan(0.1) would be 0.16° off.)
+        let theta = 5000.0 / crate::crs::MOON_RADIUS_M;
+        let (rc, r0) = (crate::crs::MOON_RADIUS_M + 48_800.0, crate::crs::MOON_RADIUS_M - 1200.0);
+        let expected = (rc * theta.sin()).atan2(rc * theta.cos() - r0);
+        assert!((c.cos_e - expected.cos()).abs() < 1e-9, "cos e {} vs {}", c.cos_e, expected.cos());
+        assert!(v.y > 0.0 && v.x.abs() < 1e-6, "camera is due north: {v:?}");
+    }
+
+    #[test]
     fn half_diff_angles_reduce_correctly() {
         // Specular configuration: s and v mirror each other about n → θh = 0, θd = i.
         let n = DVec3::Z;
