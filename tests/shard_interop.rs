@@ -9,7 +9,11 @@ fn sample(i: usize) -> Sample {
     let n = CROP_PX * CROP_PX;
     Sample {
         sample_id: format!("M0000001:{i}:7"),
-        split: if i % 2 == 0 { "train".into() } else { "val".into() },
+        split: if i % 2 == 0 {
+            "train".into()
+        } else {
+            "val".into()
+        },
         tile_id: "t_0_0".into(),
         ortho_id: "M0000001".into(),
         center_x_m: i as f64 * 5.0,
@@ -17,7 +21,9 @@ fn sample(i: usize) -> Sample {
         center_lon_deg: -11.3,
         center_lat_deg: -43.3,
         footprint_lonlat_deg: [0.0; 8],
-        dem_m: (0..DEM_PX * DEM_PX).map(|k| k as f32 * 0.5 - 1200.0).collect(),
+        dem_m: (0..DEM_PX * DEM_PX)
+            .map(|k| k as f32 * 0.5 - 1200.0)
+            .collect(),
         image: (0..n).map(|k| (k + i) as f32 / n as f32).collect(),
         valid: (0..n).map(|k| (k % 5 != 0) as u8).collect(),
         sun_lit: vec![1.0; n],
@@ -52,7 +58,9 @@ fn shard_reads_back_with_pyarrow_without_custom_code() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join(dataset::shard::shard_name("train", 0, 1));
     let mut writer = ShardWriter::create(&path).unwrap();
-    writer.write(&(0..300).map(sample).collect::<Vec<_>>()).unwrap();
+    writer
+        .write(&(0..300).map(sample).collect::<Vec<_>>())
+        .unwrap();
     writer.finish().unwrap();
     let script = r#"
 import sys, pyarrow.parquet as pq
@@ -72,12 +80,21 @@ assert t.schema.field("dem").metadata[b"unit"] == b"m"
 encodings = f.metadata.row_group(0).column(t.schema.get_field_index("dem")).encodings
 print("ok", encodings)
 "#;
-    let output = Command::new(python()).arg("-c").arg(script).arg(&path).output().expect("python3 must be installed: run `bash .ci/setup`");
+    let output = Command::new(python())
+        .arg("-c")
+        .arg(script)
+        .arg(&path)
+        .output()
+        .expect("python3 must be installed: run `bash .ci/setup`");
     assert!(
         output.status.success(),
         "pyarrow could not read the shard (run `bash .ci/setup`, which puts pyarrow in .venv):\n{}{}",
         String::from_utf8_lossy(&output.stdout),
         String::from_utf8_lossy(&output.stderr)
     );
-    assert!(String::from_utf8_lossy(&output.stdout).contains("BYTE_STREAM_SPLIT"), "{}", String::from_utf8_lossy(&output.stdout));
+    assert!(
+        String::from_utf8_lossy(&output.stdout).contains("BYTE_STREAM_SPLIT"),
+        "{}",
+        String::from_utf8_lossy(&output.stdout)
+    );
 }

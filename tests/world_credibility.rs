@@ -15,13 +15,17 @@ fn demo_world() -> &'static Path {
     static WORLD: OnceLock<PathBuf> = OnceLock::new();
     WORLD.get_or_init(|| {
         let out = Path::new(env!("CARGO_TARGET_TMPDIR")).join("demo-world-seed42");
-        let config = pipeline::synth::WorldConfig::from_toml(pipeline::synth::config::preset("demo").unwrap()).unwrap();
+        let config = pipeline::synth::WorldConfig::from_toml(
+            pipeline::synth::config::preset("demo").unwrap(),
+        )
+        .unwrap();
         pipeline::synth::generate(&config, 42, &out, true).expect("demo world generates")
     })
 }
 
 fn world_json() -> Value {
-    serde_json::from_str(&std::fs::read_to_string(demo_world().join("world.json")).unwrap()).unwrap()
+    serde_json::from_str(&std::fs::read_to_string(demo_world().join("world.json")).unwrap())
+        .unwrap()
 }
 
 fn crs() -> LunarCrs {
@@ -31,10 +35,25 @@ fn crs() -> LunarCrs {
 #[test]
 fn crater_size_frequency_slope_matches_configuration() {
     let world = world_json();
-    let configured = world["config"]["terrain"]["sfd_cumulative_slope"].as_f64().unwrap();
-    let (d_min, d_max) = (world["config"]["terrain"]["crater_min_diameter_m"].as_f64().unwrap(), world["config"]["terrain"]["crater_max_diameter_m"].as_f64().unwrap());
-    let craters: Vec<Value> = serde_json::from_str(&std::fs::read_to_string(demo_world().join("truth/craters.json")).unwrap()).unwrap();
-    let mut diameters: Vec<f64> = craters.iter().map(|c| c["diameter_m"].as_f64().unwrap()).collect();
+    let configured = world["config"]["terrain"]["sfd_cumulative_slope"]
+        .as_f64()
+        .unwrap();
+    let (d_min, d_max) = (
+        world["config"]["terrain"]["crater_min_diameter_m"]
+            .as_f64()
+            .unwrap(),
+        world["config"]["terrain"]["crater_max_diameter_m"]
+            .as_f64()
+            .unwrap(),
+    );
+    let craters: Vec<Value> = serde_json::from_str(
+        &std::fs::read_to_string(demo_world().join("truth/craters.json")).unwrap(),
+    )
+    .unwrap();
+    let mut diameters: Vec<f64> = craters
+        .iter()
+        .map(|c| c["diameter_m"].as_f64().unwrap())
+        .collect();
     diameters.sort_by(|a, b| b.total_cmp(a));
     // Least squares of ln N(>D) on ln D, away from the truncation at both ends.
     let points: Vec<(f64, f64)> = diameters
@@ -44,51 +63,108 @@ fn crater_size_frequency_slope_matches_configuration() {
         .map(|(k, &d)| (d.ln(), ((k + 1) as f64).ln()))
         .collect();
     let n = points.len() as f64;
-    let (mx, my) = (points.iter().map(|p| p.0).sum::<f64>() / n, points.iter().map(|p| p.1).sum::<f64>() / n);
-    let slope = points.iter().map(|p| (p.0 - mx) * (p.1 - my)).sum::<f64>() / points.iter().map(|p| (p.0 - mx).powi(2)).sum::<f64>();
-    println!("fitted cumulative SFD slope {slope:.3} (configured {configured}) over {} craters", points.len());
-    assert!((slope - configured).abs() <= 0.15, "fitted slope {slope} vs configured {configured}");
+    let (mx, my) = (
+        points.iter().map(|p| p.0).sum::<f64>() / n,
+        points.iter().map(|p| p.1).sum::<f64>() / n,
+    );
+    let slope = points.iter().map(|p| (p.0 - mx) * (p.1 - my)).sum::<f64>()
+        / points.iter().map(|p| (p.0 - mx).powi(2)).sum::<f64>();
+    println!(
+        "fitted cumulative SFD slope {slope:.3} (configured {configured}) over {} craters",
+        points.len()
+    );
+    assert!(
+        (slope - configured).abs() <= 0.15,
+        "fitted slope {slope} vs configured {configured}"
+    );
 }
 
 #[test]
 fn fresh_craters_have_lunar_depth_to_diameter() {
     let world = world_json();
     let dem = read_raster(&demo_world().join("truth/dem_true.tif")).unwrap();
-    let craters: Vec<Value> = serde_json::from_str(&std::fs::read_to_string(demo_world().join("truth/craters.json")).unwrap()).unwrap();
+    let craters: Vec<Value> = serde_json::from_str(
+        &std::fs::read_to_string(demo_world().join("truth/craters.json")).unwrap(),
+    )
+    .unwrap();
     let cc = &world["config"]["complex_crater"];
     let crs = crs();
-    let (cx, cy) = crs.from_lonlat_deg(world["config"]["world"]["center_lon_deg"].as_f64().unwrap(), world["config"]["world"]["center_lat_deg"].as_f64().unwrap()).unwrap();
-    let (ccx, ccy, cc_r) = (cx + cc["offset_east_m"].as_f64().unwrap(), cy + cc["offset_north_m"].as_f64().unwrap(), cc["diameter_m"].as_f64().unwrap() / 2.0);
+    let (cx, cy) = crs
+        .from_lonlat_deg(
+            world["config"]["world"]["center_lon_deg"].as_f64().unwrap(),
+            world["config"]["world"]["center_lat_deg"].as_f64().unwrap(),
+        )
+        .unwrap();
+    let (ccx, ccy, cc_r) = (
+        cx + cc["offset_east_m"].as_f64().unwrap(),
+        cy + cc["offset_north_m"].as_f64().unwrap(),
+        cc["diameter_m"].as_f64().unwrap() / 2.0,
+    );
     let gt = dem.transform;
     let mut ratios = Vec::new();
     for c in &craters {
-        let (x, y, d) = (c["x_m"].as_f64().unwrap(), c["y_m"].as_f64().unwrap(), c["diameter_m"].as_f64().unwrap());
+        let (x, y, d) = (
+            c["x_m"].as_f64().unwrap(),
+            c["y_m"].as_f64().unwrap(),
+            c["diameter_m"].as_f64().unwrap(),
+        );
         let r = d / 2.0;
         let (col, row) = gt.map_to_pixel(x, y);
         let r_px = r / gt.gsd_m();
-        let inside = col - 1.5 * r_px > 0.0 && row - 1.5 * r_px > 0.0 && col + 1.5 * r_px < dem.width as f64 && row + 1.5 * r_px < dem.height as f64;
+        let inside = col - 1.5 * r_px > 0.0
+            && row - 1.5 * r_px > 0.0
+            && col + 1.5 * r_px < dem.width as f64
+            && row + 1.5 * r_px < dem.height as f64;
         let away_from_complex = ((x - ccx).powi(2) + (y - ccy).powi(2)).sqrt() > 3.2 * cc_r;
         if c["freshness"].as_f64().unwrap() < 0.5 || d < 100.0 || !inside || !away_from_complex {
             continue;
         }
-        let sample = |rho: f64, az: f64| dem.bilinear(col + rho * r_px * az.cos(), row + rho * r_px * az.sin()) as f64;
-        let floor = (0..40).flat_map(|i| (0..5).map(move |j| (i, j))).map(|(i, j)| sample(0.05 * j as f64, i as f64 * 0.157)).fold(f64::MAX, f64::min);
+        let sample = |rho: f64, az: f64| {
+            dem.bilinear(col + rho * r_px * az.cos(), row + rho * r_px * az.sin()) as f64
+        };
+        let floor = (0..40)
+            .flat_map(|i| (0..5).map(move |j| (i, j)))
+            .map(|(i, j)| sample(0.05 * j as f64, i as f64 * 0.157))
+            .fold(f64::MAX, f64::min);
         let mut rims: Vec<f64> = (0..24)
-            .map(|i| (0..13).map(|j| sample(0.85 + 0.025 * j as f64, i as f64 * std::f64::consts::TAU / 24.0)).fold(f64::MIN, f64::max))
+            .map(|i| {
+                (0..13)
+                    .map(|j| {
+                        sample(
+                            0.85 + 0.025 * j as f64,
+                            i as f64 * std::f64::consts::TAU / 24.0,
+                        )
+                    })
+                    .fold(f64::MIN, f64::max)
+            })
             .collect();
         rims.sort_by(f64::total_cmp);
         ratios.push((rims[12] - floor) / d);
     }
     ratios.sort_by(f64::total_cmp);
-    assert!(ratios.len() >= 5, "only {} fresh craters ≥ 100 m to measure", ratios.len());
+    assert!(
+        ratios.len() >= 5,
+        "only {} fresh craters ≥ 100 m to measure",
+        ratios.len()
+    );
     let median = ratios[ratios.len() / 2];
-    println!("fresh-crater depth/diameter: median {median:.3} over {} craters (range {:.3}..{:.3})", ratios.len(), ratios[0], ratios[ratios.len() - 1]);
+    println!(
+        "fresh-crater depth/diameter: median {median:.3} over {} craters (range {:.3}..{:.3})",
+        ratios.len(),
+        ratios[0],
+        ratios[ratios.len() - 1]
+    );
     assert!((0.15..=0.22).contains(&median), "median fresh d/D {median}");
 }
 
 /// Valid pixel values of an ortho.
 fn ortho_values(id: &str) -> Vec<f32> {
-    read_raster(&demo_world().join(format!("ortho/{id}.tif"))).unwrap().data.into_iter().filter(|v| v.is_finite()).collect()
+    read_raster(&demo_world().join(format!("ortho/{id}.tif")))
+        .unwrap()
+        .data
+        .into_iter()
+        .filter(|v| v.is_finite())
+        .collect()
 }
 
 #[test]
@@ -96,7 +172,10 @@ fn cast_shadows_appear_at_high_incidence_only() {
     let world = world_json();
     let mut high = 0;
     for ortho in world["orthos"].as_array().unwrap() {
-        let (id, incidence) = (ortho["ortho_id"].as_str().unwrap(), ortho["incidence_deg"].as_f64().unwrap());
+        let (id, incidence) = (
+            ortho["ortho_id"].as_str().unwrap(),
+            ortho["incidence_deg"].as_f64().unwrap(),
+        );
         if incidence > 40.0 && incidence < 70.0 {
             continue;
         }
@@ -104,16 +183,26 @@ fn cast_shadows_appear_at_high_incidence_only() {
         values.sort_by(f32::total_cmp);
         let median = values[values.len() / 2];
         // Cast shadows are near-black (noise only): far below the median brightness.
-        let dark = values.iter().filter(|&&v| v < 0.1 * median).count() as f64 / values.len() as f64;
-        println!("{id}: incidence {incidence:.1}°, dark (shadowed) share {:.2} %", 100.0 * dark);
+        let dark =
+            values.iter().filter(|&&v| v < 0.1 * median).count() as f64 / values.len() as f64;
+        println!(
+            "{id}: incidence {incidence:.1}°, dark (shadowed) share {:.2} %",
+            100.0 * dark
+        );
         if incidence > 70.0 {
             high += 1;
-            assert!(dark > 0.01, "{id} at i = {incidence:.1}° has only {dark:.4} of its pixels in shadow");
+            assert!(
+                dark > 0.01,
+                "{id} at i = {incidence:.1}° has only {dark:.4} of its pixels in shadow"
+            );
         } else {
             assert!(dark < 0.002, "{id} at i = {incidence:.1}° has {dark:.4} dark pixels: shadows where the sun is high");
         }
     }
-    assert!(high >= 1, "the demo world has no acquisition above 70° incidence");
+    assert!(
+        high >= 1,
+        "the demo world has no acquisition above 70° incidence"
+    );
 }
 
 #[test]
@@ -125,9 +214,13 @@ fn brightness_correlates_with_but_is_not_determined_by_dem_features() {
     for ortho in world["orthos"].as_array().unwrap() {
         let id = ortho["ortho_id"].as_str().unwrap();
         let image = read_raster(&demo_world().join(format!("ortho/{id}.tif"))).unwrap();
-        let meta = AcquisitionMetadata::load(&demo_world().join(format!("ortho/{id}.json"))).unwrap();
+        let meta =
+            AcquisitionMetadata::load(&demo_world().join(format!("ortho/{id}.json"))).unwrap();
         // Average the ortho pixels into DEM cells (area downsampling 2 m → 5 m).
-        let (mut sum, mut count) = (vec![0f64; dem.width * dem.height], vec![0u32; dem.width * dem.height]);
+        let (mut sum, mut count) = (
+            vec![0f64; dem.width * dem.height],
+            vec![0u32; dem.width * dem.height],
+        );
         for row in 0..image.height {
             for col in 0..image.width {
                 let v = image.get(col, row);
@@ -146,10 +239,16 @@ fn brightness_correlates_with_but_is_not_determined_by_dem_features() {
                 }
             }
         }
-        let (cx, cy) = image.transform.pixel_center(image.width as f64 / 2.0, image.height as f64 / 2.0);
+        let (cx, cy) = image
+            .transform
+            .pixel_center(image.width as f64 / 2.0, image.height as f64 / 2.0);
         let frame = LocalFrame::new(&crs, cx, cy, 0.0).unwrap();
         let sun = frame.sun_dir_enu(meta.sun_body());
-        let camera = frame.body_point_to_enu(dataset::geometry::spacecraft_position_at(meta.spacecraft_start_body_m.into(), meta.spacecraft_stop_body_m.into(), 0.5));
+        let camera = frame.body_point_to_enu(dataset::geometry::spacecraft_position_at(
+            meta.spacecraft_start_body_m.into(),
+            meta.spacecraft_stop_body_m.into(),
+            0.5,
+        ));
         // Features from the delivered DEM: Lommel–Seeliger term and cos i; target: mean I/F in the cell.
         let mut rows: Vec<([f64; 3], f64)> = Vec::new();
         let gsd = dem.transform.gsd_m();
@@ -166,7 +265,12 @@ fn brightness_correlates_with_but_is_not_determined_by_dem_features() {
                 }
                 let (x, y) = dem.transform.pixel_center(c as f64, r as f64);
                 let p = frame.map_to_enu(x, y, dem.get(c, r) as f64);
-                let n = DVec3::new(-dzdx - p.x / MOON_RADIUS_M, -dzdy - p.y / MOON_RADIUS_M, 1.0).normalize();
+                let n = DVec3::new(
+                    -dzdx - p.x / MOON_RADIUS_M,
+                    -dzdy - p.y / MOON_RADIUS_M,
+                    1.0,
+                )
+                .normalize();
                 let v = (camera - p).normalize();
                 let (mu0, mu) = (n.dot(sun).max(0.0), n.dot(v).max(1e-6));
                 rows.push(([1.0, mu0 / (mu0 + mu), mu0], sum[i] / count[i] as f64));
@@ -179,10 +283,16 @@ fn brightness_correlates_with_but_is_not_determined_by_dem_features() {
     let mean = r2s.iter().map(|r| r.1).sum::<f64>() / r2s.len() as f64;
     println!("mean R² over {} orthos: {mean:.3}", r2s.len());
     // Not determined: albedo variation, cast shadows, DEM error and noise always leave a share unexplained.
-    assert!(r2s.iter().all(|&(_, r)| r < 0.9), "R² (incidence, R²) {r2s:?}");
+    assert!(
+        r2s.iter().all(|&(_, r)| r < 0.9),
+        "R² (incidence, R²) {r2s:?}"
+    );
     // Correlated where topography dominates: under a low sun (i > 50°) shading by slopes is strong. Under a high
     // sun shading is weak and albedo dominates, so R² there is low — as on the real Moon near full phase.
-    assert!(r2s.iter().filter(|(i, _)| *i > 50.0).all(|&(_, r)| r > 0.3), "R² (incidence, R²) {r2s:?}");
+    assert!(
+        r2s.iter().filter(|(i, _)| *i > 50.0).all(|&(_, r)| r > 0.3),
+        "R² (incidence, R²) {r2s:?}"
+    );
     assert!((0.25..0.85).contains(&mean), "mean R² {mean}");
 }
 
@@ -198,7 +308,11 @@ fn r_squared(rows: &[([f64; 3], f64)]) -> f64 {
             }
         }
     }
-    let det = |m: &[[f64; 3]; 3]| m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0]) + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
+    let det = |m: &[[f64; 3]; 3]| {
+        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
+            - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
+    };
     let d = det(&a);
     let beta: Vec<f64> = (0..3)
         .map(|k| {
@@ -224,11 +338,22 @@ fn geotiffs_carry_lunar_crs_geotransform_and_nodata() {
     let world = world_json();
     let dem = Dataset::open(demo_world().join("dem/dem.tif")).unwrap();
     let g = &world["dem_grid"];
-    let expected = [g["min_x"].as_f64().unwrap(), 5.0, 0.0, g["max_y"].as_f64().unwrap(), 0.0, -5.0];
+    let expected = [
+        g["min_x"].as_f64().unwrap(),
+        5.0,
+        0.0,
+        g["max_y"].as_f64().unwrap(),
+        0.0,
+        -5.0,
+    ];
     assert_eq!(dem.geo_transform().unwrap(), expected);
     let srs = dem.spatial_ref().unwrap();
     assert_eq!(srs.semi_major().unwrap(), 1_737_400.0);
-    assert_eq!(srs.semi_minor().unwrap(), 1_737_400.0, "a sphere, not an ellipsoid");
+    assert_eq!(
+        srs.semi_minor().unwrap(),
+        1_737_400.0,
+        "a sphere, not an ellipsoid"
+    );
     assert!(srs.is_projected());
     let band = dem.rasterband(1).unwrap();
     assert_eq!(band.no_data_value(), Some(-32768.0));
@@ -236,7 +361,10 @@ fn geotiffs_carry_lunar_crs_geotransform_and_nodata() {
     assert!(band.description().unwrap().contains("height_m"));
     // The delivered DEM has its nodata holes, written as the nodata value GDAL reports.
     let raster = read_raster(&demo_world().join("dem/dem.tif")).unwrap();
-    assert!(raster.data.iter().any(|v| v.is_nan()), "DEM holes should read back as nodata");
+    assert!(
+        raster.data.iter().any(|v| v.is_nan()),
+        "DEM holes should read back as nodata"
+    );
 
     for ortho in world["orthos"].as_array().unwrap().iter().take(3) {
         let id = ortho["ortho_id"].as_str().unwrap();
@@ -244,17 +372,31 @@ fn geotiffs_carry_lunar_crs_geotransform_and_nodata() {
         let gt = ds.geo_transform().unwrap();
         assert_eq!((gt[1], gt[5]), (2.0, -2.0));
         // Ortho pixel edges line up with the scene grid (pixel-centre convention shared by every raster).
-        assert!(((gt[0] - expected[0]) / 2.0).fract().abs() < 1e-9 && ((gt[3] - expected[3]) / 2.0).fract().abs() < 1e-9);
+        assert!(
+            ((gt[0] - expected[0]) / 2.0).fract().abs() < 1e-9
+                && ((gt[3] - expected[3]) / 2.0).fract().abs() < 1e-9
+        );
         assert_eq!(ds.spatial_ref().unwrap().semi_major().unwrap(), 1_737_400.0);
         let band = ds.rasterband(1).unwrap();
         assert_eq!(band.no_data_value(), Some(-1.0));
         let values = read_raster(&demo_world().join(format!("ortho/{id}.tif"))).unwrap();
         let nodata = values.data.iter().filter(|v| v.is_nan()).count();
-        assert!(nodata > 0 && nodata < values.data.len() / 2, "{id}: irregular strip border gives some, not most, nodata ({nodata})");
-        assert!(values.get(0, 0).is_nan(), "{id}: the bounding-box corner lies outside the strip");
+        assert!(
+            nodata > 0 && nodata < values.data.len() / 2,
+            "{id}: irregular strip border gives some, not most, nodata ({nodata})"
+        );
+        assert!(
+            values.get(0, 0).is_nan(),
+            "{id}: the bounding-box corner lies outside the strip"
+        );
     }
     let truth = Dataset::open(demo_world().join("truth/hapke_params.tif")).unwrap();
     assert_eq!(truth.raster_count(), 6);
-    let names: Vec<String> = (1..=6).map(|i| truth.rasterband(i).unwrap().description().unwrap()).collect();
-    assert!(names[0].starts_with("w ") && names[5].starts_with("theta_bar_deg"), "{names:?}");
+    let names: Vec<String> = (1..=6)
+        .map(|i| truth.rasterband(i).unwrap().description().unwrap())
+        .collect();
+    assert!(
+        names[0].starts_with("w ") && names[5].starts_with("theta_bar_deg"),
+        "{names:?}"
+    );
 }

@@ -38,27 +38,49 @@ pub struct AcquisitionMetadata {
 #[derive(Debug, thiserror::Error)]
 pub enum MetadataError {
     #[error("{path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
     #[error("{path}: invalid acquisition metadata ({source}); every field of dataset::acquisition::AcquisitionMetadata is required")]
-    Parse { path: PathBuf, source: serde_json::Error },
+    Parse {
+        path: PathBuf,
+        source: serde_json::Error,
+    },
     #[error("{path}: {problem}")]
     Invalid { path: PathBuf, problem: String },
 }
 
 impl AcquisitionMetadata {
     pub fn load(path: &Path) -> Result<Self, MetadataError> {
-        let text = std::fs::read_to_string(path).map_err(|source| MetadataError::Io { path: path.to_path_buf(), source })?;
-        let meta: Self = serde_json::from_str(&text).map_err(|source| MetadataError::Parse { path: path.to_path_buf(), source })?;
-        meta.validate().map_err(|problem| MetadataError::Invalid { path: path.to_path_buf(), problem })?;
+        let text = std::fs::read_to_string(path).map_err(|source| MetadataError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let meta: Self = serde_json::from_str(&text).map_err(|source| MetadataError::Parse {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        meta.validate().map_err(|problem| MetadataError::Invalid {
+            path: path.to_path_buf(),
+            problem,
+        })?;
         Ok(meta)
     }
 
     pub fn validate(&self) -> Result<(), String> {
-        let all = self.sun_position_body_m.iter().chain(&self.spacecraft_start_body_m).chain(&self.spacecraft_stop_body_m);
+        let all = self
+            .sun_position_body_m
+            .iter()
+            .chain(&self.spacecraft_start_body_m)
+            .chain(&self.spacecraft_stop_body_m);
         if all.clone().any(|v| !v.is_finite()) {
             return Err("positions must be finite numbers (metres, body-fixed)".into());
         }
-        for (name, p) in [("spacecraft_start_body_m", self.spacecraft_start_body_m), ("spacecraft_stop_body_m", self.spacecraft_stop_body_m)] {
+        for (name, p) in [
+            ("spacecraft_start_body_m", self.spacecraft_start_body_m),
+            ("spacecraft_stop_body_m", self.spacecraft_stop_body_m),
+        ] {
             let alt = DVec3::from(p).length() - MOON_RADIUS_M;
             if !(1_000.0..1_000_000.0).contains(&alt) {
                 return Err(format!("{name} is {alt:.0} m above the sphere; expected an orbit (1-1000 km): are the units metres?"));
@@ -79,7 +101,10 @@ impl AcquisitionMetadata {
 
     /// Spacecraft position when the pushbroom imaged `ground_body` (see [`imaging_fraction`]).
     pub fn spacecraft_for_ground(&self, ground_body: DVec3) -> DVec3 {
-        let (start, stop) = (DVec3::from(self.spacecraft_start_body_m), DVec3::from(self.spacecraft_stop_body_m));
+        let (start, stop) = (
+            DVec3::from(self.spacecraft_start_body_m),
+            DVec3::from(self.spacecraft_stop_body_m),
+        );
         spacecraft_position_at(start, stop, imaging_fraction(ground_body, start, stop))
     }
 
@@ -119,9 +144,15 @@ mod tests {
     #[test]
     fn iso_dates_are_correct() {
         assert_eq!(iso_utc_from_j2000_seconds(0.0), "2000-01-01T00:00:00.000Z");
-        assert_eq!(iso_utc_from_j2000_seconds(86_400.0 * 60.0 + 3661.5), "2000-03-01T01:01:01.500Z");
+        assert_eq!(
+            iso_utc_from_j2000_seconds(86_400.0 * 60.0 + 3661.5),
+            "2000-03-01T01:01:01.500Z"
+        );
         // 2011-05-01 is 4138 days after J2000.
-        assert_eq!(iso_utc_from_j2000_seconds(4138.0 * 86_400.0), "2011-05-01T00:00:00.000Z");
+        assert_eq!(
+            iso_utc_from_j2000_seconds(4138.0 * 86_400.0),
+            "2011-05-01T00:00:00.000Z"
+        );
     }
 
     #[test]
@@ -130,6 +161,9 @@ mod tests {
         let path = dir.path().join("m.json");
         std::fs::write(&path, r#"{"ortho_id": "a"}"#).unwrap();
         let err = AcquisitionMetadata::load(&path).unwrap_err().to_string();
-        assert!(err.contains("m.json") && err.contains("missing field"), "{err}");
+        assert!(
+            err.contains("m.json") && err.contains("missing field"),
+            "{err}"
+        );
     }
 }

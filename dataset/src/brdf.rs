@@ -79,7 +79,11 @@ impl BrdfModel {
             return 0.0;
         }
         let terms = self.terms(c, hd);
-        raw_params.iter().zip(terms).map(|(&p, t)| leaky_relu(p) * t).sum()
+        raw_params
+            .iter()
+            .zip(terms)
+            .map(|(&p, t)| leaky_relu(p) * t)
+            .sum()
     }
 }
 
@@ -94,7 +98,14 @@ impl std::str::FromStr for BrdfModel {
 }
 
 /// Rendered pixel value `I = E · V_sun · f`.
-pub fn render_pixel(model: BrdfModel, raw_params: &[f64], c: &Cosines, hd: &HalfDiffCosines, irradiance: f64, lit_fraction: f64) -> f64 {
+pub fn render_pixel(
+    model: BrdfModel,
+    raw_params: &[f64],
+    c: &Cosines,
+    hd: &HalfDiffCosines,
+    irradiance: f64,
+    lit_fraction: f64,
+) -> f64 {
     irradiance * lit_fraction * model.evaluate(raw_params, c, hd)
 }
 

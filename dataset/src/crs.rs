@@ -17,7 +17,12 @@ pub enum CrsError {
     #[error("CRS '{definition}' is not understood by PROJ ({reason}): use an IAU_2015 code or a '+proj=... +R=1737400' string")]
     Unparseable { definition: String, reason: String },
     #[error("PROJ could not convert map point ({x}, {y}) in '{definition}': {reason}")]
-    Conversion { definition: String, x: f64, y: f64, reason: String },
+    Conversion {
+        definition: String,
+        x: f64,
+        y: f64,
+        reason: String,
+    },
 }
 
 /// A projected lunar CRS (map metres), identified by any definition PROJ accepts (IAU code, WKT, proj string).
@@ -33,7 +38,9 @@ thread_local! {
 
 impl LunarCrs {
     pub fn new(definition: impl Into<String>) -> Self {
-        Self { definition: definition.into() }
+        Self {
+            definition: definition.into(),
+        }
     }
 
     /// Equirectangular projection on the lunar sphere with true scale at `lat_ts_deg`, centred on `lon0_deg`
@@ -56,14 +63,24 @@ AXIS[\"Easting\",EAST],AXIS[\"Northing\",NORTH]]"
             if let Some((_, proj)) = cache.iter().find(|(d, _)| d == &self.definition) {
                 return f(proj);
             }
-            let unparseable = |reason: String| CrsError::Unparseable { definition: self.definition.clone(), reason };
+            let unparseable = |reason: String| CrsError::Unparseable {
+                definition: self.definition.clone(),
+                reason,
+            };
             // Any definition (IAU code, WKT, proj string) → its map projection as a PROJ.4 string. Using the bare
             // projection (forward/inverse) rather than a CRS-to-CRS transform avoids PROJ's datum matching, which
             // refuses a named lunar datum against an anonymous sphere of the same radius.
-            let srs = gdal::spatial_ref::SpatialRef::from_definition(&self.definition).map_err(|e| unparseable(e.to_string()))?;
-            let proj4 = srs.to_proj4().map_err(|e| unparseable(e.to_string()))?.replace("+type=crs", "");
+            let srs = gdal::spatial_ref::SpatialRef::from_definition(&self.definition)
+                .map_err(|e| unparseable(e.to_string()))?;
+            let proj4 = srs
+                .to_proj4()
+                .map_err(|e| unparseable(e.to_string()))?
+                .replace("+type=crs", "");
             if !proj4.contains("+R=1737400") && !proj4.contains("+a=1737400") {
-                return Err(unparseable(format!("not on the lunar sphere: {}", proj4.trim())));
+                return Err(unparseable(format!(
+                    "not on the lunar sphere: {}",
+                    proj4.trim()
+                )));
             }
             let proj = Proj::new(proj4.trim()).map_err(|e| unparseable(e.to_string()))?;
             let out = f(&proj);
@@ -75,12 +92,14 @@ AXIS[\"Easting\",EAST],AXIS[\"Northing\",NORTH]]"
     /// Map metres → (longitude, latitude) in degrees, planetocentric.
     pub fn to_lonlat_deg(&self, x: f64, y: f64) -> Result<(f64, f64), CrsError> {
         self.with_proj(|proj| {
-            let (lon, lat) = proj.project((x, y), true).map_err(|e| CrsError::Conversion {
-                definition: self.definition.clone(),
-                x,
-                y,
-                reason: e.to_string(),
-            })?;
+            let (lon, lat) = proj
+                .project((x, y), true)
+                .map_err(|e| CrsError::Conversion {
+                    definition: self.definition.clone(),
+                    x,
+                    y,
+                    reason: e.to_string(),
+                })?;
             Ok((lon.to_degrees(), lat.to_degrees()))
         })
     }
@@ -88,12 +107,13 @@ AXIS[\"Easting\",EAST],AXIS[\"Northing\",NORTH]]"
     /// (longitude, latitude) in degrees → map metres.
     pub fn from_lonlat_deg(&self, lon_deg: f64, lat_deg: f64) -> Result<(f64, f64), CrsError> {
         self.with_proj(|proj| {
-            proj.project((lon_deg.to_radians(), lat_deg.to_radians()), false).map_err(|e| CrsError::Conversion {
-                definition: self.definition.clone(),
-                x: lon_deg,
-                y: lat_deg,
-                reason: e.to_string(),
-            })
+            proj.project((lon_deg.to_radians(), lat_deg.to_radians()), false)
+                .map_err(|e| CrsError::Conversion {
+                    definition: self.definition.clone(),
+                    x: lon_deg,
+                    y: lat_deg,
+                    reason: e.to_string(),
+                })
         })
     }
 
@@ -118,7 +138,11 @@ pub fn body_fixed_from_lonlat(lon_deg: f64, lat_deg: f64, h_m: f64) -> DVec3 {
 /// Inverse of [`body_fixed_from_lonlat`]: (lon°, lat°, height m).
 pub fn lonlat_from_body_fixed(p: DVec3) -> (f64, f64, f64) {
     let r = p.length();
-    (p.y.atan2(p.x).to_degrees(), (p.z / r).clamp(-1.0, 1.0).asin().to_degrees(), r - MOON_RADIUS_M)
+    (
+        p.y.atan2(p.x).to_degrees(),
+        (p.z / r).clamp(-1.0, 1.0).asin().to_degrees(),
+        r - MOON_RADIUS_M,
+    )
 }
 
 /// Rotation whose rows are the east, north and up unit vectors at (lon, lat): body-fixed → ENU.
@@ -163,7 +187,12 @@ impl LocalFrame {
             Ok((lon + wrap_deg(lo - lon), la))
         };
         let (xp, xm, yp, ym) = (at(1.0, 0.0)?, at(-1.0, 0.0)?, at(0.0, 1.0)?, at(0.0, -1.0)?);
-        let (pp, pm, mp, mm) = (at(1.0, 1.0)?, at(1.0, -1.0)?, at(-1.0, 1.0)?, at(-1.0, -1.0)?);
+        let (pp, pm, mp, mm) = (
+            at(1.0, 1.0)?,
+            at(1.0, -1.0)?,
+            at(-1.0, 1.0)?,
+            at(-1.0, -1.0)?,
+        );
         let taylor = |f: fn((f64, f64)) -> f64, centre: f64| {
             [
                 (f(xp) - f(xm)) / (2.0 * step),
@@ -178,8 +207,14 @@ impl LocalFrame {
         let radius = MOON_RADIUS_M + h_m;
         let coslat = lat.to_radians().cos();
         let map_to_en = [
-            [lon_taylor[0].to_radians() * radius * coslat, lon_taylor[1].to_radians() * radius * coslat],
-            [lat_taylor[0].to_radians() * radius, lat_taylor[1].to_radians() * radius],
+            [
+                lon_taylor[0].to_radians() * radius * coslat,
+                lon_taylor[1].to_radians() * radius * coslat,
+            ],
+            [
+                lat_taylor[0].to_radians() * radius,
+                lat_taylor[1].to_radians() * radius,
+            ],
         ];
         Ok(Self {
             origin_map: DVec2::new(x, y),
@@ -197,8 +232,13 @@ impl LocalFrame {
     /// (lon, lat) in degrees of a nearby map point, from the quadratic model (no PROJ call).
     pub fn map_to_lonlat_deg(&self, x: f64, y: f64) -> (f64, f64) {
         let (dx, dy) = (x - self.origin_map.x, y - self.origin_map.y);
-        let eval = |t: &[f64; 5]| t[0] * dx + t[1] * dy + 0.5 * t[2] * dx * dx + t[3] * dx * dy + 0.5 * t[4] * dy * dy;
-        (self.origin_lon_deg + eval(&self.lon_taylor), self.origin_lat_deg + eval(&self.lat_taylor))
+        let eval = |t: &[f64; 5]| {
+            t[0] * dx + t[1] * dy + 0.5 * t[2] * dx * dx + t[3] * dx * dy + 0.5 * t[4] * dy * dy
+        };
+        (
+            self.origin_lon_deg + eval(&self.lon_taylor),
+            self.origin_lat_deg + eval(&self.lat_taylor),
+        )
     }
 
     /// ENU position of a nearby map point at height `h_m` above the sphere.
@@ -224,14 +264,18 @@ impl LocalFrame {
 
     /// Unit vector toward the sun, in this frame, from the body-fixed sun position (the sun is far: one per frame).
     pub fn sun_dir_enu(&self, sun_body: DVec3) -> DVec3 {
-        self.body_dir_to_enu(sun_body - self.origin_body).normalize()
+        self.body_dir_to_enu(sun_body - self.origin_body)
+            .normalize()
     }
 
     /// Map-grid displacement (dx, dy in map metres) of a horizontal ENU direction, for marching on the raster.
     pub fn en_to_map(&self, east: f64, north: f64) -> DVec2 {
         let m = &self.map_to_en;
         let det = m[0][0] * m[1][1] - m[0][1] * m[1][0];
-        DVec2::new((m[1][1] * east - m[0][1] * north) / det, (-m[1][0] * east + m[0][0] * north) / det)
+        DVec2::new(
+            (m[1][1] * east - m[0][1] * north) / det,
+            (-m[1][0] * east + m[0][0] * north) / det,
+        )
     }
 }
 
@@ -264,12 +308,20 @@ mod tests {
         let (x0, y0) = crs.from_lonlat_deg(-11.36, -43.31).unwrap();
         let frame = LocalFrame::new(&crs, x0, y0, -1200.0).unwrap();
         let mut worst: f64 = 0.0;
-        for &(dx, dy, h) in &[(325.0, 325.0, -900.0), (-325.0, 325.0, -1500.0), (325.0, -325.0, -1200.0), (0.0, 0.0, 0.0)] {
+        for &(dx, dy, h) in &[
+            (325.0, 325.0, -900.0),
+            (-325.0, 325.0, -1500.0),
+            (325.0, -325.0, -1200.0),
+            (0.0, 0.0, 0.0),
+        ] {
             let approx = frame.map_to_enu(x0 + dx, y0 + dy, h);
             let exact = frame.body_point_to_enu(crs.body_fixed(x0 + dx, y0 + dy, h).unwrap());
             worst = worst.max((approx - exact).length());
         }
-        assert!(worst < 1e-3, "ENU shortcut differs from exact PROJ route by {worst} m");
+        assert!(
+            worst < 1e-3,
+            "ENU shortcut differs from exact PROJ route by {worst} m"
+        );
         // Up of the origin is zero and east is (nearly) map x for an equirectangular map at the origin.
         assert!(frame.map_to_enu(x0, y0, -1200.0).length() < 1e-9);
     }
@@ -281,32 +333,60 @@ mod tests {
         let crs = tycho_crs();
         let (x0, y0) = crs.from_lonlat_deg(-11.36, -43.31).unwrap();
         let frame = LocalFrame::new(&crs, x0, y0, 0.0).unwrap();
-        let (mut worst_f32_body, mut worst_f32_enu, mut worst_f64): (f64, f64, f64) = (0.0, 0.0, 0.0);
+        let (mut worst_f32_body, mut worst_f32_enu, mut worst_f64): (f64, f64, f64) =
+            (0.0, 0.0, 0.0);
         for k in 0..40 {
             let (x, y) = (x0 + 7.3 * k as f64 - 150.0, y0 + 3.1 * k as f64 - 60.0);
             let a = crs.body_fixed(x, y, -1500.0).unwrap();
             let b = crs.body_fixed(x + 5.0, y, -1500.0 + 0.02).unwrap();
-            let local_up = |p: DVec3| LocalFrame::new(&crs, x, y, -1500.0).unwrap().body_dir_to_enu(p).z;
+            let local_up = |p: DVec3| {
+                LocalFrame::new(&crs, x, y, -1500.0)
+                    .unwrap()
+                    .body_dir_to_enu(p)
+                    .z
+            };
             // The 5 m chord dips below the local horizontal by d²/2R ≈ 7 µm: physics, not rounding.
-            worst_f64 = worst_f64.max((local_up(b - a) - (0.02 - 25.0 / (2.0 * MOON_RADIUS_M))).abs());
-            worst_f32_body = worst_f32_body.max((local_up((b.as_vec3() - a.as_vec3()).as_dvec3()) - 0.02).abs());
+            worst_f64 =
+                worst_f64.max((local_up(b - a) - (0.02 - 25.0 / (2.0 * MOON_RADIUS_M))).abs());
+            worst_f32_body =
+                worst_f32_body.max((local_up((b.as_vec3() - a.as_vec3()).as_dvec3()) - 0.02).abs());
             let enu_a = frame.map_to_enu(x, y, -1500.0).as_vec3();
             let enu_b = frame.map_to_enu(x + 5.0, y, -1500.0 + 0.02).as_vec3();
-            let rise_enu = (enu_b - enu_a).as_dvec3().z - (frame.map_to_enu(x + 5.0, y, -1500.0) - frame.map_to_enu(x, y, -1500.0)).z;
+            let rise_enu = (enu_b - enu_a).as_dvec3().z
+                - (frame.map_to_enu(x + 5.0, y, -1500.0) - frame.map_to_enu(x, y, -1500.0)).z;
             worst_f32_enu = worst_f32_enu.max((rise_enu - 0.02).abs());
         }
-        assert!(worst_f64 < 1e-6, "f64 body-fixed keeps the step: {worst_f64}");
-        assert!(worst_f32_enu < 1e-3, "f32 ENU keeps the step: {worst_f32_enu}");
-        assert!(worst_f32_body > 0.02, "f32 body-fixed should lose the whole 2 cm step somewhere, worst {worst_f32_body}");
+        assert!(
+            worst_f64 < 1e-6,
+            "f64 body-fixed keeps the step: {worst_f64}"
+        );
+        assert!(
+            worst_f32_enu < 1e-3,
+            "f32 ENU keeps the step: {worst_f32_enu}"
+        );
+        assert!(
+            worst_f32_body > 0.02,
+            "f32 body-fixed should lose the whole 2 cm step somewhere, worst {worst_f32_body}"
+        );
     }
 
     #[test]
     fn named_wkt_equals_the_proj_string_definition() {
         let wkt = tycho_crs();
         let proj_string = LunarCrs::new(format!("+proj=eqc +lat_ts=-43.3 +lat_0=0 +lon_0=-11.2 +R={MOON_RADIUS_M} +units=m +no_defs +type=crs"));
-        for (x, y) in [(0.0, -1_313_000.0), (12_345.0, -1_300_000.0), (-40_000.0, -1_350_000.0)] {
-            let (a, b) = (wkt.to_lonlat_deg(x, y).unwrap(), proj_string.to_lonlat_deg(x, y).unwrap());
-            assert!((a.0 - b.0).abs() < 1e-12 && (a.1 - b.1).abs() < 1e-12, "{a:?} vs {b:?}");
+        for (x, y) in [
+            (0.0, -1_313_000.0),
+            (12_345.0, -1_300_000.0),
+            (-40_000.0, -1_350_000.0),
+        ] {
+            let (a, b) = (
+                wkt.to_lonlat_deg(x, y).unwrap(),
+                proj_string.to_lonlat_deg(x, y).unwrap(),
+            );
+            assert!(
+                (a.0 - b.0).abs() < 1e-12 && (a.1 - b.1).abs() < 1e-12,
+                "{a:?} vs {b:?}"
+            );
         }
     }
 
@@ -316,7 +396,10 @@ mod tests {
         let crs = LunarCrs::new("IAU_2015:30110");
         let (x, y) = crs.from_lonlat_deg(-11.36, -43.31).unwrap();
         let k = MOON_RADIUS_M * std::f64::consts::PI / 180.0;
-        assert!((x - (-11.36 * k)).abs() < 1e-6 && (y - (-43.31 * k)).abs() < 1e-6, "{x} {y}");
+        assert!(
+            (x - (-11.36 * k)).abs() < 1e-6 && (y - (-43.31 * k)).abs() < 1e-6,
+            "{x} {y}"
+        );
     }
 
     #[test]

@@ -22,7 +22,11 @@ pub fn crop_normals_enu(
     frame: &LocalFrame,
 ) -> Vec<DVec3> {
     let aw = width + 2;
-    assert_eq!(heights_with_apron.len(), aw * (height + 2), "heights must carry a 1-pixel apron");
+    assert_eq!(
+        heights_with_apron.len(),
+        aw * (height + 2),
+        "heights must carry a 1-pixel apron"
+    );
     let enu = |col: usize, row: usize| {
         let (x, y) = transform.pixel_center(col as f64, row as f64);
         frame.map_to_enu(x, y, heights_with_apron[row * aw + col] as f64)
@@ -90,21 +94,53 @@ impl HalfDiffCosines {
     pub fn new(normal: DVec3, sun_dir: DVec3, view_dir: DVec3) -> Self {
         let sum = sun_dir + view_dir;
         // s = -v (g = 180°) has no half vector; the normal is the continuous choice for lunar geometries.
-        let half = if sum.length_squared() > DEGENERATE { sum.normalize() } else { normal };
-        let reference = if DVec3::X.cross(normal).length_squared() > 1e-6 { DVec3::X } else { DVec3::Y };
+        let half = if sum.length_squared() > DEGENERATE {
+            sum.normalize()
+        } else {
+            normal
+        };
+        let reference = if DVec3::X.cross(normal).length_squared() > 1e-6 {
+            DVec3::X
+        } else {
+            DVec3::Y
+        };
         let tangent = (reference - normal * reference.dot(normal)).normalize();
         let bitangent = normal.cross(tangent);
-        let (hx, hy, hz) = (half.dot(tangent), half.dot(bitangent), clamp_unit(half.dot(normal)));
+        let (hx, hy, hz) = (
+            half.dot(tangent),
+            half.dot(bitangent),
+            clamp_unit(half.dot(normal)),
+        );
         let h_planar = (hx * hx + hy * hy).sqrt();
-        let (cos_phi_h, sin_phi_h) = if h_planar > DEGENERATE { (hx / h_planar, hy / h_planar) } else { (1.0, 0.0) };
+        let (cos_phi_h, sin_phi_h) = if h_planar > DEGENERATE {
+            (hx / h_planar, hy / h_planar)
+        } else {
+            (1.0, 0.0)
+        };
         let (cos_theta_h, sin_theta_h) = (hz, h_planar.min(1.0));
         // Rotate the sun vector into the frame where the half vector is the pole: by -φh about n, then -θh about b.
-        let (sx, sy, sz) = (sun_dir.dot(tangent), sun_dir.dot(bitangent), sun_dir.dot(normal));
-        let (x1, y1) = (cos_phi_h * sx + sin_phi_h * sy, -sin_phi_h * sx + cos_phi_h * sy);
+        let (sx, sy, sz) = (
+            sun_dir.dot(tangent),
+            sun_dir.dot(bitangent),
+            sun_dir.dot(normal),
+        );
+        let (x1, y1) = (
+            cos_phi_h * sx + sin_phi_h * sy,
+            -sin_phi_h * sx + cos_phi_h * sy,
+        );
         let dx = cos_theta_h * x1 - sin_theta_h * sz;
         let d_planar = (dx * dx + y1 * y1).sqrt();
-        let cos_phi_d = if d_planar > DEGENERATE { clamp_unit(dx / d_planar) } else { 1.0 };
-        Self { cos_theta_h, cos_theta_d: clamp_unit(sun_dir.dot(half)), cos_phi_h: clamp_unit(cos_phi_h), cos_phi_d }
+        let cos_phi_d = if d_planar > DEGENERATE {
+            clamp_unit(dx / d_planar)
+        } else {
+            1.0
+        };
+        Self {
+            cos_theta_h,
+            cos_theta_d: clamp_unit(sun_dir.dot(half)),
+            cos_phi_h: clamp_unit(cos_phi_h),
+            cos_phi_d,
+        }
     }
 }
 
@@ -130,7 +166,10 @@ pub fn spacecraft_position_at(start_body: DVec3, stop_body: DVec3, t: f64) -> DV
 pub fn imaging_fraction(ground_body: DVec3, start_body: DVec3, stop_body: DVec3) -> f64 {
     let u0 = start_body.normalize();
     let along = (stop_body - u0 * stop_body.dot(u0)).normalize();
-    let omega = stop_body.normalize().dot(along).atan2(stop_body.normalize().dot(u0));
+    let omega = stop_body
+        .normalize()
+        .dot(along)
+        .atan2(stop_body.normalize().dot(u0));
     let theta = ground_body.dot(along).atan2(ground_body.dot(u0));
     if omega.abs() < 1e-15 {
         0.0
@@ -148,7 +187,11 @@ mod tests {
     fn imaging_fraction_inverts_spacecraft_position() {
         let r = crate::crs::MOON_RADIUS_M + 50_000.0;
         let a = DVec3::new(r, 0.0, 0.0);
-        let b = DVec3::new(r * deg(0.4).cos(), r * deg(0.4).sin() * 0.6, r * deg(0.4).sin() * 0.8);
+        let b = DVec3::new(
+            r * deg(0.4).cos(),
+            r * deg(0.4).sin() * 0.6,
+            r * deg(0.4).sin() * 0.8,
+        );
         for t in [0.0, 0.25, 0.5, 0.9] {
             // A ground point below the spacecraft, displaced cross-track (as a slewed camera sees it).
             let sc = spacecraft_position_at(a, b, t);
@@ -170,7 +213,11 @@ mod tests {
         let crs = LunarCrs::equirectangular(0.0, 0.0);
         let gsd = 5.0;
         let (w, h) = (4, 3);
-        let transform = GeoTransform::north_up(-(w as f64 + 2.0) * gsd / 2.0, (h as f64 + 2.0) * gsd / 2.0, gsd);
+        let transform = GeoTransform::north_up(
+            -(w as f64 + 2.0) * gsd / 2.0,
+            (h as f64 + 2.0) * gsd / 2.0,
+            gsd,
+        );
         let frame = LocalFrame::new(&crs, 0.0, 0.0, 100.0).unwrap();
         let mut heights = Vec::new();
         for row in 0..h + 2 {
@@ -221,9 +268,17 @@ mod tests {
         // Exact on the sphere: the equirectangular y offset of 5 km is an arc θ = 5000/R; the camera sits at radius
         // Rc = R − 1200 + 50 000 above it, the crop at R0 = R − 1200. (Flat-Earth atan(0.1) would be 0.16° off.)
         let theta = 5000.0 / crate::crs::MOON_RADIUS_M;
-        let (rc, r0) = (crate::crs::MOON_RADIUS_M + 48_800.0, crate::crs::MOON_RADIUS_M - 1200.0);
+        let (rc, r0) = (
+            crate::crs::MOON_RADIUS_M + 48_800.0,
+            crate::crs::MOON_RADIUS_M - 1200.0,
+        );
         let expected = (rc * theta.sin()).atan2(rc * theta.cos() - r0);
-        assert!((c.cos_e - expected.cos()).abs() < 1e-9, "cos e {} vs {}", c.cos_e, expected.cos());
+        assert!(
+            (c.cos_e - expected.cos()).abs() < 1e-9,
+            "cos e {} vs {}",
+            c.cos_e,
+            expected.cos()
+        );
         assert!(v.y > 0.0 && v.x.abs() < 1e-6, "camera is due north: {v:?}");
     }
 
@@ -239,7 +294,10 @@ mod tests {
         assert_eq!(hd.cos_phi_h, 1.0, "φh is defined by continuity at θh = 0");
         // Nadir camera and zenith sun: everything aligned; all azimuths by continuity, no NaN.
         let hd = HalfDiffCosines::new(n, n, n);
-        assert_eq!((hd.cos_theta_h, hd.cos_theta_d, hd.cos_phi_h, hd.cos_phi_d), (1.0, 1.0, 1.0, 1.0));
+        assert_eq!(
+            (hd.cos_theta_h, hd.cos_theta_d, hd.cos_phi_h, hd.cos_phi_d),
+            (1.0, 1.0, 1.0, 1.0)
+        );
         // Retro-reflection (g = 0) off-normal: θd = 0 so φd is by continuity, θh = i.
         let hd = HalfDiffCosines::new(n, s, s);
         assert!((hd.cos_theta_h - deg(30.0).cos()).abs() < 1e-14 && hd.cos_phi_d == 1.0);
@@ -254,8 +312,20 @@ mod tests {
         let h = (s + v).normalize();
         let theta_h = h.z.acos();
         let phi_h = h.y.atan2(h.x);
-        let rot_z = |a: f64, p: DVec3| DVec3::new(a.cos() * p.x - a.sin() * p.y, a.sin() * p.x + a.cos() * p.y, p.z);
-        let rot_y = |a: f64, p: DVec3| DVec3::new(a.cos() * p.x + a.sin() * p.z, p.y, -a.sin() * p.x + a.cos() * p.z);
+        let rot_z = |a: f64, p: DVec3| {
+            DVec3::new(
+                a.cos() * p.x - a.sin() * p.y,
+                a.sin() * p.x + a.cos() * p.y,
+                p.z,
+            )
+        };
+        let rot_y = |a: f64, p: DVec3| {
+            DVec3::new(
+                a.cos() * p.x + a.sin() * p.z,
+                p.y,
+                -a.sin() * p.x + a.cos() * p.z,
+            )
+        };
         let d = rot_y(-theta_h, rot_z(-phi_h, s));
         let phi_d = d.y.atan2(d.x);
         let hd = HalfDiffCosines::new(n, s, v);

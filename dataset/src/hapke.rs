@@ -46,7 +46,15 @@ pub struct HapkeParams {
 impl HapkeParams {
     /// Representative lunar highland/mare soil (DESIGN §4 ranges; θ̄ from a Moon-wide fit).
     pub fn lunar_typical() -> Self {
-        Self { w: 0.32, b: 0.25, c: 0.6, b_s0: 2.0, h_s: 0.07, theta_bar_rad: 23.657f64.to_radians(), porosity_k: 1.0 }
+        Self {
+            w: 0.32,
+            b: 0.25,
+            c: 0.6,
+            b_s0: 2.0,
+            h_s: 0.07,
+            theta_bar_rad: 23.657f64.to_radians(),
+            porosity_k: 1.0,
+        }
     }
 }
 
@@ -108,20 +116,36 @@ pub fn roughness(cos_i: f64, cos_e: f64, cos_g: f64, theta_bar_rad: f64) -> Roug
     // Roughness is defined for i, e in [0°, 90°]; callers return 0 outside (backfacing).
     let (mu0, mu) = (cos_i.clamp(0.0, 1.0), cos_e.clamp(0.0, 1.0));
     if theta_bar_rad < 1e-6 {
-        return Roughness { mu0_eff: mu0, mu_eff: mu, shadowing: 1.0 };
+        return Roughness {
+            mu0_eff: mu0,
+            mu_eff: mu,
+            shadowing: 1.0,
+        };
     }
     if mu0 == 0.0 || mu == 0.0 {
         // Exactly grazing: r = 0 whatever S is, and S itself is a 0/0 here; report no light rather than a NaN.
-        return Roughness { mu0_eff: 0.0, mu_eff: 0.0, shadowing: 0.0 };
+        return Roughness {
+            mu0_eff: 0.0,
+            mu_eff: 0.0,
+            shadowing: 0.0,
+        };
     }
     let sin_i = (1.0 - mu0 * mu0).max(0.0).sqrt();
     let sin_e = (1.0 - mu * mu).max(0.0).sqrt();
-    let cos_psi = if sin_i * sin_e > MIN_SIN { clamp_unit((clamp_unit(cos_g) - mu0 * mu) / (sin_i * sin_e)) } else { 1.0 };
+    let cos_psi = if sin_i * sin_e > MIN_SIN {
+        clamp_unit((clamp_unit(cos_g) - mu0 * mu) / (sin_i * sin_e))
+    } else {
+        1.0
+    };
     let psi = cos_psi.acos();
     let sin2_half_psi = (1.0 - cos_psi) / 2.0;
     // f(ψ) = exp(−2 tan(ψ/2)), with tan(ψ/2) = sin(ψ/2)/cos(ψ/2): the exponent → −∞ at ψ = π, f → 0.
     let cos_half_psi = ((1.0 + cos_psi) / 2.0).sqrt();
-    let f_psi = if cos_half_psi < 1e-150 { 0.0 } else { (-2.0 * sin2_half_psi.sqrt() / cos_half_psi).exp() };
+    let f_psi = if cos_half_psi < 1e-150 {
+        0.0
+    } else {
+        (-2.0 * sin2_half_psi.sqrt() / cos_half_psi).exp()
+    };
 
     let tan_tb = theta_bar_rad.tan();
     let cot_tb = 1.0 / tan_tb;
@@ -132,7 +156,9 @@ pub fn roughness(cos_i: f64, cos_e: f64, cos_g: f64, theta_bar_rad: f64) -> Roug
     let e2 = |cot_x: f64| (-1.0 / PI * cot_tb * cot_tb * cot_x * cot_x).exp();
     let (cot_i, cot_e) = (cot(mu0, sin_i), cot(mu, sin_e));
     let (e1_i, e2_i, e1_e, e2_e) = (e1(cot_i), e2(cot_i), e1(cot_e), e2(cot_e));
-    let eta = |cos_x: f64, sin_x: f64, e1_x: f64, e2_x: f64| chi * (cos_x + sin_x * tan_tb * e2_x / (2.0 - e1_x));
+    let eta = |cos_x: f64, sin_x: f64, e1_x: f64, e2_x: f64| {
+        chi * (cos_x + sin_x * tan_tb * e2_x / (2.0 - e1_x))
+    };
     let eta0 = eta(mu0, sin_i, e1_i, e2_i);
     let eta_e = eta(mu, sin_e, e1_e, e2_e);
 
@@ -140,7 +166,8 @@ pub fn roughness(cos_i: f64, cos_e: f64, cos_g: f64, theta_bar_rad: f64) -> Roug
         // i ≤ e
         // Zero only when both are grazing and ψ = π, where every numerator vanishes too.
         let denom = (2.0 - e1_e - psi / PI * e1_i).max(MIN_SIN);
-        let mu0_eff = chi * (mu0 + sin_i * tan_tb * (cos_psi * e2_e + sin2_half_psi * e2_i) / denom);
+        let mu0_eff =
+            chi * (mu0 + sin_i * tan_tb * (cos_psi * e2_e + sin2_half_psi * e2_i) / denom);
         let mu_eff = chi * (mu + sin_e * tan_tb * (e2_e - sin2_half_psi * e2_i) / denom);
         (mu0_eff, mu_eff, mu0 / eta0)
     } else {
@@ -151,12 +178,23 @@ pub fn roughness(cos_i: f64, cos_e: f64, cos_g: f64, theta_bar_rad: f64) -> Roug
         (mu0_eff, mu_eff, mu / eta_e)
     };
     // η ≥ χ·tan θ̄·E2/(2−E1) > 0 at grazing, and ≥ χ·cos x elsewhere: never zero for θ̄ > 0.
-    let shadowing = (mu_eff / eta_e) * (mu0 / eta0) * chi / (1.0 - f_psi + f_psi * chi * denominator_ratio).max(f64::MIN_POSITIVE);
-    Roughness { mu0_eff, mu_eff, shadowing }
+    let shadowing = (mu_eff / eta_e) * (mu0 / eta0) * chi
+        / (1.0 - f_psi + f_psi * chi * denominator_ratio).max(f64::MIN_POSITIVE);
+    Roughness {
+        mu0_eff,
+        mu_eff,
+        shadowing,
+    }
 }
 
 /// Hapke bidirectional reflectance r (sr⁻¹) from cos i, cos e, cos g.
-pub fn hapke_reflectance(p: &HapkeParams, cos_i: f64, cos_e: f64, cos_g: f64, form: HFunction) -> f64 {
+pub fn hapke_reflectance(
+    p: &HapkeParams,
+    cos_i: f64,
+    cos_e: f64,
+    cos_g: f64,
+    form: HFunction,
+) -> f64 {
     let (mu0, mu) = (clamp_unit(cos_i), clamp_unit(cos_e));
     if mu0 <= 0.0 || mu <= 0.0 {
         return 0.0;
@@ -213,7 +251,11 @@ mod tests {
         let (nodes2, _) = gauss_legendre_01(n);
         for _ in 0..400_000 {
             let next: Vec<f64> = nodes2.iter().map(|&m| apply(&h, m)).collect();
-            let delta = next.iter().zip(&h).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+            let delta = next
+                .iter()
+                .zip(&h)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0, f64::max);
             h = next;
             if delta < 1e-15 {
                 break;
@@ -260,7 +302,10 @@ mod tests {
             let h = chandrasekhar_h(w);
             let moment: f64 = nodes.iter().zip(&weights).map(|(&m, &wt)| wt * h(m)).sum();
             let expected = 2.0 / w * (1.0 - (1.0 - w).sqrt());
-            assert!((moment - expected).abs() < 1e-4, "w={w}: {moment} vs {expected}");
+            assert!(
+                (moment - expected).abs() < 1e-4,
+                "w={w}: {moment} vs {expected}"
+            );
         }
     }
 
@@ -272,9 +317,18 @@ mod tests {
                 let exact = exact_h(x);
                 let h02 = h_function(x, w, HFunction::Hapke2002);
                 let h81 = h_function(x, w, HFunction::Hapke1981);
-                assert!((h02 / exact - 1.0).abs() < 0.01, "2002 at w={w} x={x}: {h02} vs {exact}");
-                assert!((h81 / exact - 1.0).abs() < 0.04, "1981 at w={w} x={x}: {h81} vs {exact}");
-                assert!((h02 / h81 - 1.0).abs() <= 0.04, "2002 vs 1981 at w={w} x={x}");
+                assert!(
+                    (h02 / exact - 1.0).abs() < 0.01,
+                    "2002 at w={w} x={x}: {h02} vs {exact}"
+                );
+                assert!(
+                    (h81 / exact - 1.0).abs() < 0.04,
+                    "1981 at w={w} x={x}: {h81} vs {exact}"
+                );
+                assert!(
+                    (h02 / h81 - 1.0).abs() <= 0.04,
+                    "2002 vs 1981 at w={w} x={x}"
+                );
             }
         }
     }
@@ -285,7 +339,11 @@ mod tests {
         assert_eq!((c.mu0_eff, c.mu_eff, c.shadowing), (0.7, 0.9, 1.0));
         // And the rough model converges to it continuously.
         let r = roughness(0.7, 0.9, 0.5, 1e-4);
-        assert!((r.mu0_eff - 0.7).abs() < 1e-3 && (r.mu_eff - 0.9).abs() < 1e-3 && (r.shadowing - 1.0).abs() < 1e-3);
+        assert!(
+            (r.mu0_eff - 0.7).abs() < 1e-3
+                && (r.mu_eff - 0.9).abs() < 1e-3
+                && (r.shadowing - 1.0).abs() < 1e-3
+        );
     }
 
     #[test]
@@ -310,7 +368,15 @@ mod tests {
     #[test]
     fn hapke_isotropic_smooth_matches_closed_form() {
         // b = 0 (isotropic phase), no opposition, θ̄ = 0, H1981: r = w/4π · μ0/(μ0+μ) · H(μ0)H(μ).
-        let p = HapkeParams { w: 0.4, b: 0.0, c: 0.0, b_s0: 0.0, h_s: 0.05, theta_bar_rad: 0.0, porosity_k: 1.0 };
+        let p = HapkeParams {
+            w: 0.4,
+            b: 0.0,
+            c: 0.0,
+            b_s0: 0.0,
+            h_s: 0.05,
+            theta_bar_rad: 0.0,
+            porosity_k: 1.0,
+        };
         let (mu0, mu) = (0.5, 0.9);
         let g = 0.3; // irrelevant here: isotropic phase and no opposition effect
         let gamma = (1.0f64 - 0.4).sqrt();
@@ -323,12 +389,17 @@ mod tests {
     fn finite_everywhere(p: &HapkeParams, ci: f64, ce: f64, cg: f64) {
         for form in [HFunction::Hapke1981, HFunction::Hapke2002] {
             let r = hapke_reflectance(p, ci, ce, cg, form);
-            assert!(r.is_finite() && r >= 0.0, "r = {r} at {p:?} cos i {ci} cos e {ce} cos g {cg}");
+            assert!(
+                r.is_finite() && r >= 0.0,
+                "r = {r} at {p:?} cos i {ci} cos e {ce} cos g {cg}"
+            );
         }
         let ll = lunar_lambert_i_over_f(p.w, ci, ce, cg);
         assert!(ll.is_finite());
         let rough = roughness(ci, ce, cg, p.theta_bar_rad);
-        assert!(rough.mu0_eff.is_finite() && rough.mu_eff.is_finite() && rough.shadowing.is_finite());
+        assert!(
+            rough.mu0_eff.is_finite() && rough.mu_eff.is_finite() && rough.shadowing.is_finite()
+        );
     }
 
     /// Cosines of the hazards: exact 0 and 1, a hair outside [−1, 1], and near-grazing values.
@@ -348,14 +419,28 @@ mod tests {
 
     fn hazard_params() -> impl Strategy<Value = HapkeParams> {
         (
-            prop_oneof![Just(1.0), Just(1.0 - 1e-15), Just(1.2), Just(0.0), 0.0f64..1.0],
+            prop_oneof![
+                Just(1.0),
+                Just(1.0 - 1e-15),
+                Just(1.2),
+                Just(0.0),
+                0.0f64..1.0
+            ],
             prop_oneof![Just(1.0), Just(-1.0), Just(0.999_999_9), -1.0f64..1.0],
             prop_oneof![Just(1.0), Just(-1.0), -1.0f64..1.0],
             0.0f64..4.0,
             prop_oneof![Just(0.0), Just(1e-9), 0.0f64..0.2],
             prop_oneof![Just(0.0), Just(1e-9), Just(1e-7), 0.0f64..1.0],
         )
-            .prop_map(|(w, b, c, b_s0, h_s, theta_bar_rad)| HapkeParams { w, b, c, b_s0, h_s, theta_bar_rad, porosity_k: 1.0 })
+            .prop_map(|(w, b, c, b_s0, h_s, theta_bar_rad)| HapkeParams {
+                w,
+                b,
+                c,
+                b_s0,
+                h_s,
+                theta_bar_rad,
+                porosity_k: 1.0,
+            })
     }
 
     proptest! {

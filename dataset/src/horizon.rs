@@ -73,7 +73,12 @@ impl<'a> HorizonGrid<'a> {
                 }
                 max_height_m = max_height_m.max(h as f64);
                 // Right, down, and both diagonals cover every 8-neighbour pair once.
-                for (dc, dr, dist) in [(1, 0, 1.0), (0, 1, 1.0), (1, 1, std::f64::consts::SQRT_2), (-1, 1, std::f64::consts::SQRT_2)] {
+                for (dc, dr, dist) in [
+                    (1, 0, 1.0),
+                    (0, 1, 1.0),
+                    (1, 1, std::f64::consts::SQRT_2),
+                    (-1, 1, std::f64::consts::SQRT_2),
+                ] {
                     let (c2, r2) = (col as i64 + dc, row as i64 + dr);
                     if c2 < 0 || r2 < 0 || c2 >= width as i64 || r2 >= height as i64 {
                         continue;
@@ -86,7 +91,14 @@ impl<'a> HorizonGrid<'a> {
             }
         }
         // Bilinear interpolation between cells can't be steeper than the steepest 8-neighbour pair by more than √2.
-        Self { heights, width, height, gsd_m, max_height_m, max_slope_tan: max_rise * std::f64::consts::SQRT_2 }
+        Self {
+            heights,
+            width,
+            height,
+            gsd_m,
+            max_height_m,
+            max_slope_tan: max_rise * std::f64::consts::SQRT_2,
+        }
     }
 
     pub fn max_slope_deg(&self) -> f64 {
@@ -109,7 +121,10 @@ impl<'a> HorizonGrid<'a> {
         if horizontal < 1e-12 {
             return 1.0; // source at zenith
         }
-        let (step_c, step_r) = (dir.toward_col / horizontal * 0.5, dir.toward_row / horizontal * 0.5);
+        let (step_c, step_r) = (
+            dir.toward_col / horizontal * 0.5,
+            dir.toward_row / horizontal * 0.5,
+        );
         let step_m = 0.5 * self.gsd_m;
         let darkest = dir.elevation_rad + dir.angular_radius_rad;
         let mut horizon_tan = f64::NEG_INFINITY;
@@ -130,14 +145,19 @@ impl<'a> HorizonGrid<'a> {
                 return 0.0; // the whole disk is already hidden
             }
             // Beyond here the ray at the current horizon is above every height on the grid.
-            if h0 + dist * horizon_tan.max((dir.elevation_rad - dir.angular_radius_rad).tan()) > self.max_height_m {
+            if h0 + dist * horizon_tan.max((dir.elevation_rad - dir.angular_radius_rad).tan())
+                > self.max_height_m
+            {
                 break;
             }
         }
         if horizon_tan == f64::NEG_INFINITY {
             return 1.0;
         }
-        disk_fraction_above(dir.elevation_rad - horizon_tan.atan(), dir.angular_radius_rad)
+        disk_fraction_above(
+            dir.elevation_rad - horizon_tan.atan(),
+            dir.angular_radius_rad,
+        )
     }
 
     /// Visible fraction of the source for every cell: a line sweep per disk sample, weighted by chord length.
@@ -148,13 +168,25 @@ impl<'a> HorizonGrid<'a> {
         if self.source_clears_all_slopes(dir) {
             return vec![1.0; n];
         }
-        let samples = if dir.angular_radius_rad > 0.0 { disk_samples.max(1) } else { 1 };
+        let samples = if dir.angular_radius_rad > 0.0 {
+            disk_samples.max(1)
+        } else {
+            1
+        };
         let mut total = vec![0.0f32; n];
         let mut weight_sum = 0.0;
         for k in 0..samples {
             // Midpoint rule over the disk's vertical extent; weight = chord length at that height.
-            let y = if samples == 1 { 0.0 } else { -1.0 + (2.0 * k as f64 + 1.0) / samples as f64 };
-            let weight = if samples == 1 { 1.0 } else { (1.0 - y * y).sqrt() };
+            let y = if samples == 1 {
+                0.0
+            } else {
+                -1.0 + (2.0 * k as f64 + 1.0) / samples as f64
+            };
+            let weight = if samples == 1 {
+                1.0
+            } else {
+                (1.0 - y * y).sqrt()
+            };
             let elevation = dir.elevation_rad + y * dir.angular_radius_rad;
             let lit = self.sweep_hard(dir.toward_col, dir.toward_row, elevation);
             for (t, l) in total.iter_mut().zip(lit) {
@@ -179,14 +211,24 @@ impl<'a> HorizonGrid<'a> {
         let tan_e = elevation.tan();
         // Work on a view where the dominant axis of the direction is "columns" and the source lies at lower index.
         let col_major = toward_col.abs() >= toward_row.abs();
-        let (major, minor) = if col_major { (toward_col, toward_row) } else { (toward_row, toward_col) };
+        let (major, minor) = if col_major {
+            (toward_col, toward_row)
+        } else {
+            (toward_row, toward_col)
+        };
         if major.abs() < 1e-15 {
             return vec![true; w * h];
         }
         let slope = minor / major.abs(); // minor-axis offset per major step toward the source
         let step_m = self.gsd_m * (1.0 + slope * slope).sqrt();
         let (n_major, n_minor) = if col_major { (w, h) } else { (h, w) };
-        let index = |maj: usize, min: usize| if col_major { min * w + maj } else { maj * w + min };
+        let index = |maj: usize, min: usize| {
+            if col_major {
+                min * w + maj
+            } else {
+                maj * w + min
+            }
+        };
         let toward_low = major < 0.0; // source toward decreasing major index
         let mut lit = vec![true; w * h];
         let mut prev = vec![f64::NEG_INFINITY; n_minor];
@@ -195,7 +237,11 @@ impl<'a> HorizonGrid<'a> {
             let maj = if toward_low { step } else { n_major - 1 - step };
             for (min, cur_s) in cur.iter_mut().enumerate() {
                 let hh = self.heights[index(maj, min)] as f64;
-                let hh = if hh.is_finite() { hh } else { f64::NEG_INFINITY };
+                let hh = if hh.is_finite() {
+                    hh
+                } else {
+                    f64::NEG_INFINITY
+                };
                 // Upstream neighbour: one major step toward the source, minor offset by `slope`.
                 let upstream = if step == 0 {
                     f64::NEG_INFINITY
@@ -208,7 +254,11 @@ impl<'a> HorizonGrid<'a> {
                         let hi = (lo + 1).min(n_minor - 1);
                         let f = pos - lo as f64;
                         let (a, b) = (prev[lo], prev[hi]);
-                        if a == f64::NEG_INFINITY || b == f64::NEG_INFINITY { a.max(b) } else { a * (1.0 - f) + b * f }
+                        if a == f64::NEG_INFINITY || b == f64::NEG_INFINITY {
+                            a.max(b)
+                        } else {
+                            a * (1.0 - f) + b * f
+                        }
                     }
                 };
                 let shadow_top = upstream - step_m * tan_e;
@@ -232,12 +282,17 @@ mod tests {
         assert_eq!(disk_fraction_above(-2.0 * r, r), 0.0);
         assert!((disk_fraction_above(0.0, r) - 0.5).abs() < 1e-15);
         // Symmetry: f(u) + f(-u) = 1.
-        assert!((disk_fraction_above(0.3 * r, r) + disk_fraction_above(-0.3 * r, r) - 1.0).abs() < 1e-14);
+        assert!(
+            (disk_fraction_above(0.3 * r, r) + disk_fraction_above(-0.3 * r, r) - 1.0).abs()
+                < 1e-14
+        );
     }
 
     /// A vertical step (wall) of height H at column c_wall, flat elsewhere: shadow length = H / tan(elevation).
     fn step_terrain(w: usize, h: usize, c_wall: usize, wall_m: f32) -> Vec<f32> {
-        (0..w * h).map(|i| if i % w < c_wall { wall_m } else { 0.0 }).collect()
+        (0..w * h)
+            .map(|i| if i % w < c_wall { wall_m } else { 0.0 })
+            .collect()
     }
 
     #[test]
@@ -246,7 +301,12 @@ mod tests {
         let heights = step_terrain(w, h, 50, 10.0);
         let grid = HorizonGrid::new(&heights, w, h, gsd);
         let elev = 20f64.to_radians();
-        let dir = SourceDirection { toward_col: -1.0, toward_row: 0.0, elevation_rad: elev, angular_radius_rad: 0.0 };
+        let dir = SourceDirection {
+            toward_col: -1.0,
+            toward_row: 0.0,
+            elevation_rad: elev,
+            angular_radius_rad: 0.0,
+        };
         // Wall top edge is between col 49 (10 m) and col 50 (0 m): bilinear puts the edge at col 49.
         let shadow_len_px = 10.0 / elev.tan() / gsd;
         for col in 50..w {
@@ -254,7 +314,11 @@ mod tests {
             let expected = if d < shadow_len_px { 0.0 } else { 1.0 };
             // Within one pixel of the analytic edge the discretisation decides; elsewhere it must agree.
             if (d - shadow_len_px).abs() > 1.0 {
-                assert_eq!(grid.march_visible_fraction(col, 2, &dir), expected, "col {col}");
+                assert_eq!(
+                    grid.march_visible_fraction(col, 2, &dir),
+                    expected,
+                    "col {col}"
+                );
             }
         }
     }
@@ -264,24 +328,44 @@ mod tests {
         // A long ramp rising toward the sun exactly at the sun's elevation: the horizon sits at the sun centre.
         let (w, h, gsd) = (400, 3, 1.0);
         let elev = 15f64.to_radians();
-        let heights: Vec<f32> = (0..w * h).map(|i| ((w - i % w) as f64 * gsd * elev.tan()) as f32).collect();
+        let heights: Vec<f32> = (0..w * h)
+            .map(|i| ((w - i % w) as f64 * gsd * elev.tan()) as f32)
+            .collect();
         let grid = HorizonGrid::new(&heights, w, h, gsd);
-        let dir = SourceDirection { toward_col: -1.0, toward_row: 0.0, elevation_rad: elev, angular_radius_rad: SUN_ANGULAR_RADIUS_RAD };
+        let dir = SourceDirection {
+            toward_col: -1.0,
+            toward_row: 0.0,
+            elevation_rad: elev,
+            angular_radius_rad: SUN_ANGULAR_RADIUS_RAD,
+        };
         let f = grid.march_visible_fraction(300, 1, &dir);
         // Curvature lowers the far horizon a hair, so slightly more than half the disk shows.
         assert!((f - 0.5).abs() < 0.05, "{f}");
-        let lifted = SourceDirection { elevation_rad: elev + 2.0 * SUN_ANGULAR_RADIUS_RAD, ..dir };
+        let lifted = SourceDirection {
+            elevation_rad: elev + 2.0 * SUN_ANGULAR_RADIUS_RAD,
+            ..dir
+        };
         assert_eq!(grid.march_visible_fraction(300, 1, &lifted), 1.0);
     }
 
     #[test]
     fn steep_sun_skips_the_march_exactly() {
         let (w, h) = (64, 64);
-        let heights: Vec<f32> = (0..w * h).map(|i| ((i % w) as f32 * 0.3).sin() * 2.0).collect();
+        let heights: Vec<f32> = (0..w * h)
+            .map(|i| ((i % w) as f32 * 0.3).sin() * 2.0)
+            .collect();
         let grid = HorizonGrid::new(&heights, w, h, 1.0);
-        let high = SourceDirection { toward_col: 1.0, toward_row: 0.3, elevation_rad: 80f64.to_radians(), angular_radius_rad: SUN_ANGULAR_RADIUS_RAD };
+        let high = SourceDirection {
+            toward_col: 1.0,
+            toward_row: 0.3,
+            elevation_rad: 80f64.to_radians(),
+            angular_radius_rad: SUN_ANGULAR_RADIUS_RAD,
+        };
         assert!(grid.source_clears_all_slopes(&high));
-        assert!(grid.sweep_visible_fraction(&high, 5).iter().all(|&v| v == 1.0));
+        assert!(grid
+            .sweep_visible_fraction(&high, 5)
+            .iter()
+            .all(|&v| v == 1.0));
     }
 
     #[test]
@@ -294,8 +378,18 @@ mod tests {
             })
             .collect();
         let grid = HorizonGrid::new(&heights, w, h, 2.0);
-        for (tc, tr, elev_deg) in [(1.0, 0.0, 12.0), (-0.6, 0.8, 20.0), (0.3, -0.95, 8.0), (-1.0, -1.0, 15.0)] {
-            let dir = SourceDirection { toward_col: tc, toward_row: tr, elevation_rad: f64::to_radians(elev_deg), angular_radius_rad: 0.0 };
+        for (tc, tr, elev_deg) in [
+            (1.0, 0.0, 12.0),
+            (-0.6, 0.8, 20.0),
+            (0.3, -0.95, 8.0),
+            (-1.0, -1.0, 15.0),
+        ] {
+            let dir = SourceDirection {
+                toward_col: tc,
+                toward_row: tr,
+                elevation_rad: f64::to_radians(elev_deg),
+                angular_radius_rad: 0.0,
+            };
             let sweep = grid.sweep_visible_fraction(&dir, 1);
             let (mut disagree, mut total) = (0, 0);
             for row in 0..h {
@@ -309,7 +403,10 @@ mod tests {
             }
             // Both discretise the shadow edge; they may differ only in edge cells.
             let share = disagree as f64 / total as f64;
-            assert!(share < 0.03, "direction ({tc},{tr}) at {elev_deg}°: {share:.3} of cells disagree");
+            assert!(
+                share < 0.03,
+                "direction ({tc},{tr}) at {elev_deg}°: {share:.3} of cells disagree"
+            );
         }
     }
 }

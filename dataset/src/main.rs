@@ -6,7 +6,11 @@ use std::process::ExitCode;
 use clap::{Parser, Subcommand};
 
 #[derive(Parser)]
-#[command(name = "g2r-dataset", version, about = "Inspect and verify lunar DEM–image pair datasets (Parquet shards + manifest.json)")]
+#[command(
+    name = "g2r-dataset",
+    version,
+    about = "Inspect and verify lunar DEM–image pair datasets (Parquet shards + manifest.json)"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -44,7 +48,13 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Schema => print!("{}", dataset::schema::schema_markdown()),
         Command::Inspect { shard } => {
             let sizes = dataset::shard::row_group_sizes(&shard)?;
-            println!("{}: {} rows in {} row groups {:?}", shard.display(), sizes.iter().sum::<usize>(), sizes.len(), sizes);
+            println!(
+                "{}: {} rows in {} row groups {:?}",
+                shard.display(),
+                sizes.iter().sum::<usize>(),
+                sizes.len(),
+                sizes
+            );
             if let Some(first) = dataset::shard::read_row_group(&shard, 0)?.first() {
                 println!(
                     "first sample {} (split {}, tile {}, ortho {}) at lon {:.5} lat {:.5}, i={:.1} e={:.1} g={:.1}",
@@ -60,7 +70,11 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 eprintln!("{p}");
             }
             if !problems.is_empty() {
-                eprintln!("{} of {} shards failed verification", problems.len(), manifest.shards.len());
+                eprintln!(
+                    "{} of {} shards failed verification",
+                    problems.len(),
+                    manifest.shards.len()
+                );
                 return Ok(ExitCode::FAILURE);
             }
             println!("all {} shards match manifest.json", manifest.shards.len());

@@ -37,7 +37,11 @@ pub struct FileEntry {
 impl FileEntry {
     pub fn of(root: &Path, relative: &str) -> io::Result<Self> {
         let full = root.join(relative);
-        Ok(Self { path: relative.to_string(), bytes: std::fs::metadata(&full)?.len(), blake3: hash_file(&full)? })
+        Ok(Self {
+            path: relative.to_string(),
+            bytes: std::fs::metadata(&full)?.len(),
+            blake3: hash_file(&full)?,
+        })
     }
 }
 
@@ -61,18 +65,33 @@ pub struct DatasetManifest {
 pub enum ManifestError {
     #[error("{path}: {source}")]
     Io { path: PathBuf, source: io::Error },
-    #[error("{path}: not a valid manifest ({source}); regenerate it with the pipeline's publish stage")]
-    Parse { path: PathBuf, source: serde_json::Error },
+    #[error(
+        "{path}: not a valid manifest ({source}); regenerate it with the pipeline's publish stage"
+    )]
+    Parse {
+        path: PathBuf,
+        source: serde_json::Error,
+    },
     #[error("{path}: manifest schema {found} does not match this build's {SCHEMA_VERSION}; rebuild the dataset")]
     SchemaVersion { path: PathBuf, found: String },
 }
 
 impl DatasetManifest {
     pub fn load(path: &Path) -> Result<Self, ManifestError> {
-        let text = std::fs::read_to_string(path).map_err(|source| ManifestError::Io { path: path.to_path_buf(), source })?;
-        let manifest: Self = serde_json::from_str(&text).map_err(|source| ManifestError::Parse { path: path.to_path_buf(), source })?;
+        let text = std::fs::read_to_string(path).map_err(|source| ManifestError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let manifest: Self =
+            serde_json::from_str(&text).map_err(|source| ManifestError::Parse {
+                path: path.to_path_buf(),
+                source,
+            })?;
         if manifest.schema_version.split('.').next() != SCHEMA_VERSION.split('.').next() {
-            return Err(ManifestError::SchemaVersion { path: path.to_path_buf(), found: manifest.schema_version });
+            return Err(ManifestError::SchemaVersion {
+                path: path.to_path_buf(),
+                found: manifest.schema_version,
+            });
         }
         Ok(manifest)
     }
@@ -84,12 +103,18 @@ impl DatasetManifest {
             let path = dir.join(&shard.path);
             match std::fs::metadata(&path) {
                 Err(_) => problems.push(format!("{}: missing", path.display())),
-                Ok(m) if m.len() != shard.bytes => {
-                    problems.push(format!("{}: {} bytes, manifest says {} (truncated?)", path.display(), m.len(), shard.bytes))
-                }
+                Ok(m) if m.len() != shard.bytes => problems.push(format!(
+                    "{}: {} bytes, manifest says {} (truncated?)",
+                    path.display(),
+                    m.len(),
+                    shard.bytes
+                )),
                 Ok(_) => match hash_file(&path) {
                     Ok(h) if h == shard.blake3 => {}
-                    Ok(h) => problems.push(format!("{}: blake3 {h} does not match the manifest (tampered?)", path.display())),
+                    Ok(h) => problems.push(format!(
+                        "{}: blake3 {h} does not match the manifest (tampered?)",
+                        path.display()
+                    )),
                     Err(e) => problems.push(format!("{}: {e}", path.display())),
                 },
             }
@@ -123,7 +148,13 @@ mod tests {
             seed: 1,
             crs: "x".into(),
             split_counts: BTreeMap::new(),
-            shards: vec![ShardEntry { path: entry.path, bytes: entry.bytes, rows: 1, row_groups: 1, blake3: entry.blake3 }],
+            shards: vec![ShardEntry {
+                path: entry.path,
+                bytes: entry.bytes,
+                rows: 1,
+                row_groups: 1,
+                blake3: entry.blake3,
+            }],
             dem_std_m: 1.0,
             pipeline_lock_blake3: String::new(),
         };

@@ -24,17 +24,28 @@ pub struct GeoTransform {
 
 impl GeoTransform {
     pub fn north_up(origin_x: f64, origin_y: f64, gsd_m: f64) -> Self {
-        Self { origin_x, origin_y, pixel_width: gsd_m, pixel_height: -gsd_m }
+        Self {
+            origin_x,
+            origin_y,
+            pixel_width: gsd_m,
+            pixel_height: -gsd_m,
+        }
     }
 
     /// Map coordinates of the centre of pixel (col, row).
     pub fn pixel_center(&self, col: f64, row: f64) -> (f64, f64) {
-        (self.origin_x + (col + 0.5) * self.pixel_width, self.origin_y + (row + 0.5) * self.pixel_height)
+        (
+            self.origin_x + (col + 0.5) * self.pixel_width,
+            self.origin_y + (row + 0.5) * self.pixel_height,
+        )
     }
 
     /// Continuous pixel coordinates (col, row) whose *centre* is at map (x, y): the inverse of [`Self::pixel_center`].
     pub fn map_to_pixel(&self, x: f64, y: f64) -> (f64, f64) {
-        ((x - self.origin_x) / self.pixel_width - 0.5, (y - self.origin_y) / self.pixel_height - 0.5)
+        (
+            (x - self.origin_x) / self.pixel_width - 0.5,
+            (y - self.origin_y) / self.pixel_height - 0.5,
+        )
     }
 
     pub fn gsd_m(&self) -> f64 {
@@ -42,7 +53,14 @@ impl GeoTransform {
     }
 
     pub fn to_gdal(&self) -> [f64; 6] {
-        [self.origin_x, self.pixel_width, 0.0, self.origin_y, 0.0, self.pixel_height]
+        [
+            self.origin_x,
+            self.pixel_width,
+            0.0,
+            self.origin_y,
+            0.0,
+            self.pixel_height,
+        ]
     }
 
     pub fn from_gdal(gt: &[f64; 6]) -> Option<Self> {
@@ -69,8 +87,22 @@ pub struct Raster {
 }
 
 impl Raster {
-    pub fn new(width: usize, height: usize, transform: GeoTransform, crs: LunarCrs, fill: f32) -> Self {
-        Self { width, height, transform, crs, data: vec![fill; width * height], nodata: -32768.0, description: String::new() }
+    pub fn new(
+        width: usize,
+        height: usize,
+        transform: GeoTransform,
+        crs: LunarCrs,
+        fill: f32,
+    ) -> Self {
+        Self {
+            width,
+            height,
+            transform,
+            crs,
+            data: vec![fill; width * height],
+            nodata: -32768.0,
+            description: String::new(),
+        }
     }
 
     #[inline]
@@ -100,7 +132,9 @@ pub fn bilinear(data: &[f32], width: usize, height: usize, col: f64, row: f64) -
 
 #[derive(Debug, thiserror::Error)]
 pub enum RasterError {
-    #[error("{path}: cannot open raster ({reason}); check the path and that it is a GDAL-readable file")]
+    #[error(
+        "{path}: cannot open raster ({reason}); check the path and that it is a GDAL-readable file"
+    )]
     Open { path: PathBuf, reason: String },
     #[error("{path}: has no CRS; assign a lunar one, e.g. gdal_edit.py -a_srs '+proj=eqc +R=1737400 ...' {path}")]
     NoCrs { path: PathBuf },
@@ -113,14 +147,20 @@ pub enum RasterError {
 }
 
 fn gdal_err(path: &Path) -> impl Fn(gdal::errors::GdalError) -> RasterError + '_ {
-    move |e| RasterError::Gdal { path: path.to_path_buf(), reason: e.to_string() }
+    move |e| RasterError::Gdal {
+        path: path.to_path_buf(),
+        reason: e.to_string(),
+    }
 }
 
 /// Check a GDAL spatial reference is on the lunar sphere (any projection).
 fn check_lunar(path: &Path, srs: &SpatialRef) -> Result<(), RasterError> {
     let semi_major_m = srs.semi_major().map_err(gdal_err(path))?;
     if (semi_major_m - MOON_RADIUS_M).abs() > 1.0 {
-        return Err(RasterError::NotLunar { path: path.to_path_buf(), semi_major_m });
+        return Err(RasterError::NotLunar {
+            path: path.to_path_buf(),
+            semi_major_m,
+        });
     }
     Ok(())
 }
@@ -138,26 +178,54 @@ pub struct RasterInfo {
 /// Open a raster and validate what every stage relies on: a lunar CRS and a north-up geotransform.
 pub fn open_lunar(path: &Path) -> Result<(Dataset, RasterInfo), RasterError> {
     if !path.exists() {
-        return Err(RasterError::Open { path: path.to_path_buf(), reason: "file does not exist".into() });
+        return Err(RasterError::Open {
+            path: path.to_path_buf(),
+            reason: "file does not exist".into(),
+        });
     }
-    let ds = Dataset::open(path).map_err(|e| RasterError::Open { path: path.to_path_buf(), reason: e.to_string() })?;
-    let srs = ds.spatial_ref().map_err(|_| RasterError::NoCrs { path: path.to_path_buf() })?;
+    let ds = Dataset::open(path).map_err(|e| RasterError::Open {
+        path: path.to_path_buf(),
+        reason: e.to_string(),
+    })?;
+    let srs = ds.spatial_ref().map_err(|_| RasterError::NoCrs {
+        path: path.to_path_buf(),
+    })?;
     check_lunar(path, &srs)?;
-    let gt = ds.geo_transform().map_err(|_| RasterError::NotNorthUp { path: path.to_path_buf() })?;
+    let gt = ds.geo_transform().map_err(|_| RasterError::NotNorthUp {
+        path: path.to_path_buf(),
+    })?;
     let transform = GeoTransform::from_gdal(&gt)
         .filter(|t| t.pixel_width > 0.0 && t.pixel_height < 0.0)
-        .ok_or_else(|| RasterError::NotNorthUp { path: path.to_path_buf() })?;
+        .ok_or_else(|| RasterError::NotNorthUp {
+            path: path.to_path_buf(),
+        })?;
     let (width, height) = ds.raster_size();
     let nodata = ds.rasterband(1).map_err(gdal_err(path))?.no_data_value();
     let wkt = srs.to_wkt().map_err(gdal_err(path))?;
-    Ok((ds, RasterInfo { width, height, transform, crs: LunarCrs::new(wkt), nodata }))
+    Ok((
+        ds,
+        RasterInfo {
+            width,
+            height,
+            transform,
+            crs: LunarCrs::new(wkt),
+            nodata,
+        },
+    ))
 }
 
 /// Read band 1 of a lunar GeoTIFF; nodata values become NaN.
 pub fn read_raster(path: &Path) -> Result<Raster, RasterError> {
     let (ds, info) = open_lunar(path)?;
     let band = ds.rasterband(1).map_err(gdal_err(path))?;
-    let buf = band.read_as::<f32>((0, 0), (info.width, info.height), (info.width, info.height), None).map_err(gdal_err(path))?;
+    let buf = band
+        .read_as::<f32>(
+            (0, 0),
+            (info.width, info.height),
+            (info.width, info.height),
+            None,
+        )
+        .map_err(gdal_err(path))?;
     let description = band.description().unwrap_or_default();
     let (_, mut data) = buf.into_shape_and_vec();
     let nodata = info.nodata.map(|v| v as f32);
@@ -206,25 +274,46 @@ pub fn write_geotiff(
 ) -> Result<(), RasterError> {
     let tmp = tmp_path(path);
     let driver = DriverManager::get_driver_by_name("GTiff").map_err(gdal_err(path))?;
-    let options = RasterCreationOptions::from_iter(["TILED=YES", "COMPRESS=DEFLATE", "PREDICTOR=3", "ZLEVEL=1", "BIGTIFF=IF_SAFER"]);
+    let options = RasterCreationOptions::from_iter([
+        "TILED=YES",
+        "COMPRESS=DEFLATE",
+        "PREDICTOR=3",
+        "ZLEVEL=1",
+        "BIGTIFF=IF_SAFER",
+    ]);
     {
         let mut ds = driver
-            .create_with_band_type_with_options::<f32, _>(&tmp, width, height, bands.len(), &options)
+            .create_with_band_type_with_options::<f32, _>(
+                &tmp,
+                width,
+                height,
+                bands.len(),
+                &options,
+            )
             .map_err(gdal_err(path))?;
-        ds.set_geo_transform(&transform.to_gdal()).map_err(gdal_err(path))?;
+        ds.set_geo_transform(&transform.to_gdal())
+            .map_err(gdal_err(path))?;
         let srs = SpatialRef::from_definition(&crs.definition).map_err(gdal_err(path))?;
         ds.set_spatial_ref(&srs).map_err(gdal_err(path))?;
         for (key, value) in metadata {
-            ds.set_metadata_item(key, value, "").map_err(gdal_err(path))?;
+            ds.set_metadata_item(key, value, "")
+                .map_err(gdal_err(path))?;
         }
         for (i, band_out) in bands.iter().enumerate() {
             let mut band = ds.rasterband(i + 1).map_err(gdal_err(path))?;
-            band.set_no_data_value(Some(nodata as f64)).map_err(gdal_err(path))?;
-            band.set_description(band_out.description).map_err(gdal_err(path))?;
+            band.set_no_data_value(Some(nodata as f64))
+                .map_err(gdal_err(path))?;
+            band.set_description(band_out.description)
+                .map_err(gdal_err(path))?;
             match band_out.values {
                 BandValues::Constant(v) => band.fill(v as f64, None).map_err(gdal_err(path))?,
                 BandValues::Grid(data) => {
-                    assert_eq!(data.len(), width * height, "band {i} of {} has the wrong size", path.display());
+                    assert_eq!(
+                        data.len(),
+                        width * height,
+                        "band {i} of {} has the wrong size",
+                        path.display()
+                    );
                     // Write in strips of rows so a large raster never needs a second full-size copy.
                     let strip = (4_000_000 / width.max(1)).max(1);
                     for row0 in (0..height).step_by(strip) {
@@ -234,18 +323,26 @@ pub fn write_geotiff(
                             .map(|&v| if v.is_finite() { v } else { nodata })
                             .collect();
                         let mut buffer = Buffer::new((width, rows), values);
-                        band.write((0, row0 as isize), (width, rows), &mut buffer).map_err(gdal_err(path))?;
+                        band.write((0, row0 as isize), (width, rows), &mut buffer)
+                            .map_err(gdal_err(path))?;
                     }
                 }
             }
         }
         ds.close().map_err(gdal_err(path))?;
     }
-    std::fs::rename(&tmp, path).map_err(|e| RasterError::Gdal { path: path.to_path_buf(), reason: e.to_string() })
+    std::fs::rename(&tmp, path).map_err(|e| RasterError::Gdal {
+        path: path.to_path_buf(),
+        reason: e.to_string(),
+    })
 }
 
 /// Convenience: write a single-band [`Raster`].
-pub fn write_raster(path: &Path, raster: &Raster, metadata: &[(&str, String)]) -> Result<(), RasterError> {
+pub fn write_raster(
+    path: &Path,
+    raster: &Raster,
+    metadata: &[(&str, String)],
+) -> Result<(), RasterError> {
     write_geotiff(
         path,
         raster.width,
@@ -253,14 +350,20 @@ pub fn write_raster(path: &Path, raster: &Raster, metadata: &[(&str, String)]) -
         &raster.transform,
         &raster.crs,
         raster.nodata,
-        &[BandOut { values: BandValues::Grid(&raster.data), description: &raster.description }],
+        &[BandOut {
+            values: BandValues::Grid(&raster.data),
+            description: &raster.description,
+        }],
         metadata,
     )
 }
 
 /// The temporary name an output is written under before the atomic rename.
 pub fn tmp_path(path: &Path) -> PathBuf {
-    let mut name = path.file_name().map(|n| n.to_os_string()).unwrap_or_default();
+    let mut name = path
+        .file_name()
+        .map(|n| n.to_os_string())
+        .unwrap_or_default();
     name.push(".tmp");
     path.with_file_name(name)
 }
@@ -280,7 +383,9 @@ mod tests {
     #[test]
     fn bilinear_is_exact_on_planes() {
         let (w, h) = (6, 5);
-        let data: Vec<f32> = (0..w * h).map(|i| (2 * (i % w) + 3 * (i / w)) as f32).collect();
+        let data: Vec<f32> = (0..w * h)
+            .map(|i| (2 * (i % w) + 3 * (i / w)) as f32)
+            .collect();
         let v = bilinear(&data, w, h, 2.25, 1.5);
         assert!((v - (2.0 * 2.25 + 3.0 * 1.5) as f32).abs() < 1e-5);
     }
@@ -290,7 +395,13 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("a.tif");
         let crs = LunarCrs::equirectangular(-43.3, -11.2);
-        let mut raster = Raster::new(7, 4, GeoTransform::north_up(-1000.0, -1_300_000.0, 5.0), crs, 1.5);
+        let mut raster = Raster::new(
+            7,
+            4,
+            GeoTransform::north_up(-1000.0, -1_300_000.0, 5.0),
+            crs,
+            1.5,
+        );
         raster.data[3] = f32::NAN;
         raster.description = "height_m".into();
         write_raster(&path, &raster, &[("UNITS", "m".into())]).unwrap();

@@ -5,7 +5,8 @@ use std::collections::HashMap;
 use std::sync::Arc;
 
 use arrow::array::{
-    Array, ArrayRef, FixedSizeListArray, Float32Array, Float64Array, RecordBatch, StringArray, UInt8Array,
+    Array, ArrayRef, FixedSizeListArray, Float32Array, Float64Array, RecordBatch, StringArray,
+    UInt8Array,
 };
 use arrow::datatypes::{DataType, Field, Schema, SchemaRef};
 
@@ -69,29 +70,124 @@ pub const FLOAT_TENSOR_COLUMNS: [&str; 3] = ["dem", "image", "sun_lit"];
 
 pub fn sample_schema() -> SchemaRef {
     let fields = vec![
-        field("sample_id", DataType::Utf8, "stable id: ortho_id:center_col:center_row (DEM pixels)", ""),
+        field(
+            "sample_id",
+            DataType::Utf8,
+            "stable id: ortho_id:center_col:center_row (DEM pixels)",
+            "",
+        ),
         field("split", DataType::Utf8, "train | val | test", ""),
-        field("tile_id", DataType::Utf8, "geographic split tile containing the footprint", ""),
+        field(
+            "tile_id",
+            DataType::Utf8,
+            "geographic split tile containing the footprint",
+            "",
+        ),
         field("ortho_id", DataType::Utf8, "source orthoimage id", ""),
-        field("center_x", DataType::Float64, "crop centre, map x (pixel-centre convention)", "m"),
+        field(
+            "center_x",
+            DataType::Float64,
+            "crop centre, map x (pixel-centre convention)",
+            "m",
+        ),
         field("center_y", DataType::Float64, "crop centre, map y", "m"),
-        field("center_lon", DataType::Float64, "crop centre longitude, planetocentric", "deg"),
-        field("center_lat", DataType::Float64, "crop centre latitude, planetocentric", "deg"),
-        field("footprint_lonlat", fixed_list(DataType::Float64, 8), "footprint corners NW,NE,SE,SW as lon,lat", "deg"),
-        field("dem", fixed_list(DataType::Float32, DEM_PX * DEM_PX), "130x130 heights above the 1737400 m sphere, 1-px apron, row-major north first", "m"),
-        field("image", fixed_list(DataType::Float32, CROP_PX * CROP_PX), "128x128 reflectance I/F, 0 where not valid", "1"),
-        field("valid", fixed_list(DataType::UInt8, CROP_PX * CROP_PX), "128x128 mask, 1 = usable pixel", "1"),
-        field("sun_lit", fixed_list(DataType::Float32, CROP_PX * CROP_PX), "128x128 visible fraction of the sun disk from the full DEM", "1"),
-        field("sun_dir_enu", fixed_list(DataType::Float64, 3), "unit vector toward the sun in the crop's local ENU frame", "1"),
-        field("camera_pos_enu", fixed_list(DataType::Float64, 3), "camera position in the crop's local ENU frame", "m"),
-        field("camera_att", fixed_list(DataType::Float64, 4), "camera attitude quaternion w,x,y,z (body-fixed to camera)", "1"),
+        field(
+            "center_lon",
+            DataType::Float64,
+            "crop centre longitude, planetocentric",
+            "deg",
+        ),
+        field(
+            "center_lat",
+            DataType::Float64,
+            "crop centre latitude, planetocentric",
+            "deg",
+        ),
+        field(
+            "footprint_lonlat",
+            fixed_list(DataType::Float64, 8),
+            "footprint corners NW,NE,SE,SW as lon,lat",
+            "deg",
+        ),
+        field(
+            "dem",
+            fixed_list(DataType::Float32, DEM_PX * DEM_PX),
+            "130x130 heights above the 1737400 m sphere, 1-px apron, row-major north first",
+            "m",
+        ),
+        field(
+            "image",
+            fixed_list(DataType::Float32, CROP_PX * CROP_PX),
+            "128x128 reflectance I/F, 0 where not valid",
+            "1",
+        ),
+        field(
+            "valid",
+            fixed_list(DataType::UInt8, CROP_PX * CROP_PX),
+            "128x128 mask, 1 = usable pixel",
+            "1",
+        ),
+        field(
+            "sun_lit",
+            fixed_list(DataType::Float32, CROP_PX * CROP_PX),
+            "128x128 visible fraction of the sun disk from the full DEM",
+            "1",
+        ),
+        field(
+            "sun_dir_enu",
+            fixed_list(DataType::Float64, 3),
+            "unit vector toward the sun in the crop's local ENU frame",
+            "1",
+        ),
+        field(
+            "camera_pos_enu",
+            fixed_list(DataType::Float64, 3),
+            "camera position in the crop's local ENU frame",
+            "m",
+        ),
+        field(
+            "camera_att",
+            fixed_list(DataType::Float64, 4),
+            "camera attitude quaternion w,x,y,z (body-fixed to camera)",
+            "1",
+        ),
         field("fov_deg", DataType::Float64, "camera field of view", "deg"),
-        field("gsd_m", DataType::Float64, "crop ground sample distance", "m"),
-        field("incidence_deg", DataType::Float64, "sun incidence at the crop centre on the sphere", "deg"),
-        field("emission_deg", DataType::Float64, "emission at the crop centre on the sphere", "deg"),
-        field("phase_deg", DataType::Float64, "phase angle at the crop centre", "deg"),
-        field("acq_time", DataType::Utf8, "acquisition time, ISO 8601 UTC", ""),
-        field("provenance", DataType::Utf8, "pipeline code version and params hash", ""),
+        field(
+            "gsd_m",
+            DataType::Float64,
+            "crop ground sample distance",
+            "m",
+        ),
+        field(
+            "incidence_deg",
+            DataType::Float64,
+            "sun incidence at the crop centre on the sphere",
+            "deg",
+        ),
+        field(
+            "emission_deg",
+            DataType::Float64,
+            "emission at the crop centre on the sphere",
+            "deg",
+        ),
+        field(
+            "phase_deg",
+            DataType::Float64,
+            "phase angle at the crop centre",
+            "deg",
+        ),
+        field(
+            "acq_time",
+            DataType::Utf8,
+            "acquisition time, ISO 8601 UTC",
+            "",
+        ),
+        field(
+            "provenance",
+            DataType::Utf8,
+            "pipeline code version and params hash",
+            "",
+        ),
     ];
     let metadata = HashMap::from([
         ("g2r.schema_version".to_string(), SCHEMA_VERSION.to_string()),
@@ -106,7 +202,11 @@ pub enum SchemaError {
     #[error("column '{0}' is missing or has the wrong type")]
     Column(&'static str),
     #[error("tensor '{name}' has {got} values, expected {expected}")]
-    TensorLength { name: &'static str, got: usize, expected: usize },
+    TensorLength {
+        name: &'static str,
+        got: usize,
+        expected: usize,
+    },
     #[error(transparent)]
     Arrow(#[from] arrow::error::ArrowError),
 }
@@ -120,11 +220,22 @@ fn strings<'a>(values: impl Iterator<Item = &'a str>) -> ArrayRef {
 }
 
 fn list_of(values: ArrayRef, len: usize, item: DataType) -> ArrayRef {
-    Arc::new(FixedSizeListArray::new(Arc::new(Field::new("item", item, false)), len as i32, values, None))
+    Arc::new(FixedSizeListArray::new(
+        Arc::new(Field::new("item", item, false)),
+        len as i32,
+        values,
+        None,
+    ))
 }
 
 fn check_len(name: &'static str, got: usize, expected: usize) -> Result<(), SchemaError> {
-    (got == expected).then_some(()).ok_or(SchemaError::TensorLength { name, got, expected })
+    (got == expected)
+        .then_some(())
+        .ok_or(SchemaError::TensorLength {
+            name,
+            got,
+            expected,
+        })
 }
 
 /// Build one record batch from samples (all tensors length-checked).
@@ -136,14 +247,23 @@ pub fn samples_to_batch(samples: &[Sample]) -> Result<RecordBatch, SchemaError> 
         check_len("sun_lit", s.sun_lit.len(), CROP_PX * CROP_PX)?;
     }
     let f32_list = |get: fn(&Sample) -> &[f32], len: usize| {
-        let flat: Vec<f32> = samples.iter().flat_map(|s| get(s).iter().copied()).collect();
+        let flat: Vec<f32> = samples
+            .iter()
+            .flat_map(|s| get(s).iter().copied())
+            .collect();
         list_of(Arc::new(Float32Array::from(flat)), len, DataType::Float32)
     };
     let f64_list = |get: fn(&Sample) -> &[f64], len: usize| {
-        let flat: Vec<f64> = samples.iter().flat_map(|s| get(s).iter().copied()).collect();
+        let flat: Vec<f64> = samples
+            .iter()
+            .flat_map(|s| get(s).iter().copied())
+            .collect();
         list_of(Arc::new(Float64Array::from(flat)), len, DataType::Float64)
     };
-    let valid: Vec<u8> = samples.iter().flat_map(|s| s.valid.iter().copied()).collect();
+    let valid: Vec<u8> = samples
+        .iter()
+        .flat_map(|s| s.valid.iter().copied())
+        .collect();
     let columns: Vec<ArrayRef> = vec![
         strings(samples.iter().map(|s| s.sample_id.as_str())),
         strings(samples.iter().map(|s| s.split.as_str())),
@@ -156,7 +276,11 @@ pub fn samples_to_batch(samples: &[Sample]) -> Result<RecordBatch, SchemaError> 
         f64_list(|s| &s.footprint_lonlat_deg, 8),
         f32_list(|s| &s.dem_m, DEM_PX * DEM_PX),
         f32_list(|s| &s.image, CROP_PX * CROP_PX),
-        list_of(Arc::new(UInt8Array::from(valid)), CROP_PX * CROP_PX, DataType::UInt8),
+        list_of(
+            Arc::new(UInt8Array::from(valid)),
+            CROP_PX * CROP_PX,
+            DataType::UInt8,
+        ),
         f32_list(|s| &s.sun_lit, CROP_PX * CROP_PX),
         f64_list(|s| &s.sun_dir_enu, 3),
         f64_list(|s| &s.camera_pos_enu_m, 3),
@@ -172,13 +296,26 @@ pub fn samples_to_batch(samples: &[Sample]) -> Result<RecordBatch, SchemaError> 
     Ok(RecordBatch::try_new(sample_schema(), columns)?)
 }
 
-fn column<'a, T: 'static>(batch: &'a RecordBatch, name: &'static str) -> Result<&'a T, SchemaError> {
-    batch.column_by_name(name).and_then(|c| c.as_any().downcast_ref::<T>()).ok_or(SchemaError::Column(name))
+fn column<'a, T: 'static>(
+    batch: &'a RecordBatch,
+    name: &'static str,
+) -> Result<&'a T, SchemaError> {
+    batch
+        .column_by_name(name)
+        .and_then(|c| c.as_any().downcast_ref::<T>())
+        .ok_or(SchemaError::Column(name))
 }
 
-fn list_values<'a, T: 'static>(batch: &'a RecordBatch, name: &'static str) -> Result<(&'a T, usize), SchemaError> {
+fn list_values<'a, T: 'static>(
+    batch: &'a RecordBatch,
+    name: &'static str,
+) -> Result<(&'a T, usize), SchemaError> {
     let list: &FixedSizeListArray = column(batch, name)?;
-    let values = list.values().as_any().downcast_ref::<T>().ok_or(SchemaError::Column(name))?;
+    let values = list
+        .values()
+        .as_any()
+        .downcast_ref::<T>()
+        .ok_or(SchemaError::Column(name))?;
     Ok((values, list.value_length() as usize))
 }
 
@@ -186,10 +323,27 @@ fn list_values<'a, T: 'static>(batch: &'a RecordBatch, name: &'static str) -> Re
 pub fn batch_to_samples(batch: &RecordBatch) -> Result<Vec<Sample>, SchemaError> {
     let s = |name| column::<StringArray>(batch, name);
     let f = |name| column::<Float64Array>(batch, name);
-    let (sample_id, split, tile_id, ortho_id, acq_time, provenance) =
-        (s("sample_id")?, s("split")?, s("tile_id")?, s("ortho_id")?, s("acq_time")?, s("provenance")?);
-    let (cx, cy, clon, clat) = (f("center_x")?, f("center_y")?, f("center_lon")?, f("center_lat")?);
-    let (fov, gsd, inc, emi, pha) = (f("fov_deg")?, f("gsd_m")?, f("incidence_deg")?, f("emission_deg")?, f("phase_deg")?);
+    let (sample_id, split, tile_id, ortho_id, acq_time, provenance) = (
+        s("sample_id")?,
+        s("split")?,
+        s("tile_id")?,
+        s("ortho_id")?,
+        s("acq_time")?,
+        s("provenance")?,
+    );
+    let (cx, cy, clon, clat) = (
+        f("center_x")?,
+        f("center_y")?,
+        f("center_lon")?,
+        f("center_lat")?,
+    );
+    let (fov, gsd, inc, emi, pha) = (
+        f("fov_deg")?,
+        f("gsd_m")?,
+        f("incidence_deg")?,
+        f("emission_deg")?,
+        f("phase_deg")?,
+    );
     let (foot, _) = list_values::<Float64Array>(batch, "footprint_lonlat")?;
     let (dem, dem_len) = list_values::<Float32Array>(batch, "dem")?;
     let (image, img_len) = list_values::<Float32Array>(batch, "image")?;

@@ -11,7 +11,10 @@ use parquet::file::properties::WriterProperties;
 
 use crate::manifest::{hash_file, ShardEntry};
 use crate::raster::tmp_path;
-use crate::schema::{batch_to_samples, sample_schema, samples_to_batch, Sample, SchemaError, FLOAT_TENSOR_COLUMNS, SCHEMA_VERSION};
+use crate::schema::{
+    batch_to_samples, sample_schema, samples_to_batch, Sample, SchemaError, FLOAT_TENSOR_COLUMNS,
+    SCHEMA_VERSION,
+};
 
 /// Rows per row group: ~256 samples ≈ 40 MB uncompressed, one HTTP range read for random access.
 pub const ROW_GROUP_ROWS: usize = 256;
@@ -19,9 +22,17 @@ pub const ROW_GROUP_ROWS: usize = 256;
 #[derive(Debug, thiserror::Error)]
 pub enum ShardError {
     #[error("{path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
-    #[error("{path}: Parquet error ({source}); the shard may be truncated: re-run the publish stage")]
-    Parquet { path: PathBuf, source: parquet::errors::ParquetError },
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error(
+        "{path}: Parquet error ({source}); the shard may be truncated: re-run the publish stage"
+    )]
+    Parquet {
+        path: PathBuf,
+        source: parquet::errors::ParquetError,
+    },
     #[error("{path}: {source}")]
     Schema { path: PathBuf, source: SchemaError },
     #[error("{path}: written with schema {found}, this build reads {SCHEMA_VERSION}; rebuild the dataset or use a matching g2r version")]
@@ -31,15 +42,27 @@ pub enum ShardError {
 /// Writer properties: zstd everywhere, BYTE_STREAM_SPLIT (no dictionary) on the float tensor leaves.
 pub fn writer_properties() -> WriterProperties {
     let schema = sample_schema();
-    let descriptor = ArrowSchemaConverter::new().convert(&schema).expect("the sample schema converts to Parquet");
+    let descriptor = ArrowSchemaConverter::new()
+        .convert(&schema)
+        .expect("the sample schema converts to Parquet");
     let mut builder = WriterProperties::builder()
-        .set_compression(Compression::ZSTD(ZstdLevel::try_new(3).expect("valid zstd level")))
+        .set_compression(Compression::ZSTD(
+            ZstdLevel::try_new(3).expect("valid zstd level"),
+        ))
         .set_max_row_group_row_count(Some(ROW_GROUP_ROWS))
-        .set_created_by(format!("g2r-dataset {} (schema {SCHEMA_VERSION})", env!("CARGO_PKG_VERSION")));
+        .set_created_by(format!(
+            "g2r-dataset {} (schema {SCHEMA_VERSION})",
+            env!("CARGO_PKG_VERSION")
+        ));
     for column in descriptor.columns() {
         let path = column.path().clone();
         let is_tensor = FLOAT_TENSOR_COLUMNS.contains(&path.parts()[0].as_str());
-        if is_tensor && matches!(column.physical_type(), PhysicalType::FLOAT | PhysicalType::DOUBLE) {
+        if is_tensor
+            && matches!(
+                column.physical_type(),
+                PhysicalType::FLOAT | PhysicalType::DOUBLE
+            )
+        {
             builder = builder
                 .set_column_dictionary_enabled(path.clone(), false)
                 .set_column_encoding(path, Encoding::BYTE_STREAM_SPLIT);
@@ -59,27 +82,64 @@ pub struct ShardWriter {
 impl ShardWriter {
     pub fn create(path: &Path) -> Result<Self, ShardError> {
         let tmp = tmp_path(path);
-        let file = File::create(&tmp).map_err(|source| ShardError::Io { path: tmp.clone(), source })?;
+        let file = File::create(&tmp).map_err(|source| ShardError::Io {
+            path: tmp.clone(),
+            source,
+        })?;
         let writer = ArrowWriter::try_new(file, sample_schema(), Some(writer_properties()))
-            .map_err(|source| ShardError::Parquet { path: path.to_path_buf(), source })?;
-        Ok(Self { path: path.to_path_buf(), tmp, writer, rows: 0 })
+            .map_err(|source| ShardError::Parquet {
+                path: path.to_path_buf(),
+                source,
+            })?;
+        Ok(Self {
+            path: path.to_path_buf(),
+            tmp,
+            writer,
+            rows: 0,
+        })
     }
 
     pub fn write(&mut self, samples: &[Sample]) -> Result<(), ShardError> {
-        let batch = samples_to_batch(samples).map_err(|source| ShardError::Schema { path: self.path.clone(), source })?;
-        self.writer.write(&batch).map_err(|source| ShardError::Parquet { path: self.path.clone(), source })?;
+        let batch = samples_to_batch(samples).map_err(|source| ShardError::Schema {
+            path: self.path.clone(),
+            source,
+        })?;
+        self.writer
+            .write(&batch)
+            .map_err(|source| ShardError::Parquet {
+                path: self.path.clone(),
+                source,
+            })?;
         self.rows += samples.len();
         Ok(())
     }
 
     /// Close, rename into place, and describe the finished shard (size, rows, row groups, blake3).
     pub fn finish(self) -> Result<ShardEntry, ShardError> {
-        let metadata = self.writer.close().map_err(|source| ShardError::Parquet { path: self.path.clone(), source })?;
-        std::fs::rename(&self.tmp, &self.path).map_err(|source| ShardError::Io { path: self.path.clone(), source })?;
-        let bytes = std::fs::metadata(&self.path).map_err(|source| ShardError::Io { path: self.path.clone(), source })?.len();
-        let blake3 = hash_file(&self.path).map_err(|source| ShardError::Io { path: self.path.clone(), source })?;
+        let metadata = self.writer.close().map_err(|source| ShardError::Parquet {
+            path: self.path.clone(),
+            source,
+        })?;
+        std::fs::rename(&self.tmp, &self.path).map_err(|source| ShardError::Io {
+            path: self.path.clone(),
+            source,
+        })?;
+        let bytes = std::fs::metadata(&self.path)
+            .map_err(|source| ShardError::Io {
+                path: self.path.clone(),
+                source,
+            })?
+            .len();
+        let blake3 = hash_file(&self.path).map_err(|source| ShardError::Io {
+            path: self.path.clone(),
+            source,
+        })?;
         Ok(ShardEntry {
-            path: self.path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default(),
+            path: self
+                .path
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default(),
             bytes,
             rows: self.rows as u64,
             row_groups: metadata.num_row_groups() as u64,
@@ -89,22 +149,50 @@ impl ShardWriter {
 }
 
 fn open_reader(path: &Path) -> Result<ParquetRecordBatchReaderBuilder<File>, ShardError> {
-    let file = File::open(path).map_err(|source| ShardError::Io { path: path.to_path_buf(), source })?;
-    let builder = ParquetRecordBatchReaderBuilder::try_new(file)
-        .map_err(|source| ShardError::Parquet { path: path.to_path_buf(), source })?;
-    let found = builder.schema().metadata().get("g2r.schema_version").cloned().unwrap_or_else(|| "none".into());
+    let file = File::open(path).map_err(|source| ShardError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let builder =
+        ParquetRecordBatchReaderBuilder::try_new(file).map_err(|source| ShardError::Parquet {
+            path: path.to_path_buf(),
+            source,
+        })?;
+    let found = builder
+        .schema()
+        .metadata()
+        .get("g2r.schema_version")
+        .cloned()
+        .unwrap_or_else(|| "none".into());
     if found.split('.').next() != SCHEMA_VERSION.split('.').next() {
-        return Err(ShardError::SchemaVersion { path: path.to_path_buf(), found });
+        return Err(ShardError::SchemaVersion {
+            path: path.to_path_buf(),
+            found,
+        });
     }
     Ok(builder)
 }
 
-fn collect(path: &Path, builder: ParquetRecordBatchReaderBuilder<File>) -> Result<Vec<Sample>, ShardError> {
-    let reader = builder.build().map_err(|source| ShardError::Parquet { path: path.to_path_buf(), source })?;
+fn collect(
+    path: &Path,
+    builder: ParquetRecordBatchReaderBuilder<File>,
+) -> Result<Vec<Sample>, ShardError> {
+    let reader = builder.build().map_err(|source| ShardError::Parquet {
+        path: path.to_path_buf(),
+        source,
+    })?;
     let mut out = Vec::new();
     for batch in reader {
-        let batch = batch.map_err(|e| ShardError::Parquet { path: path.to_path_buf(), source: e.into() })?;
-        out.extend(batch_to_samples(&batch).map_err(|source| ShardError::Schema { path: path.to_path_buf(), source })?);
+        let batch = batch.map_err(|e| ShardError::Parquet {
+            path: path.to_path_buf(),
+            source: e.into(),
+        })?;
+        out.extend(
+            batch_to_samples(&batch).map_err(|source| ShardError::Schema {
+                path: path.to_path_buf(),
+                source,
+            })?,
+        );
     }
     Ok(out)
 }
@@ -122,7 +210,12 @@ pub fn read_row_group(path: &Path, row_group: usize) -> Result<Vec<Sample>, Shar
 /// Row count per row group, from the footer only.
 pub fn row_group_sizes(path: &Path) -> Result<Vec<usize>, ShardError> {
     let builder = open_reader(path)?;
-    Ok(builder.metadata().row_groups().iter().map(|rg| rg.num_rows() as usize).collect())
+    Ok(builder
+        .metadata()
+        .row_groups()
+        .iter()
+        .map(|rg| rg.num_rows() as usize)
+        .collect())
 }
 
 /// Shard file name for index `i` of `n` in a split: `{split}-{i:05}-of-{n:05}.parquet`.
@@ -147,7 +240,9 @@ mod tests {
             center_lon_deg: -11.2,
             center_lat_deg: -43.3,
             footprint_lonlat_deg: [0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0],
-            dem_m: (0..DEM_PX * DEM_PX).map(|k| (k as f32 * 0.01 + i as f32).sin() * 30.0 - 1500.0).collect(),
+            dem_m: (0..DEM_PX * DEM_PX)
+                .map(|k| (k as f32 * 0.01 + i as f32).sin() * 30.0 - 1500.0)
+                .collect(),
             image: (0..n).map(|k| (k % 97) as f32 / 97.0).collect(),
             valid: (0..n).map(|k| (k % 13 != 0) as u8).collect(),
             sun_lit: (0..n).map(|k| ((k % 7) as f32 / 6.0).min(1.0)).collect(),
@@ -197,16 +292,24 @@ mod tests {
         let mut w = ShardWriter::create(&path).unwrap();
         w.write(&[synthetic_sample(1)]).unwrap();
         w.finish().unwrap();
-        let reader = parquet::file::reader::SerializedFileReader::new(File::open(&path).unwrap()).unwrap();
+        let reader =
+            parquet::file::reader::SerializedFileReader::new(File::open(&path).unwrap()).unwrap();
         use parquet::file::reader::FileReader;
         let rg = reader.metadata().row_group(0);
         for col in rg.columns() {
             let name = col.column_path().parts()[0].clone();
             let encodings: Vec<Encoding> = col.encodings().collect();
             if FLOAT_TENSOR_COLUMNS.contains(&name.as_str()) {
-                assert!(encodings.contains(&Encoding::BYTE_STREAM_SPLIT), "{name}: {encodings:?}");
+                assert!(
+                    encodings.contains(&Encoding::BYTE_STREAM_SPLIT),
+                    "{name}: {encodings:?}"
+                );
             }
-            assert!(matches!(col.compression(), Compression::ZSTD(_)), "{name}: {:?}", col.compression());
+            assert!(
+                matches!(col.compression(), Compression::ZSTD(_)),
+                "{name}: {:?}",
+                col.compression()
+            );
         }
     }
 }

@@ -16,7 +16,14 @@ fn help_and_schema() {
     let out = dataset_cli().arg("schema").output().unwrap();
     let text = String::from_utf8_lossy(&out.stdout);
     assert!(out.status.success());
-    for column in ["`dem`", "`image`", "`valid`", "`sun_lit`", "`sun_dir_enu`", "`camera_pos_enu`"] {
+    for column in [
+        "`dem`",
+        "`image`",
+        "`valid`",
+        "`sun_lit`",
+        "`sun_dir_enu`",
+        "`camera_pos_enu`",
+    ] {
         assert!(text.contains(column), "schema lacks {column}");
     }
 }
@@ -24,7 +31,11 @@ fn help_and_schema() {
 #[test]
 fn verify_without_manifest_fails_naming_it() {
     let dir = tempfile::tempdir().unwrap();
-    let out = dataset_cli().arg("verify").arg(dir.path()).output().unwrap();
+    let out = dataset_cli()
+        .arg("verify")
+        .arg(dir.path())
+        .output()
+        .unwrap();
     assert_ne!(out.status.code(), Some(0));
     assert!(String::from_utf8_lossy(&out.stderr).contains("manifest.json"));
 }

@@ -62,7 +62,13 @@ fn main() -> ExitCode {
 
 fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
-        Command::Synth { preset, config: config_path, seed, out, force } => {
+        Command::Synth {
+            preset,
+            config: config_path,
+            seed,
+            out,
+            force,
+        } => {
             let (text, source) = match &config_path {
                 Some(p) => (std::fs::read_to_string(p).with_context(|| format!("reading world config {}", p.display()))?, p.display().to_string()),
                 None => (
@@ -70,7 +76,8 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                     format!("preset {preset}"),
                 ),
             };
-            let world = WorldConfig::from_toml(&text).with_context(|| format!("{source}: invalid world config"))?;
+            let world = WorldConfig::from_toml(&text)
+                .with_context(|| format!("{source}: invalid world config"))?;
             let started = Instant::now();
             let dir = pipeline::synth::generate(&world, seed, &out, force)?;
             let bytes: u64 = walk_bytes(&dir);
@@ -85,7 +92,13 @@ fn walk_bytes(dir: &std::path::Path) -> u64 {
         .map(|entries| {
             entries
                 .flatten()
-                .map(|e| if e.path().is_dir() { walk_bytes(&e.path()) } else { e.metadata().map(|m| m.len()).unwrap_or(0) })
+                .map(|e| {
+                    if e.path().is_dir() {
+                        walk_bytes(&e.path())
+                    } else {
+                        e.metadata().map(|m| m.len()).unwrap_or(0)
+                    }
+                })
                 .sum()
         })
         .unwrap_or(0)

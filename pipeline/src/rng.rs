@@ -27,9 +27,18 @@ mod tests {
 
     #[test]
     fn streams_are_reproducible_and_independent() {
-        let a: Vec<u32> = (0..4).map(|_| 0).scan(keyed_rng(7, "craters", 0), |r, _: u32| Some(r.random())).collect();
-        let b: Vec<u32> = (0..4).map(|_| 0).scan(keyed_rng(7, "craters", 0), |r, _: u32| Some(r.random())).collect();
-        let c: Vec<u32> = (0..4).map(|_| 0).scan(keyed_rng(7, "craters", 1), |r, _: u32| Some(r.random())).collect();
+        let a: Vec<u32> = (0..4)
+            .map(|_| 0)
+            .scan(keyed_rng(7, "craters", 0), |r, _: u32| Some(r.random()))
+            .collect();
+        let b: Vec<u32> = (0..4)
+            .map(|_| 0)
+            .scan(keyed_rng(7, "craters", 0), |r, _: u32| Some(r.random()))
+            .collect();
+        let c: Vec<u32> = (0..4)
+            .map(|_| 0)
+            .scan(keyed_rng(7, "craters", 1), |r, _: u32| Some(r.random()))
+            .collect();
         assert_eq!(a, b);
         assert_ne!(a, c);
     }

@@ -13,7 +13,15 @@ fn help_explains_every_subcommand_and_option() {
     assert!(out.status.success() && text.contains("synth"), "{text}");
     let out = pipeline().args(["synth", "--help"]).output().unwrap();
     let text = String::from_utf8_lossy(&out.stdout);
-    for word in ["--preset", "tycho-full", "--seed", "--out", "--force", "--config", "truth/"] {
+    for word in [
+        "--preset",
+        "tycho-full",
+        "--seed",
+        "--out",
+        "--force",
+        "--config",
+        "truth/",
+    ] {
         assert!(text.contains(word), "synth --help lacks {word}:\n{text}");
     }
 }
@@ -21,11 +29,21 @@ fn help_explains_every_subcommand_and_option() {
 #[test]
 fn unknown_preset_is_a_one_line_error_with_the_fix() {
     let dir = tempfile::tempdir().unwrap();
-    let out = pipeline().args(["synth", "--preset", "mars", "--out"]).arg(dir.path().join("w")).output().unwrap();
+    let out = pipeline()
+        .args(["synth", "--preset", "mars", "--out"])
+        .arg(dir.path().join("w"))
+        .output()
+        .unwrap();
     assert_eq!(out.status.code(), Some(1));
     let err = String::from_utf8_lossy(&out.stderr);
-    let line = err.lines().find(|l| l.starts_with("error:")).expect("an error line");
-    assert!(line.contains("mars") && line.contains("demo") && line.contains("tycho-full"), "{err}");
+    let line = err
+        .lines()
+        .find(|l| l.starts_with("error:"))
+        .expect("an error line");
+    assert!(
+        line.contains("mars") && line.contains("demo") && line.contains("tycho-full"),
+        "{err}"
+    );
     assert!(!dir.path().join("w").exists() && !dir.path().join("w.partial").exists());
 }
 
@@ -34,10 +52,25 @@ fn bad_config_file_is_named() {
     let dir = tempfile::tempdir().unwrap();
     let config = dir.path().join("world.toml");
     std::fs::write(&config, "[world]\nname = \"x\"\n").unwrap();
-    let out = pipeline().args(["synth", "--config"]).arg(&config).arg("--out").arg(dir.path().join("w")).output().unwrap();
+    let out = pipeline()
+        .args(["synth", "--config"])
+        .arg(&config)
+        .arg("--out")
+        .arg(dir.path().join("w"))
+        .output()
+        .unwrap();
     assert_eq!(out.status.code(), Some(1));
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains("world.toml") && err.contains("missing field"), "{err}");
-    let out = pipeline().args(["synth", "--config"]).arg(dir.path().join("nope.toml")).arg("--out").arg(dir.path().join("w")).output().unwrap();
+    assert!(
+        err.contains("world.toml") && err.contains("missing field"),
+        "{err}"
+    );
+    let out = pipeline()
+        .args(["synth", "--config"])
+        .arg(dir.path().join("nope.toml"))
+        .arg("--out")
+        .arg(dir.path().join("w"))
+        .output()
+        .unwrap();
     assert!(String::from_utf8_lossy(&out.stderr).contains("nope.toml"));
 }

@@ -27,7 +27,12 @@ fn main() {
     match Cli::parse().command {
         Command::Models => {
             for model in dataset::brdf::BrdfModel::ALL {
-                println!("{}: {} params: {}", model.name(), model.param_count(), model.term_names().join(", "));
+                println!(
+                    "{}: {} params: {}",
+                    model.name(),
+                    model.param_count(),
+                    model.term_names().join(", ")
+                );
             }
         }
     }

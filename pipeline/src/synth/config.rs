@@ -144,13 +144,19 @@ impl WorldConfig {
         let w = &self.world;
         let ratio = w.dem_gsd_m / w.fine_gsd_m;
         if (ratio - ratio.round()).abs() > 1e-9 || ratio < 1.0 {
-            return Err(format!("world.dem_gsd_m ({}) must be an integer multiple of world.fine_gsd_m ({})", w.dem_gsd_m, w.fine_gsd_m));
+            return Err(format!(
+                "world.dem_gsd_m ({}) must be an integer multiple of world.fine_gsd_m ({})",
+                w.dem_gsd_m, w.fine_gsd_m
+            ));
         }
         if self.terrain.crater_min_diameter_m < 4.0 * w.fine_gsd_m {
             return Err("terrain.crater_min_diameter_m must be at least 4 fine pixels".into());
         }
         let a = &self.acquisitions;
-        if !(0.0..90.0).contains(&a.incidence_min_deg) || a.incidence_max_deg >= 90.0 || a.incidence_min_deg > a.incidence_max_deg {
+        if !(0.0..90.0).contains(&a.incidence_min_deg)
+            || a.incidence_max_deg >= 90.0
+            || a.incidence_min_deg > a.incidence_max_deg
+        {
             return Err("acquisitions.incidence_min_deg..incidence_max_deg must lie in [0, 90) (sun above the horizon)".into());
         }
         Ok(())

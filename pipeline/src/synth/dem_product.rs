@@ -11,35 +11,52 @@ use super::noise::Fbm;
 use super::Grid;
 use crate::rng::{keyed_rng, keyed_u64};
 
-pub fn degrade(cfg: &DemProductConfig, fine: &Grid, fine_heights: &[f32], dem: &Grid, seed: u64) -> Vec<f32> {
+pub fn degrade(
+    cfg: &DemProductConfig,
+    fine: &Grid,
+    fine_heights: &[f32],
+    dem: &Grid,
+    seed: u64,
+) -> Vec<f32> {
     let factor = (dem.gsd_m / fine.gsd_m).round() as usize;
     let (w, h) = (dem.width, dem.height);
     // 1. Area average of factor × factor fine cells (the grids share their top-left corner).
     let mut heights = vec![0f32; w * h];
-    heights.par_chunks_mut(w).enumerate().for_each(|(row, out)| {
-        for (col, v) in out.iter_mut().enumerate() {
-            let mut sum = 0.0f64;
-            for r in row * factor..(row + 1) * factor {
-                for c in col * factor..(col + 1) * factor {
-                    sum += fine_heights[r * fine.width + c] as f64;
+    heights
+        .par_chunks_mut(w)
+        .enumerate()
+        .for_each(|(row, out)| {
+            for (col, v) in out.iter_mut().enumerate() {
+                let mut sum = 0.0f64;
+                for r in row * factor..(row + 1) * factor {
+                    for c in col * factor..(col + 1) * factor {
+                        sum += fine_heights[r * fine.width + c] as f64;
+                    }
                 }
+                *v = (sum / (factor * factor) as f64) as f32;
             }
-            *v = (sum / (factor * factor) as f64) as f32;
-        }
-    });
+        });
     // 2. Separable Gaussian smoothing.
     let heights = gaussian_blur(&heights, w, h, cfg.smoothing_sigma_px);
     // 3. Long-wavelength correlated error and white noise (per-row streams: deterministic under rayon).
-    let correlated = Fbm { key: keyed_u64(seed, "dem-correlated-error", 0), hurst: 0.9, amplitude: cfg.correlated_error_m, largest_wavelength_m: cfg.correlated_error_wavelength_m, smallest_wavelength_m: 4.0 * dem.gsd_m };
+    let correlated = Fbm {
+        key: keyed_u64(seed, "dem-correlated-error", 0),
+        hurst: 0.9,
+        amplitude: cfg.correlated_error_m,
+        largest_wavelength_m: cfg.correlated_error_wavelength_m,
+        smallest_wavelength_m: 4.0 * dem.gsd_m,
+    };
     let mut out = heights;
-    out.par_chunks_mut(w).enumerate().for_each(|(row, out_row)| {
-        let mut rng = keyed_rng(seed, "dem-white-noise", row as u64);
-        let normal = Normal::new(0.0, cfg.noise_m.max(1e-12)).expect("valid sigma");
-        for (col, v) in out_row.iter_mut().enumerate() {
-            let (x, y) = dem.center(col, row);
-            *v += (correlated.at(x, y) + normal.sample(&mut rng)) as f32;
-        }
-    });
+    out.par_chunks_mut(w)
+        .enumerate()
+        .for_each(|(row, out_row)| {
+            let mut rng = keyed_rng(seed, "dem-white-noise", row as u64);
+            let normal = Normal::new(0.0, cfg.noise_m.max(1e-12)).expect("valid sigma");
+            for (col, v) in out_row.iter_mut().enumerate() {
+                let (x, y) = dem.center(col, row);
+                *v += (correlated.at(x, y) + normal.sample(&mut rng)) as f32;
+            }
+        });
     // 4. Blunders: Gaussian pits/spikes of a few metres, ~20 m across.
     let mut rng = keyed_rng(seed, "dem-blunders", 0);
     for _ in 0..cfg.blunders {
@@ -67,7 +84,12 @@ pub fn degrade(cfg: &DemProductConfig, fine: &Grid, fine_heights: &[f32], dem: &
             for dc in -reach..=reach {
                 let (c, r) = (cx + dc, cy + dr);
                 let wobble = 1.0 + 0.3 * ((dc as f64 * 1.7).sin() * (dr as f64 * 1.3).cos());
-                if c >= 0 && r >= 0 && (c as usize) < w && (r as usize) < h && ((dc * dc + dr * dr) as f64).sqrt() < r_px * wobble {
+                if c >= 0
+                    && r >= 0
+                    && (c as usize) < w
+                    && (r as usize) < h
+                    && ((dc * dc + dr * dr) as f64).sqrt() < r_px * wobble
+                {
                     out[r as usize * w + c as usize] = f32::NAN;
                 }
             }
@@ -82,21 +104,41 @@ pub fn gaussian_blur(data: &[f32], w: usize, h: usize, sigma: f64) -> Vec<f32> {
         return data.to_vec();
     }
     let radius = (3.0 * sigma).ceil() as i64;
-    let kernel: Vec<f64> = (-radius..=radius).map(|k| (-(k * k) as f64 / (2.0 * sigma * sigma)).exp()).collect();
+    let kernel: Vec<f64> = (-radius..=radius)
+        .map(|k| (-(k * k) as f64 / (2.0 * sigma * sigma)).exp())
+        .collect();
     let norm: f64 = kernel.iter().sum();
     let mut tmp = vec![0f32; w * h];
     tmp.par_chunks_mut(w).enumerate().for_each(|(row, out)| {
         for (col, v) in out.iter_mut().enumerate() {
-            let s: f64 = kernel.iter().enumerate().map(|(k, kv)| kv * data[row * w + (col as i64 + k as i64 - radius).clamp(0, w as i64 - 1) as usize] as f64).sum();
+            let s: f64 = kernel
+                .iter()
+                .enumerate()
+                .map(|(k, kv)| {
+                    kv * data
+                        [row * w + (col as i64 + k as i64 - radius).clamp(0, w as i64 - 1) as usize]
+                        as f64
+                })
+                .sum();
             *v = (s / norm) as f32;
         }
     });
     let mut out = vec![0f32; w * h];
-    out.par_chunks_mut(w).enumerate().for_each(|(row, out_row)| {
-        for (col, v) in out_row.iter_mut().enumerate() {
-            let s: f64 = kernel.iter().enumerate().map(|(k, kv)| kv * tmp[(row as i64 + k as i64 - radius).clamp(0, h as i64 - 1) as usize * w + col] as f64).sum();
-            *v = (s / norm) as f32;
-        }
-    });
+    out.par_chunks_mut(w)
+        .enumerate()
+        .for_each(|(row, out_row)| {
+            for (col, v) in out_row.iter_mut().enumerate() {
+                let s: f64 = kernel
+                    .iter()
+                    .enumerate()
+                    .map(|(k, kv)| {
+                        kv * tmp[(row as i64 + k as i64 - radius).clamp(0, h as i64 - 1) as usize
+                            * w
+                            + col] as f64
+                    })
+                    .sum();
+                *v = (s / norm) as f32;
+            }
+        });
     out
 }

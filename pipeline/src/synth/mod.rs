@@ -47,12 +47,18 @@ impl Grid {
     /// Map coordinates of the centre of pixel (col, row).
     #[inline]
     pub fn center(&self, col: usize, row: usize) -> (f64, f64) {
-        (self.min_x + (col as f64 + 0.5) * self.gsd_m, self.max_y - (row as f64 + 0.5) * self.gsd_m)
+        (
+            self.min_x + (col as f64 + 0.5) * self.gsd_m,
+            self.max_y - (row as f64 + 0.5) * self.gsd_m,
+        )
     }
     /// Continuous (col, row) whose centre is at (x, y).
     #[inline]
     pub fn to_pixel(&self, x: f64, y: f64) -> (f64, f64) {
-        ((x - self.min_x) / self.gsd_m - 0.5, (self.max_y - y) / self.gsd_m - 0.5)
+        (
+            (x - self.min_x) / self.gsd_m - 0.5,
+            (self.max_y - y) / self.gsd_m - 0.5,
+        )
     }
     /// Pixel range [c0, c1) × [r0, r1) within `reach` metres of (x, y), or None if it misses the grid.
     pub fn window(&self, x: f64, y: f64, reach: f64) -> Option<(usize, usize, usize, usize)> {
@@ -96,17 +102,31 @@ struct WorldManifest<'a> {
 
 fn bar(len: u64, what: &str) -> ProgressBar {
     let bar = ProgressBar::new(len);
-    bar.set_style(ProgressStyle::with_template("{prefix:>14} [{bar:30}] {pos}/{len} {elapsed_precise}").expect("valid template").progress_chars("=> "));
+    bar.set_style(
+        ProgressStyle::with_template("{prefix:>14} [{bar:30}] {pos}/{len} {elapsed_precise}")
+            .expect("valid template")
+            .progress_chars("=> "),
+    );
     bar.set_prefix(what.to_string());
     bar
 }
 
 /// Generate the world into `out` (built under `out.partial`, renamed when complete).
-pub fn generate(config: &WorldConfig, seed: u64, out: &Path, force: bool) -> anyhow::Result<PathBuf> {
-    config.validate().map_err(|e| anyhow::anyhow!("world config: {e}"))?;
+pub fn generate(
+    config: &WorldConfig,
+    seed: u64,
+    out: &Path,
+    force: bool,
+) -> anyhow::Result<PathBuf> {
+    config
+        .validate()
+        .map_err(|e| anyhow::anyhow!("world config: {e}"))?;
     if out.exists() {
         if !force {
-            bail!("{} already exists: choose another --out or pass --force to replace it", out.display());
+            bail!(
+                "{} already exists: choose another --out or pass --force to replace it",
+                out.display()
+            );
         }
         std::fs::remove_dir_all(out).with_context(|| format!("removing {}", out.display()))?;
     }
@@ -115,7 +135,8 @@ pub fn generate(config: &WorldConfig, seed: u64, out: &Path, force: bool) -> any
         std::fs::remove_dir_all(&partial)?;
     }
     for sub in ["dem", "ortho", "truth"] {
-        std::fs::create_dir_all(partial.join(sub)).with_context(|| format!("creating {}", partial.display()))?;
+        std::fs::create_dir_all(partial.join(sub))
+            .with_context(|| format!("creating {}", partial.display()))?;
     }
 
     let w = &config.world;
@@ -124,9 +145,21 @@ pub fn generate(config: &WorldConfig, seed: u64, out: &Path, force: bool) -> any
     // Snap the scene to the DEM grid so every grid (fine, DEM, ortho) shares pixel edges.
     let snap = |v: f64| (v / w.dem_gsd_m).round() * w.dem_gsd_m;
     let (min_x, max_y) = (snap(cx - w.width_m / 2.0), snap(cy + w.height_m / 2.0));
-    let dem_grid = Grid { min_x, max_y, gsd_m: w.dem_gsd_m, width: (w.width_m / w.dem_gsd_m).round() as usize, height: (w.height_m / w.dem_gsd_m).round() as usize };
+    let dem_grid = Grid {
+        min_x,
+        max_y,
+        gsd_m: w.dem_gsd_m,
+        width: (w.width_m / w.dem_gsd_m).round() as usize,
+        height: (w.height_m / w.dem_gsd_m).round() as usize,
+    };
     let factor = (w.dem_gsd_m / w.fine_gsd_m).round() as usize;
-    let fine = Grid { min_x, max_y, gsd_m: w.fine_gsd_m, width: dem_grid.width * factor, height: dem_grid.height * factor };
+    let fine = Grid {
+        min_x,
+        max_y,
+        gsd_m: w.fine_gsd_m,
+        width: dem_grid.width * factor,
+        height: dem_grid.height * factor,
+    };
     info!(world = %w.name, seed, fine_px = fine.width * fine.height, dem_px = dem_grid.width * dem_grid.height, "generating synthetic lunar world");
 
     // Terrain.
@@ -136,17 +169,40 @@ pub fn generate(config: &WorldConfig, seed: u64, out: &Path, force: bool) -> any
     let mut melt = vec![0f32; fine.width * fine.height];
     let stamping = bar(craters.len() as u64, "craters");
     for (i, chunk) in craters.chunks(1000).enumerate() {
-        terrain::stamp_craters(&config.terrain, &fine, chunk, i * 1000, &mut heights, &mut freshness, seed);
+        terrain::stamp_craters(
+            &config.terrain,
+            &fine,
+            chunk,
+            i * 1000,
+            &mut heights,
+            &mut freshness,
+            seed,
+        );
         stamping.inc(chunk.len() as u64);
     }
     stamping.finish_and_clear();
     if let Some(cc) = &config.complex_crater {
-        terrain::stamp_complex_crater(cc, &fine, (cx + cc.offset_east_m, cy + cc.offset_north_m), &mut heights, &mut freshness, &mut melt, seed);
+        terrain::stamp_complex_crater(
+            cc,
+            &fine,
+            (cx + cc.offset_east_m, cy + cc.offset_north_m),
+            &mut heights,
+            &mut freshness,
+            &mut melt,
+            seed,
+        );
     }
     info!(craters = craters.len(), "terrain done");
 
     // True reflectance.
-    let maps = reflectance::hapke_maps(&config.reflectance, &fine, &heights, &freshness, &melt, seed);
+    let maps = reflectance::hapke_maps(
+        &config.reflectance,
+        &fine,
+        &heights,
+        &freshness,
+        &melt,
+        seed,
+    );
     drop(freshness);
     drop(melt);
 
@@ -155,37 +211,131 @@ pub fn generate(config: &WorldConfig, seed: u64, out: &Path, force: bool) -> any
     let mut orthos = Vec::new();
     for (k, strip) in strips.iter().enumerate() {
         let progress = bar(0, &strip.meta.ortho_id);
-        let (image, stats) = render::render_ortho(&crs, &fine, &heights, &maps, &config.reflectance, &config.acquisitions, strip, k, seed, &progress);
+        let (image, stats) = render::render_ortho(
+            &crs,
+            &fine,
+            &heights,
+            &maps,
+            &config.reflectance,
+            &config.acquisitions,
+            strip,
+            k,
+            seed,
+            &progress,
+        );
         progress.finish_and_clear();
         let g = &strip.grid;
         let path = partial.join("ortho").join(&strip.meta.image_file);
-        write_geotiff(&path, g.width, g.height, &g.transform(), &crs, -1.0, &[BandOut { values: BandValues::Grid(&image), description: "I/F (radiance factor)" }], &[("CAMERA_ID", strip.meta.camera_id.clone()), ("START_TIME", strip.meta.start_time_utc.clone())])?;
-        write_json_atomic(&partial.join("ortho").join(format!("{}.json", strip.meta.ortho_id)), &strip.meta)?;
+        write_geotiff(
+            &path,
+            g.width,
+            g.height,
+            &g.transform(),
+            &crs,
+            -1.0,
+            &[BandOut {
+                values: BandValues::Grid(&image),
+                description: "I/F (radiance factor)",
+            }],
+            &[
+                ("CAMERA_ID", strip.meta.camera_id.clone()),
+                ("START_TIME", strip.meta.start_time_utc.clone()),
+            ],
+        )?;
+        write_json_atomic(
+            &partial
+                .join("ortho")
+                .join(format!("{}.json", strip.meta.ortho_id)),
+            &strip.meta,
+        )?;
         info!(ortho = %strip.meta.ortho_id, incidence_deg = format!("{:.1}", strip.incidence_deg), roll_deg = format!("{:.1}", strip.meta.roll_deg), valid = stats.valid, shadowed = stats.shadowed, occluded = stats.occluded, "ortho rendered");
-        orthos.push(OrthoSummary { ortho_id: strip.meta.ortho_id.clone(), incidence_deg: strip.incidence_deg, roll_deg: strip.meta.roll_deg, width: g.width, height: g.height, stats });
+        orthos.push(OrthoSummary {
+            ortho_id: strip.meta.ortho_id.clone(),
+            incidence_deg: strip.incidence_deg,
+            roll_deg: strip.meta.roll_deg,
+            width: g.width,
+            height: g.height,
+            stats,
+        });
     }
 
     // Delivered DEM and truth.
     let dem = dem_product::degrade(&config.dem_product, &fine, &heights, &dem_grid, seed);
     let height_desc = "height_m above the 1737400 m lunar sphere";
-    write_geotiff(&partial.join("dem/dem.tif"), dem_grid.width, dem_grid.height, &dem_grid.transform(), &crs, -32768.0, &[BandOut { values: BandValues::Grid(&dem), description: height_desc }], &[("PRODUCT", "stereo-like DEM (synthetic)".into())])?;
+    write_geotiff(
+        &partial.join("dem/dem.tif"),
+        dem_grid.width,
+        dem_grid.height,
+        &dem_grid.transform(),
+        &crs,
+        -32768.0,
+        &[BandOut {
+            values: BandValues::Grid(&dem),
+            description: height_desc,
+        }],
+        &[("PRODUCT", "stereo-like DEM (synthetic)".into())],
+    )?;
     drop(dem);
-    write_geotiff(&partial.join("truth/dem_true.tif"), fine.width, fine.height, &fine.transform(), &crs, -32768.0, &[BandOut { values: BandValues::Grid(&heights), description: height_desc }], &[])?;
+    write_geotiff(
+        &partial.join("truth/dem_true.tif"),
+        fine.width,
+        fine.height,
+        &fine.transform(),
+        &crs,
+        -32768.0,
+        &[BandOut {
+            values: BandValues::Grid(&heights),
+            description: height_desc,
+        }],
+        &[],
+    )?;
     drop(heights);
     let r = &config.reflectance;
     let bands = [
-        BandOut { values: BandValues::Grid(&maps.w), description: "w (single-scattering albedo)" },
-        BandOut { values: BandValues::Grid(&maps.b), description: "b (double-HG asymmetry)" },
-        BandOut { values: BandValues::Constant(r.c as f32), description: "c (double-HG partition, c>0 back-scattering)" },
-        BandOut { values: BandValues::Constant(r.b_s0 as f32), description: "B_S0 (shadow-hiding amplitude)" },
-        BandOut { values: BandValues::Constant(r.h_s as f32), description: "h_S (shadow-hiding width)" },
-        BandOut { values: BandValues::Constant(r.theta_bar_deg as f32), description: "theta_bar_deg (macroscopic roughness)" },
+        BandOut {
+            values: BandValues::Grid(&maps.w),
+            description: "w (single-scattering albedo)",
+        },
+        BandOut {
+            values: BandValues::Grid(&maps.b),
+            description: "b (double-HG asymmetry)",
+        },
+        BandOut {
+            values: BandValues::Constant(r.c as f32),
+            description: "c (double-HG partition, c>0 back-scattering)",
+        },
+        BandOut {
+            values: BandValues::Constant(r.b_s0 as f32),
+            description: "B_S0 (shadow-hiding amplitude)",
+        },
+        BandOut {
+            values: BandValues::Constant(r.h_s as f32),
+            description: "h_S (shadow-hiding width)",
+        },
+        BandOut {
+            values: BandValues::Constant(r.theta_bar_deg as f32),
+            description: "theta_bar_deg (macroscopic roughness)",
+        },
     ];
-    write_geotiff(&partial.join("truth/hapke_params.tif"), fine.width, fine.height, &fine.transform(), &crs, -1.0, &bands, &[("HAPKE_FORM", "Hapke 2012 IMSA, H-function 2002, K=1".into())])?;
+    write_geotiff(
+        &partial.join("truth/hapke_params.tif"),
+        fine.width,
+        fine.height,
+        &fine.transform(),
+        &crs,
+        -1.0,
+        &bands,
+        &[("HAPKE_FORM", "Hapke 2012 IMSA, H-function 2002, K=1".into())],
+    )?;
     write_json_atomic(&partial.join("truth/craters.json"), &craters)?;
 
     let mut files = Vec::new();
-    let mut relative: Vec<String> = vec!["dem/dem.tif".into(), "truth/dem_true.tif".into(), "truth/hapke_params.tif".into(), "truth/craters.json".into()];
+    let mut relative: Vec<String> = vec![
+        "dem/dem.tif".into(),
+        "truth/dem_true.tif".into(),
+        "truth/hapke_params.tif".into(),
+        "truth/craters.json".into(),
+    ];
     for s in &strips {
         relative.push(format!("ortho/{}", s.meta.image_file));
         relative.push(format!("ortho/{}.json", s.meta.ortho_id));
@@ -207,6 +357,7 @@ pub fn generate(config: &WorldConfig, seed: u64, out: &Path, force: bool) -> any
         files,
     };
     write_json_atomic(&partial.join("world.json"), &manifest)?;
-    std::fs::rename(&partial, out).with_context(|| format!("renaming {} to {}", partial.display(), out.display()))?;
+    std::fs::rename(&partial, out)
+        .with_context(|| format!("renaming {} to {}", partial.display(), out.display()))?;
     Ok(out.to_path_buf())
 }

@@ -25,7 +25,13 @@ pub fn gradient_noise(x: f64, y: f64, key: u64) -> f64 {
 
 const GRADIENTS: [(f64, f64); 16] = {
     // cos/sin of k·22.5°, k = 0..15.
-    const C: [f64; 5] = [1.0, 0.923_879_532_511_286_7, 0.707_106_781_186_547_6, 0.382_683_432_365_089_8, 0.0];
+    const C: [f64; 5] = [
+        1.0,
+        0.923_879_532_511_286_7,
+        0.707_106_781_186_547_6,
+        0.382_683_432_365_089_8,
+        0.0,
+    ];
     let mut g = [(0.0, 0.0); 16];
     let mut k = 0;
     while k < 16 {
@@ -74,7 +80,13 @@ impl Fbm {
             // Each octave gets its own lattice key and a rotation so lattice axes don't line up across octaves.
             let (s, c) = (0.5 + octave as f64 * 1.3f64).sin_cos();
             let (u, v) = ((c * x - s * y) / wavelength, (s * x + c * y) / wavelength);
-            sum += amplitude * gradient_noise(u, v, self.key.wrapping_add(octave.wrapping_mul(0x2545_F491_4F6C_DD1D)));
+            sum += amplitude
+                * gradient_noise(
+                    u,
+                    v,
+                    self.key
+                        .wrapping_add(octave.wrapping_mul(0x2545_F491_4F6C_DD1D)),
+                );
             wavelength *= 0.5;
             amplitude *= damping;
             octave += 1;
@@ -102,7 +114,13 @@ mod tests {
     #[test]
     fn fbm_roughness_scales_with_hurst() {
         // Height differences over lag L grow like L^H: compare variograms at two lags.
-        let fbm = Fbm { key: 3, hurst: 0.9, amplitude: 10.0, largest_wavelength_m: 4096.0, smallest_wavelength_m: 2.0 };
+        let fbm = Fbm {
+            key: 3,
+            hurst: 0.9,
+            amplitude: 10.0,
+            largest_wavelength_m: 4096.0,
+            smallest_wavelength_m: 2.0,
+        };
         let vario = |lag: f64| {
             let n = 4000;
             (0..n)
@@ -114,6 +132,9 @@ mod tests {
                 / n as f64
         };
         let slope = (vario(64.0) / vario(16.0)).ln() / 4f64.ln() / 2.0;
-        assert!((slope - 0.9).abs() < 0.2, "variogram Hurst estimate {slope}");
+        assert!(
+            (slope - 0.9).abs() < 0.2,
+            "variogram Hurst estimate {slope}"
+        );
     }
 }

@@ -45,9 +45,18 @@ impl Visibility {
     }
 }
 
-fn sweep_window(fine: &Grid, heights: &[f32], strip: &Strip, frame: &LocalFrame, acq: &AcquisitionConfig) -> Visibility {
+fn sweep_window(
+    fine: &Grid,
+    heights: &[f32],
+    strip: &Strip,
+    frame: &LocalFrame,
+    acq: &AcquisitionConfig,
+) -> Visibility {
     // Shadows can be cast from beyond the strip: extend the window by the longest possible shadow.
-    let (lo, hi) = heights.iter().filter(|h| h.is_finite()).fold((f32::MAX, f32::MIN), |(a, b), &h| (a.min(h), b.max(h)));
+    let (lo, hi) = heights
+        .iter()
+        .filter(|h| h.is_finite())
+        .fold((f32::MAX, f32::MIN), |(a, b), &h| (a.min(h), b.max(h)));
     let sun_enu = frame.sun_dir_enu(strip.meta.sun_body());
     let elevation = sun_enu.z.asin().max(1e-3);
     let margin_m = (((hi - lo) as f64) / elevation.tan()).min(20_000.0) + 4.0 * fine.gsd_m;
@@ -59,15 +68,32 @@ fn sweep_window(fine: &Grid, heights: &[f32], strip: &Strip, frame: &LocalFrame,
     let r0 = to_row(g.max_y + margin_m).max(0.0) as usize;
     let r1 = (to_row(g.min_y() - margin_m) as usize + 1).min(fine.height);
     let (width, height) = (c1 - c0, r1 - r0);
-    let window: Vec<f32> = (r0..r1).flat_map(|r| heights[r * fine.width + c0..r * fine.width + c1].iter().copied()).collect();
+    let window: Vec<f32> = (r0..r1)
+        .flat_map(|r| {
+            heights[r * fine.width + c0..r * fine.width + c1]
+                .iter()
+                .copied()
+        })
+        .collect();
     let horizon = HorizonGrid::new(&window, width, height, fine.gsd_m);
     let sun_dir = SourceDirection::from_enu(sun_enu, SUN_ANGULAR_RADIUS_RAD);
     let sun = horizon.sweep_visible_fraction(&sun_dir, acq.sun_disk_samples);
     // Camera ~50 km away: one direction per strip (mid-strip) is accurate to the strip's angular width.
-    let mid = dataset::geometry::spacecraft_position_at(strip.meta.spacecraft_start_body_m.into(), strip.meta.spacecraft_stop_body_m.into(), 0.5);
+    let mid = dataset::geometry::spacecraft_position_at(
+        strip.meta.spacecraft_start_body_m.into(),
+        strip.meta.spacecraft_stop_body_m.into(),
+        0.5,
+    );
     let cam_dir = (frame.body_point_to_enu(mid)).normalize();
     let camera = horizon.sweep_visible_fraction(&SourceDirection::from_enu(cam_dir, 0.0), 1);
-    Visibility { c0, r0, width, height, sun, camera }
+    Visibility {
+        c0,
+        r0,
+        width,
+        height,
+        sun,
+        camera,
+    }
 }
 
 /// Render the strip's ortho (NaN outside the strip or where the camera can't see the ground).
@@ -88,7 +114,15 @@ pub fn render_ortho(
     let center = g.center(g.width / 2, g.height / 2);
     let strip_frame = LocalFrame::new(crs, center.0, center.1, 0.0).expect("valid CRS");
     let vis = sweep_window(fine, heights, strip, &strip_frame, acq);
-    let constants = HapkeParams { w: 0.0, b: refl.b, c: refl.c, b_s0: refl.b_s0, h_s: refl.h_s, theta_bar_rad: refl.theta_bar_deg.to_radians(), porosity_k: 1.0 };
+    let constants = HapkeParams {
+        w: 0.0,
+        b: refl.b,
+        c: refl.c,
+        b_s0: refl.b_s0,
+        h_s: refl.h_s,
+        theta_bar_rad: refl.theta_bar_deg.to_radians(),
+        porosity_k: 1.0,
+    };
     let tiles_x = g.width.div_ceil(TILE);
     let tiles_y = g.height.div_ceil(TILE);
     progress.set_length((tiles_x * tiles_y) as u64);
@@ -118,7 +152,9 @@ pub fn render_ortho(
                         continue;
                     }
                     let (fc, fr) = fine.to_pixel(x, y);
-                    let hgt = |dc: f64, dr: f64| bilinear(heights, fine.width, fine.height, fc + dc, fr + dr) as f64;
+                    let hgt = |dc: f64, dr: f64| {
+                        bilinear(heights, fine.width, fine.height, fc + dc, fr + dr) as f64
+                    };
                     let h = hgt(0.0, 0.0);
                     let dzdx = (hgt(1.0, 0.0) - hgt(-1.0, 0.0)) / (2.0 * step);
                     let dzdy = -(hgt(0.0, 1.0) - hgt(0.0, -1.0)) / (2.0 * step);
@@ -126,7 +162,12 @@ pub fn render_ortho(
                     let grad_n = inv_n.x * dzdx + inv_n.y * dzdy;
                     let p = frame.map_to_enu(x, y, h);
                     // The local vertical at p is tilted from the tile's by (E, N)/R.
-                    let normal = DVec3::new(-grad_e - p.x / MOON_RADIUS_M, -grad_n - p.y / MOON_RADIUS_M, 1.0).normalize();
+                    let normal = DVec3::new(
+                        -grad_e - p.x / MOON_RADIUS_M,
+                        -grad_n - p.y / MOON_RADIUS_M,
+                        1.0,
+                    )
+                    .normalize();
                     let camera_visible = Visibility::sample(&vis.camera, &vis, fc, fr);
                     if camera_visible < 0.5 {
                         stats.occluded += 1;
@@ -144,8 +185,16 @@ pub fn render_ortho(
                     if lit < 0.5 {
                         stats.shadowed += 1;
                     }
-                    let signal = lit * hapke_i_over_f(&params, cos.cos_i, cos.cos_e, cos.cos_g, HFunction::Hapke2002);
-                    let value = signal * (1.0 + acq.noise_relative * noise.sample(&mut rng)) + acq.noise_absolute * noise.sample(&mut rng);
+                    let signal = lit
+                        * hapke_i_over_f(
+                            &params,
+                            cos.cos_i,
+                            cos.cos_e,
+                            cos.cos_g,
+                            HFunction::Hapke2002,
+                        );
+                    let value = signal * (1.0 + acq.noise_relative * noise.sample(&mut rng))
+                        + acq.noise_absolute * noise.sample(&mut rng);
                     out[(row - r0) * (c1 - c0) + (col - c0)] = value.max(0.0) as f32;
                     stats.valid += 1;
                 }

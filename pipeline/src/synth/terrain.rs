@@ -38,7 +38,10 @@ pub fn crater_catalogue(cfg: &TerrainConfig, grid: &Grid, seed: u64) -> Vec<Crat
     let n_above = |d_m: f64| cfg.density_per_km2_above_1km * (d_m / 1000.0).powf(s) * area_km2;
     let expected = n_above(cfg.crater_min_diameter_m) - n_above(cfg.crater_max_diameter_m);
     let count = expected.round() as usize;
-    let (a, b) = (cfg.crater_min_diameter_m.powf(s), cfg.crater_max_diameter_m.powf(s));
+    let (a, b) = (
+        cfg.crater_min_diameter_m.powf(s),
+        cfg.crater_max_diameter_m.powf(s),
+    );
     let mut craters: Vec<Crater> = (0..count)
         .map(|_| {
             let u: f64 = rng.random();
@@ -72,7 +75,11 @@ pub fn simple_crater_profile(rho: f64, depth_m: f64, rim_m: f64, sigma_rel: f64)
     // Rim rounding: blend the two sides over a width ∝ σ around ρ = 1.
     let width = (0.15 + sigma_rel).min(0.8);
     let inside = h - d * (1.0 - rho * rho).max(0.0);
-    let outside = if rho < 3.0 { h * rho.max(1.0).powi(-3) * smoothstep(3.0, 2.4, rho) } else { 0.0 };
+    let outside = if rho < 3.0 {
+        h * rho.max(1.0).powi(-3) * smoothstep(3.0, 2.4, rho)
+    } else {
+        0.0
+    };
     let t = smoothstep(1.0 - width * 0.5, 1.0 + width * 0.5, rho);
     let blended = inside * (1.0 - t) + outside * t;
     if rho <= 1.0 - width * 0.5 {
@@ -100,18 +107,29 @@ pub fn background(cfg: &TerrainConfig, grid: &Grid, base_height_m: f64, seed: u6
         smallest_wavelength_m: 2.0 * grid.gsd_m,
     };
     let mut heights = vec![0f32; grid.width * grid.height];
-    heights.par_chunks_mut(grid.width).enumerate().for_each(|(row, out)| {
-        for (col, h) in out.iter_mut().enumerate() {
-            let (x, y) = grid.center(col, row);
-            *h = (base_height_m + fbm.at(x, y)) as f32;
-        }
-    });
+    heights
+        .par_chunks_mut(grid.width)
+        .enumerate()
+        .for_each(|(row, out)| {
+            for (col, h) in out.iter_mut().enumerate() {
+                let (x, y) = grid.center(col, row);
+                *h = (base_height_m + fbm.at(x, y)) as f32;
+            }
+        });
     heights
 }
 
 /// Stamp craters in age order onto heights, and record freshness (0..1) of the surface material.
 /// `first_index` is the catalogue index of `craters[0]` (keys each crater's ray pattern).
-pub fn stamp_craters(cfg: &TerrainConfig, grid: &Grid, craters: &[Crater], first_index: usize, heights: &mut [f32], freshness: &mut [f32], seed: u64) {
+pub fn stamp_craters(
+    cfg: &TerrainConfig,
+    grid: &Grid,
+    craters: &[Crater],
+    first_index: usize,
+    heights: &mut [f32],
+    freshness: &mut [f32],
+    seed: u64,
+) {
     for (offset, crater) in craters.iter().enumerate() {
         let k = first_index + offset;
         let radius = crater.diameter_m / 2.0;
@@ -119,9 +137,12 @@ pub fn stamp_craters(cfg: &TerrainConfig, grid: &Grid, craters: &[Crater], first
         let rim = cfg.rim_height_to_diameter * crater.diameter_m;
         let sigma_rel = crater.diffusion_m / radius;
         let reach = 3.0 * radius;
-        let Some((c0, c1, r0, r1)) = grid.window(crater.x_m, crater.y_m, reach) else { continue };
+        let Some((c0, c1, r0, r1)) = grid.window(crater.x_m, crater.y_m, reach) else {
+            continue;
+        };
         // Ray pattern of fresh ejecta: brightness modulated by azimuth.
-        let ray_phase = keyed_u64(seed, "crater-rays", k as u64) as f64 / u64::MAX as f64 * std::f64::consts::TAU;
+        let ray_phase = keyed_u64(seed, "crater-rays", k as u64) as f64 / u64::MAX as f64
+            * std::f64::consts::TAU;
         let ray_count = 5.0 + (k % 7) as f64;
         for row in r0..r1 {
             for col in c0..c1 {
@@ -136,7 +157,11 @@ pub fn stamp_craters(cfg: &TerrainConfig, grid: &Grid, craters: &[Crater], first
                 if crater.freshness > 1e-3 {
                     // Excavated material inside and on the rim; rays of ejecta outside, thinning like the blanket.
                     let rays = 0.6 + 0.4 * (ray_count * dy.atan2(dx) + ray_phase).sin();
-                    let weight = if rho <= 1.1 { 1.0 } else { (1.1 / rho).powi(3) * rays };
+                    let weight = if rho <= 1.1 {
+                        1.0
+                    } else {
+                        (1.1 / rho).powi(3) * rays
+                    };
                     let f = crater.freshness * weight;
                     let prev = freshness[i] as f64;
                     freshness[i] = (prev * (1.0 - weight) + f).clamp(0.0, 1.0) as f32;
@@ -151,43 +176,66 @@ pub fn stamp_craters(cfg: &TerrainConfig, grid: &Grid, craters: &[Crater], first
 
 /// Stamp the complex crater: terraced wall, flat melt floor with hummocks, central peak, raised rim and ejecta.
 /// Marks its melt floor in `melt` and its (young) ejecta as fresh.
-pub fn stamp_complex_crater(cc: &ComplexCraterConfig, grid: &Grid, center: (f64, f64), heights: &mut [f32], freshness: &mut [f32], melt: &mut [f32], seed: u64) {
+pub fn stamp_complex_crater(
+    cc: &ComplexCraterConfig,
+    grid: &Grid,
+    center: (f64, f64),
+    heights: &mut [f32],
+    freshness: &mut [f32],
+    melt: &mut [f32],
+    seed: u64,
+) {
     let radius = cc.diameter_m / 2.0;
     let depth = cc.depth_to_diameter * cc.diameter_m;
     let rim = 0.02 * cc.diameter_m;
     let floor_rho = 0.45;
-    let hummocks = Fbm { key: keyed_u64(seed, "melt-hummocks", 0), hurst: 0.7, amplitude: 0.01 * depth, largest_wavelength_m: 0.05 * cc.diameter_m, smallest_wavelength_m: 4.0 * grid.gsd_m };
-    let Some((c0, c1, r0, r1)) = grid.window(center.0, center.1, 3.0 * radius) else { return };
+    let hummocks = Fbm {
+        key: keyed_u64(seed, "melt-hummocks", 0),
+        hurst: 0.7,
+        amplitude: 0.01 * depth,
+        largest_wavelength_m: 0.05 * cc.diameter_m,
+        smallest_wavelength_m: 4.0 * grid.gsd_m,
+    };
+    let Some((c0, c1, r0, r1)) = grid.window(center.0, center.1, 3.0 * radius) else {
+        return;
+    };
     let terraces = cc.terraces.max(1) as f64;
-    heights[r0 * grid.width..r1 * grid.width].par_chunks_mut(grid.width).zip(freshness[r0 * grid.width..r1 * grid.width].par_chunks_mut(grid.width)).zip(melt[r0 * grid.width..r1 * grid.width].par_chunks_mut(grid.width)).enumerate().for_each(|(dr, ((h_row, f_row), m_row))| {
-        let row = r0 + dr;
-        for col in c0..c1 {
-            let (x, y) = grid.center(col, row);
-            let (dx, dy) = (x - center.0, y - center.1);
-            let rho = (dx * dx + dy * dy).sqrt() / radius;
-            if rho >= 3.0 {
-                continue;
+    heights[r0 * grid.width..r1 * grid.width]
+        .par_chunks_mut(grid.width)
+        .zip(freshness[r0 * grid.width..r1 * grid.width].par_chunks_mut(grid.width))
+        .zip(melt[r0 * grid.width..r1 * grid.width].par_chunks_mut(grid.width))
+        .enumerate()
+        .for_each(|(dr, ((h_row, f_row), m_row))| {
+            let row = r0 + dr;
+            for col in c0..c1 {
+                let (x, y) = grid.center(col, row);
+                let (dx, dy) = (x - center.0, y - center.1);
+                let rho = (dx * dx + dy * dy).sqrt() / radius;
+                if rho >= 3.0 {
+                    continue;
+                }
+                let dh = if rho < floor_rho {
+                    let peak = 0.35 * depth * (-(rho / 0.12).powi(2)).exp();
+                    -depth + peak + hummocks.at(x, y)
+                } else if rho <= 1.0 {
+                    // Wall from the floor edge up to the rim, broken into flat-ish terraces (a soft staircase).
+                    let t = (rho - floor_rho) / (1.0 - floor_rho);
+                    let stairs =
+                        (t * terraces).floor() + smoothstep(0.55, 1.0, (t * terraces).fract());
+                    let profile = (stairs / terraces).powf(1.3);
+                    -depth + (depth + rim) * profile
+                } else {
+                    rim * rho.powi(-3) * smoothstep(3.0, 2.4, rho)
+                };
+                h_row[col] += dh as f32;
+                if rho < floor_rho {
+                    m_row[col] = smoothstep(floor_rho, floor_rho - 0.05, rho) as f32;
+                }
+                let weight = if rho <= 1.0 { 1.0 } else { rho.powi(-2) };
+                f_row[col] =
+                    f_row[col].max(weight as f32 * if rho < floor_rho { 0.3 } else { 1.0 });
             }
-            let dh = if rho < floor_rho {
-                let peak = 0.35 * depth * (-(rho / 0.12).powi(2)).exp();
-                -depth + peak + hummocks.at(x, y)
-            } else if rho <= 1.0 {
-                // Wall from the floor edge up to the rim, broken into flat-ish terraces (a soft staircase).
-                let t = (rho - floor_rho) / (1.0 - floor_rho);
-                let stairs = (t * terraces).floor() + smoothstep(0.55, 1.0, (t * terraces).fract());
-                let profile = (stairs / terraces).powf(1.3);
-                -depth + (depth + rim) * profile
-            } else {
-                rim * rho.powi(-3) * smoothstep(3.0, 2.4, rho)
-            };
-            h_row[col] += dh as f32;
-            if rho < floor_rho {
-                m_row[col] = smoothstep(floor_rho, floor_rho - 0.05, rho) as f32;
-            }
-            let weight = if rho <= 1.0 { 1.0 } else { rho.powi(-2) };
-            f_row[col] = f_row[col].max(weight as f32 * if rho < floor_rho { 0.3 } else { 1.0 });
-        }
-    });
+        });
 }
 
 #[cfg(test)]
@@ -198,8 +246,14 @@ mod tests {
     fn fresh_profile_has_configured_depth_and_rim() {
         let (depth, rim) = (20.0, 4.0);
         assert!((simple_crater_profile(0.0, depth, rim, 0.0) - (rim - depth)).abs() < 1e-12);
-        assert!((simple_crater_profile(1.0, depth, rim, 0.0) - rim).abs() < 0.3, "rim crest near ρ = 1");
-        assert!((simple_crater_profile(2.0, depth, rim, 0.0) - rim / 8.0).abs() < 1e-12, "ejecta ∝ ρ⁻³");
+        assert!(
+            (simple_crater_profile(1.0, depth, rim, 0.0) - rim).abs() < 0.3,
+            "rim crest near ρ = 1"
+        );
+        assert!(
+            (simple_crater_profile(2.0, depth, rim, 0.0) - rim / 8.0).abs() < 1e-12,
+            "ejecta ∝ ρ⁻³"
+        );
         assert_eq!(simple_crater_profile(3.1, depth, rim, 0.0), 0.0);
         // Heavily degraded craters are nearly erased.
         assert!(simple_crater_profile(0.0, depth, rim, 2.0).abs() < 0.01 * depth);
