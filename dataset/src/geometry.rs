@@ -165,7 +165,12 @@ pub fn spacecraft_position_at(start_body: DVec3, stop_body: DVec3, t: f64) -> DV
 /// fall slightly outside [0, 1] at the strip ends.
 pub fn imaging_fraction(ground_body: DVec3, start_body: DVec3, stop_body: DVec3) -> f64 {
     let u0 = start_body.normalize();
-    let along = (stop_body - u0 * stop_body.dot(u0)).normalize();
+    // Start and stop in the same direction (a zero-length strip, up to rounding): everything is imaged at t = 0.
+    let perpendicular = stop_body - u0 * stop_body.dot(u0);
+    if perpendicular.length() <= 1e-9 * stop_body.length() {
+        return 0.0;
+    }
+    let along = perpendicular.normalize();
     let omega = stop_body
         .normalize()
         .dot(along)
@@ -201,6 +206,11 @@ mod tests {
             // 1e-9 of a 12 km arc is 12 µm: f64 rounding of 1.7e6 m vectors, far below any pixel.
             assert!((got - t).abs() < 1e-9, "t={t}: {got}");
         }
+        assert_eq!(
+            imaging_fraction(a * 0.5, a, a * 1.0001),
+            0.0,
+            "degenerate strip gives t = 0, not NaN"
+        );
     }
 
     fn deg(x: f64) -> f64 {

@@ -115,6 +115,12 @@ pub struct Roughness {
 pub fn roughness(cos_i: f64, cos_e: f64, cos_g: f64, theta_bar_rad: f64) -> Roughness {
     // Roughness is defined for i, e in [0°, 90°]; callers return 0 outside (backfacing).
     let (mu0, mu) = (cos_i.clamp(0.0, 1.0), cos_e.clamp(0.0, 1.0));
+    // Physical mean slopes are < 45°; beyond 80° tan θ̄ explodes and the model has no meaning.
+    let theta_bar_rad = if theta_bar_rad.is_finite() {
+        theta_bar_rad.clamp(0.0, 80f64.to_radians())
+    } else {
+        0.0
+    };
     if theta_bar_rad < 1e-6 {
         return Roughness {
             mu0_eff: mu0,
@@ -229,7 +235,8 @@ pub fn lunar_lambert_i_over_f(albedo: f64, cos_i: f64, cos_e: f64, cos_g: f64) -
         return 0.0;
     }
     let l = lunar_lambert_l(clamp_unit(cos_g).acos().to_degrees());
-    albedo * (2.0 * l * mu0 / (mu0 + mu) + (1.0 - l) * mu0)
+    // McEwen's L(g) polynomial turns negative past g ≈ 104°, where it was never fitted: reflect no negative light.
+    (albedo * (2.0 * l * mu0 / (mu0 + mu) + (1.0 - l) * mu0)).max(0.0)
 }
 
 #[cfg(test)]
@@ -395,7 +402,7 @@ mod tests {
             );
         }
         let ll = lunar_lambert_i_over_f(p.w, ci, ce, cg);
-        assert!(ll.is_finite());
+        assert!(ll.is_finite() && ll >= 0.0);
         let rough = roughness(ci, ce, cg, p.theta_bar_rad);
         assert!(
             rough.mu0_eff.is_finite() && rough.mu_eff.is_finite() && rough.shadowing.is_finite()
@@ -430,7 +437,13 @@ mod tests {
             prop_oneof![Just(1.0), Just(-1.0), -1.0f64..1.0],
             0.0f64..4.0,
             prop_oneof![Just(0.0), Just(1e-9), 0.0f64..0.2],
-            prop_oneof![Just(0.0), Just(1e-9), Just(1e-7), 0.0f64..1.0],
+            prop_oneof![
+                Just(0.0),
+                Just(1e-9),
+                Just(1e-7),
+                Just(std::f64::consts::FRAC_PI_2),
+                0.0f64..1.0
+            ],
         )
             .prop_map(|(w, b, c, b_s0, h_s, theta_bar_rad)| HapkeParams {
                 w,

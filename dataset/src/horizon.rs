@@ -38,15 +38,43 @@ pub struct SourceDirection {
 }
 
 impl SourceDirection {
-    /// From an ENU unit vector toward the source, on a north-up grid whose columns run east and rows south.
-    pub fn from_enu(dir_enu: glam::DVec3, angular_radius_rad: f64) -> Self {
+    /// From a unit vector toward the source in `frame`'s ENU axes, for a north-up raster in that frame's map CRS
+    /// (columns = +x, rows = −y). The horizontal direction goes through the map Jacobian, so grid north may differ
+    /// from true north (polar stereographic) without skewing shadows.
+    pub fn from_enu(
+        dir_enu: glam::DVec3,
+        frame: &crate::crs::LocalFrame,
+        angular_radius_rad: f64,
+    ) -> Self {
         let horizontal = (dir_enu.x * dir_enu.x + dir_enu.y * dir_enu.y).sqrt();
+        let on_map = frame.en_to_map(dir_enu.x, dir_enu.y);
         Self {
-            toward_col: dir_enu.x,
-            toward_row: -dir_enu.y,
+            toward_col: on_map.x,
+            toward_row: -on_map.y,
             elevation_rad: dir_enu.z.atan2(horizontal),
             angular_radius_rad,
         }
+    }
+}
+
+/// Turn heights above the sphere into the *up* coordinate of the ENU frame at (origin_col, origin_row): each cell
+/// drops by r²/2R with r its distance from the origin. Sweeping these with the source direction of that one frame
+/// is exact to second order across the grid (the tilt of far cells' local verticals is what the drop encodes);
+/// without it a 20 km shadow search would be off by 115 m of height, more than the sun's disk near the terminator.
+pub fn drop_for_curvature(
+    heights: &mut [f32],
+    width: usize,
+    gsd_m: f64,
+    origin_col: f64,
+    origin_row: f64,
+) {
+    let two_r = 2.0 * crate::crs::MOON_RADIUS_M;
+    for (i, h) in heights.iter_mut().enumerate() {
+        let (dc, dr) = (
+            (i % width) as f64 - origin_col,
+            (i / width) as f64 - origin_row,
+        );
+        *h -= ((dc * dc + dr * dr) * gsd_m * gsd_m / two_r) as f32;
     }
 }
 
@@ -112,6 +140,8 @@ impl<'a> HorizonGrid<'a> {
     }
 
     /// Visible fraction of the source from cell (col, row), by marching the horizon toward it (the reference).
+    /// Heights are above the sphere and `dir` is in the cell's own local frame; the march lowers each sample by
+    /// d²/2R (sphere curvature seen from the cell).
     pub fn march_visible_fraction(&self, col: usize, row: usize, dir: &SourceDirection) -> f64 {
         if self.source_clears_all_slopes(dir) {
             return 1.0;
@@ -187,7 +217,9 @@ impl<'a> HorizonGrid<'a> {
             } else {
                 (1.0 - y * y).sqrt()
             };
-            let elevation = dir.elevation_rad + y * dir.angular_radius_rad;
+            // A disk straddling the zenith: its samples beyond 90° are the same as at 90° (source overhead).
+            let elevation = (dir.elevation_rad + y * dir.angular_radius_rad)
+                .min(std::f64::consts::FRAC_PI_2 - 1e-9);
             let lit = self.sweep_hard(dir.toward_col, dir.toward_row, elevation);
             for (t, l) in total.iter_mut().zip(lit) {
                 *t += weight as f32 * l as u8 as f32;
@@ -364,6 +396,40 @@ mod tests {
         assert!(grid.source_clears_all_slopes(&high));
         assert!(grid
             .sweep_visible_fraction(&high, 5)
+            .iter()
+            .all(|&v| v == 1.0));
+    }
+
+    #[test]
+    fn curvature_drop_puts_the_terminator_where_the_sphere_does() {
+        // Perfectly smooth sphere (all heights 0), sun 0.1° above the horizon at the origin, toward −col. A point d
+        // metres away from the sun sees it at 0.1° − d/R: the sphere itself hides it beyond d = R·tan(0.1°) ≈ 3032 m.
+        let (w, h, gsd) = (4000, 3, 2.0);
+        let mut heights = vec![0f32; w * h];
+        drop_for_curvature(&mut heights, w, gsd, 0.0, 1.0);
+        let grid = HorizonGrid::new(&heights, w, h, gsd);
+        let dir = SourceDirection {
+            toward_col: -1.0,
+            toward_row: 0.0,
+            elevation_rad: 0.1f64.to_radians(),
+            angular_radius_rad: 0.0,
+        };
+        let lit = grid.sweep_visible_fraction(&dir, 1);
+        let terminator_m = crate::crs::MOON_RADIUS_M * 0.1f64.to_radians().tan();
+        for col in (0..w).step_by(7) {
+            let d = col as f64 * gsd;
+            if (d - terminator_m).abs() > 40.0 {
+                assert_eq!(
+                    lit[w + col],
+                    (d < terminator_m) as u8 as f32,
+                    "col {col} at {d} m"
+                );
+            }
+        }
+        // Without the drop, a flat grid is lit everywhere: curvature is what darkens it.
+        let flat = vec![0f32; w * h];
+        assert!(HorizonGrid::new(&flat, w, h, gsd)
+            .sweep_visible_fraction(&dir, 1)
             .iter()
             .all(|&v| v == 1.0));
     }

@@ -208,14 +208,12 @@ pub fn generate(
 
     // Acquisitions and orthos.
     let strips = acquisition::plan(&config.acquisitions, &fine, &crs, w.base_height_m, seed);
+    let scene = render::TruthScene::new(&crs, &fine, &heights, &maps);
     let mut orthos = Vec::new();
     for (k, strip) in strips.iter().enumerate() {
         let progress = bar(0, &strip.meta.ortho_id);
         let (image, stats) = render::render_ortho(
-            &crs,
-            &fine,
-            &heights,
-            &maps,
+            &scene,
             &config.reflectance,
             &config.acquisitions,
             strip,

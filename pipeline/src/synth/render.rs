@@ -5,7 +5,7 @@
 use dataset::crs::{LocalFrame, LunarCrs, MOON_RADIUS_M};
 use dataset::geometry::Cosines;
 use dataset::hapke::{hapke_i_over_f, HFunction, HapkeParams};
-use dataset::horizon::{HorizonGrid, SourceDirection, SUN_ANGULAR_RADIUS_RAD};
+use dataset::horizon::{drop_for_curvature, HorizonGrid, SourceDirection, SUN_ANGULAR_RADIUS_RAD};
 use dataset::raster::bilinear;
 use glam::DVec3;
 use rand_distr::{Distribution, Normal};
@@ -45,21 +45,43 @@ impl Visibility {
     }
 }
 
+/// The true world an ortho is rendered from.
+pub struct TruthScene<'a> {
+    pub crs: &'a LunarCrs,
+    pub fine: &'a Grid,
+    pub heights: &'a [f32],
+    pub maps: &'a HapkeMaps,
+    /// Highest minus lowest true height: bounds the longest shadow any ortho can receive.
+    pub relief_m: f64,
+}
+
+impl<'a> TruthScene<'a> {
+    pub fn new(crs: &'a LunarCrs, fine: &'a Grid, heights: &'a [f32], maps: &'a HapkeMaps) -> Self {
+        let (lo, hi) = heights
+            .iter()
+            .filter(|h| h.is_finite())
+            .fold((f32::MAX, f32::MIN), |(a, b), &h| (a.min(h), b.max(h)));
+        Self {
+            crs,
+            fine,
+            heights,
+            maps,
+            relief_m: (hi - lo) as f64,
+        }
+    }
+}
+
 fn sweep_window(
-    fine: &Grid,
-    heights: &[f32],
+    scene: &TruthScene,
     strip: &Strip,
     frame: &LocalFrame,
     acq: &AcquisitionConfig,
 ) -> Visibility {
+    let (fine, heights) = (scene.fine, scene.heights);
     // Shadows can be cast from beyond the strip: extend the window by the longest possible shadow.
-    let (lo, hi) = heights
-        .iter()
-        .filter(|h| h.is_finite())
-        .fold((f32::MAX, f32::MIN), |(a, b), &h| (a.min(h), b.max(h)));
     let sun_enu = frame.sun_dir_enu(strip.meta.sun_body());
     let elevation = sun_enu.z.asin().max(1e-3);
-    let margin_m = (((hi - lo) as f64) / elevation.tan()).min(20_000.0) + 4.0 * fine.gsd_m;
+    let margin_m = (scene.relief_m / elevation.tan()).min(20_000.0) + 4.0 * fine.gsd_m;
     let g = &strip.grid;
     let to_col = |x: f64| ((x - fine.min_x) / fine.gsd_m).floor();
     let to_row = |y: f64| ((fine.max_y - y) / fine.gsd_m).floor();
@@ -68,15 +90,24 @@ fn sweep_window(
     let r0 = to_row(g.max_y + margin_m).max(0.0) as usize;
     let r1 = (to_row(g.min_y() - margin_m) as usize + 1).min(fine.height);
     let (width, height) = (c1 - c0, r1 - r0);
-    let window: Vec<f32> = (r0..r1)
+    let mut window: Vec<f32> = (r0..r1)
         .flat_map(|r| {
             heights[r * fine.width + c0..r * fine.width + c1]
                 .iter()
                 .copied()
         })
         .collect();
+    // Heights in the strip frame's up coordinate, so its single sun/camera direction holds across the window.
+    let (oc, or) = fine.to_pixel(frame.origin_map.x, frame.origin_map.y);
+    drop_for_curvature(
+        &mut window,
+        width,
+        fine.gsd_m,
+        oc - c0 as f64,
+        or - r0 as f64,
+    );
     let horizon = HorizonGrid::new(&window, width, height, fine.gsd_m);
-    let sun_dir = SourceDirection::from_enu(sun_enu, SUN_ANGULAR_RADIUS_RAD);
+    let sun_dir = SourceDirection::from_enu(sun_enu, frame, SUN_ANGULAR_RADIUS_RAD);
     let sun = horizon.sweep_visible_fraction(&sun_dir, acq.sun_disk_samples);
     // Camera ~50 km away: one direction per strip (mid-strip) is accurate to the strip's angular width.
     let mid = dataset::geometry::spacecraft_position_at(
@@ -85,7 +116,7 @@ fn sweep_window(
         0.5,
     );
     let cam_dir = (frame.body_point_to_enu(mid)).normalize();
-    let camera = horizon.sweep_visible_fraction(&SourceDirection::from_enu(cam_dir, 0.0), 1);
+    let camera = horizon.sweep_visible_fraction(&SourceDirection::from_enu(cam_dir, frame, 0.0), 1);
     Visibility {
         c0,
         r0,
@@ -97,12 +128,8 @@ fn sweep_window(
 }
 
 /// Render the strip's ortho (NaN outside the strip or where the camera can't see the ground).
-#[allow(clippy::too_many_arguments)]
 pub fn render_ortho(
-    crs: &LunarCrs,
-    fine: &Grid,
-    heights: &[f32],
-    maps: &HapkeMaps,
+    scene: &TruthScene,
     refl: &ReflectanceConfig,
     acq: &AcquisitionConfig,
     strip: &Strip,
@@ -110,10 +137,11 @@ pub fn render_ortho(
     seed: u64,
     progress: &indicatif::ProgressBar,
 ) -> (Vec<f32>, RenderStats) {
+    let (crs, fine, heights, maps) = (scene.crs, scene.fine, scene.heights, scene.maps);
     let g = &strip.grid;
     let center = g.center(g.width / 2, g.height / 2);
     let strip_frame = LocalFrame::new(crs, center.0, center.1, 0.0).expect("valid CRS");
-    let vis = sweep_window(fine, heights, strip, &strip_frame, acq);
+    let vis = sweep_window(scene, strip, &strip_frame, acq);
     let constants = HapkeParams {
         w: 0.0,
         b: refl.b,
