@@ -9,7 +9,7 @@ fn sample(i: usize) -> Sample {
     let n = CROP_PX * CROP_PX;
     Sample {
         sample_id: format!("M0000001:{i}:7"),
-        split: if i % 2 == 0 {
+        split: if i.is_multiple_of(2) {
             "train".into()
         } else {
             "val".into()

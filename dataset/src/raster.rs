@@ -259,19 +259,32 @@ pub enum BandValues<'a> {
     Constant(f32),
 }
 
+/// Where a raster's pixels sit and how missing ones are written: everything of a GeoTIFF but its values.
+#[derive(Debug, Clone)]
+pub struct RasterLayout<'a> {
+    pub width: usize,
+    pub height: usize,
+    pub transform: GeoTransform,
+    pub crs: &'a LunarCrs,
+    pub nodata: f32,
+}
+
 /// Write a tiled, DEFLATE-compressed Float32 GeoTIFF with CRS, nodata and band descriptions.
 ///
 /// Written to `path.tmp` then renamed, so an interrupted write never leaves a finished-looking file.
 pub fn write_geotiff(
     path: &Path,
-    width: usize,
-    height: usize,
-    transform: &GeoTransform,
-    crs: &LunarCrs,
-    nodata: f32,
+    layout: &RasterLayout<'_>,
     bands: &[BandOut<'_>],
     metadata: &[(&str, String)],
 ) -> Result<(), RasterError> {
+    let RasterLayout {
+        width,
+        height,
+        transform,
+        crs,
+        nodata,
+    } = layout.clone();
     let tmp = tmp_path(path);
     let driver = DriverManager::get_driver_by_name("GTiff").map_err(gdal_err(path))?;
     let options = RasterCreationOptions::from_iter([
@@ -343,13 +356,16 @@ pub fn write_raster(
     raster: &Raster,
     metadata: &[(&str, String)],
 ) -> Result<(), RasterError> {
+    let layout = RasterLayout {
+        width: raster.width,
+        height: raster.height,
+        transform: raster.transform,
+        crs: &raster.crs,
+        nodata: raster.nodata,
+    };
     write_geotiff(
         path,
-        raster.width,
-        raster.height,
-        &raster.transform,
-        &raster.crs,
-        raster.nodata,
+        &layout,
         &[BandOut {
             values: BandValues::Grid(&raster.data),
             description: &raster.description,

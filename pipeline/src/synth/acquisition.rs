@@ -192,7 +192,7 @@ fn plan_one(
     let meta = AcquisitionMetadata {
         ortho_id: ortho_id.clone(),
         image_file: format!("{ortho_id}.tif"),
-        camera_id: if k % 2 == 0 {
+        camera_id: if k.is_multiple_of(2) {
             "NAC-L".into()
         } else {
             "NAC-R".into()

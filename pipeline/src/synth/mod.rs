@@ -17,7 +17,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Context};
 use dataset::crs::LunarCrs;
 use dataset::manifest::{write_json_atomic, FileEntry};
-use dataset::raster::{write_geotiff, BandOut, BandValues, GeoTransform};
+use dataset::raster::{write_geotiff, BandOut, BandValues, GeoTransform, RasterLayout};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 use tracing::info;
@@ -43,6 +43,16 @@ impl Grid {
     }
     pub fn transform(&self) -> GeoTransform {
         GeoTransform::north_up(self.min_x, self.max_y, self.gsd_m)
+    }
+    /// GeoTIFF layout of this grid in `crs` with the given nodata value.
+    pub fn layout<'a>(&self, crs: &'a LunarCrs, nodata: f32) -> RasterLayout<'a> {
+        RasterLayout {
+            width: self.width,
+            height: self.height,
+            transform: self.transform(),
+            crs,
+            nodata,
+        }
     }
     /// Map coordinates of the centre of pixel (col, row).
     #[inline]
@@ -226,11 +236,7 @@ pub fn generate(
         let path = partial.join("ortho").join(&strip.meta.image_file);
         write_geotiff(
             &path,
-            g.width,
-            g.height,
-            &g.transform(),
-            &crs,
-            -1.0,
+            &g.layout(&crs, -1.0),
             &[BandOut {
                 values: BandValues::Grid(&image),
                 description: "I/F (radiance factor)",
@@ -262,11 +268,7 @@ pub fn generate(
     let height_desc = "height_m above the 1737400 m lunar sphere";
     write_geotiff(
         &partial.join("dem/dem.tif"),
-        dem_grid.width,
-        dem_grid.height,
-        &dem_grid.transform(),
-        &crs,
-        -32768.0,
+        &dem_grid.layout(&crs, -32768.0),
         &[BandOut {
             values: BandValues::Grid(&dem),
             description: height_desc,
@@ -276,11 +278,7 @@ pub fn generate(
     drop(dem);
     write_geotiff(
         &partial.join("truth/dem_true.tif"),
-        fine.width,
-        fine.height,
-        &fine.transform(),
-        &crs,
-        -32768.0,
+        &fine.layout(&crs, -32768.0),
         &[BandOut {
             values: BandValues::Grid(&heights),
             description: height_desc,
@@ -317,11 +315,7 @@ pub fn generate(
     ];
     write_geotiff(
         &partial.join("truth/hapke_params.tif"),
-        fine.width,
-        fine.height,
-        &fine.transform(),
-        &crs,
-        -1.0,
+        &fine.layout(&crs, -1.0),
         &bands,
         &[("HAPKE_FORM", "Hapke 2012 IMSA, H-function 2002, K=1".into())],
     )?;
