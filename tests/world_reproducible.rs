@@ -84,29 +84,23 @@ fn existing_output_is_refused_without_force_and_no_partial_is_left() {
     assert!(!tmp.path().join("w.partial").exists());
 }
 
+/// The error message of generating `cfg` into a fresh directory.
+fn generation_error(cfg: &WorldConfig) -> String {
+    let out = tempfile::tempdir().unwrap().path().join("w");
+    pipeline::synth::generate(cfg, 1, &out, false)
+        .unwrap_err()
+        .to_string()
+}
+
 #[test]
 fn impossible_configs_name_the_field_to_fix() {
     let mut cfg = tiny();
     cfg.world.dem_gsd_m = 4.0; // not a multiple of the 2.5 m fine grid
-    let err = pipeline::synth::generate(
-        &cfg,
-        1,
-        &tempfile::tempdir().unwrap().path().join("w"),
-        false,
-    )
-    .unwrap_err()
-    .to_string();
+    let err = generation_error(&cfg);
     assert!(err.contains("dem_gsd_m"), "{err}");
     let mut cfg = tiny();
     cfg.acquisitions.incidence_max_deg = 95.0; // sun below the horizon
-    let err = pipeline::synth::generate(
-        &cfg,
-        1,
-        &tempfile::tempdir().unwrap().path().join("w"),
-        false,
-    )
-    .unwrap_err()
-    .to_string();
+    let err = generation_error(&cfg);
     assert!(err.contains("incidence"), "{err}");
     let err = WorldConfig::from_toml("[world]\nname = 1")
         .unwrap_err()
