@@ -2,4 +2,5 @@
 //! lunar world that stands in for real LRO data here. Stages arrive with the pipeline issue; the world is in [`synth`].
 
 pub mod rng;
+pub mod stages;
 pub mod synth;
