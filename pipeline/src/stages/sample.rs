@@ -48,7 +48,7 @@ mod tests {
 
     fn strip_mask(w: usize, h: usize, seed: usize) -> Vec<u8> {
         (0..w * h)
-            .map(|i| ((i % w + seed) % 11 != 0 && (i / w) % 7 != 3) as u8)
+            .map(|i| (!(i % w + seed).is_multiple_of(11) && (i / w) % 7 != 3) as u8)
             .collect()
     }
 
