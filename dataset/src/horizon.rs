@@ -303,6 +303,107 @@ impl<'a> HorizonGrid<'a> {
     }
 }
 
+/// A north-up height raster (heights above the sphere, NaN = nodata) with its georeferencing and total relief.
+#[derive(Debug, Clone, Copy)]
+pub struct HeightField<'a> {
+    pub heights: &'a [f32],
+    pub width: usize,
+    pub height: usize,
+    pub transform: crate::raster::GeoTransform,
+    /// Highest minus lowest finite height: bounds the longest shadow anything on this raster can receive.
+    pub relief_m: f64,
+}
+
+impl<'a> HeightField<'a> {
+    pub fn new(
+        heights: &'a [f32],
+        width: usize,
+        height: usize,
+        transform: crate::raster::GeoTransform,
+    ) -> Self {
+        let (lo, hi) = heights
+            .iter()
+            .filter(|h| h.is_finite())
+            .fold((f32::MAX, f32::MIN), |(a, b), &h| (a.min(h), b.max(h)));
+        let relief_m = if hi >= lo { (hi - lo) as f64 } else { 0.0 };
+        Self {
+            heights,
+            width,
+            height,
+            transform,
+            relief_m,
+        }
+    }
+}
+
+/// Visible fraction of one source over a window of a [`HeightField`] (window pixel (0, 0) = field pixel
+/// (col0, row0)).
+#[derive(Debug, Clone)]
+pub struct VisibilityWindow {
+    pub col0: usize,
+    pub row0: usize,
+    pub width: usize,
+    pub height: usize,
+    pub fraction: Vec<f32>,
+}
+
+impl VisibilityWindow {
+    /// Bilinear visible fraction at continuous *field* pixel coordinates (pixel-centre convention).
+    pub fn at(&self, col: f64, row: f64) -> f32 {
+        crate::raster::bilinear(
+            &self.fraction,
+            self.width,
+            self.height,
+            col - self.col0 as f64,
+            row - self.row0 as f64,
+        )
+    }
+}
+
+/// Sweep a source's visibility over the field pixels `cols × rows` (half-open ranges), extended by the longest
+/// shadow the field's relief can cast at the source's elevation (capped at 20 km), so blockers outside the area of
+/// interest are seen. Heights are first dropped into `frame`'s up coordinate ([`drop_for_curvature`]) so the one
+/// direction `toward_source_enu` (in `frame`) holds across the window.
+pub fn visibility_window(
+    field: &HeightField<'_>,
+    cols: std::ops::Range<usize>,
+    rows: std::ops::Range<usize>,
+    frame: &crate::crs::LocalFrame,
+    toward_source_enu: glam::DVec3,
+    angular_radius_rad: f64,
+    disk_samples: usize,
+) -> VisibilityWindow {
+    let gsd = field.transform.gsd_m();
+    let elevation = toward_source_enu.z.clamp(-1.0, 1.0).asin().max(1e-3);
+    let margin_px = ((field.relief_m / elevation.tan()).min(20_000.0) / gsd).ceil() as usize + 4;
+    let col0 = cols.start.saturating_sub(margin_px);
+    let row0 = rows.start.saturating_sub(margin_px);
+    let col1 = (cols.end + margin_px).min(field.width);
+    let row1 = (rows.end + margin_px).min(field.height);
+    let (width, height) = (col1 - col0, row1 - row0);
+    let mut window: Vec<f32> = (row0..row1)
+        .flat_map(|r| {
+            field.heights[r * field.width + col0..r * field.width + col1]
+                .iter()
+                .copied()
+        })
+        .collect();
+    let (oc, or) = field
+        .transform
+        .map_to_pixel(frame.origin_map.x, frame.origin_map.y);
+    drop_for_curvature(&mut window, width, gsd, oc - col0 as f64, or - row0 as f64);
+    let grid = HorizonGrid::new(&window, width, height, gsd);
+    let dir = SourceDirection::from_enu(toward_source_enu, frame, angular_radius_rad);
+    let fraction = grid.sweep_visible_fraction(&dir, disk_samples);
+    VisibilityWindow {
+        col0,
+        row0,
+        width,
+        height,
+        fraction,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -5,7 +5,7 @@
 use dataset::crs::{LocalFrame, LunarCrs, MOON_RADIUS_M};
 use dataset::geometry::Cosines;
 use dataset::hapke::{hapke_i_over_f, HFunction, HapkeParams};
-use dataset::horizon::{drop_for_curvature, HorizonGrid, SourceDirection, SUN_ANGULAR_RADIUS_RAD};
+use dataset::horizon::{visibility_window, HeightField, SUN_ANGULAR_RADIUS_RAD};
 use dataset::raster::bilinear;
 use glam::DVec3;
 use rand_distr::{Distribution, Normal};
@@ -29,101 +29,23 @@ pub struct RenderStats {
     pub shadowed: usize,
 }
 
-/// A window of the fine grid with the sun / camera visibility rasters swept over it.
-struct Visibility {
-    c0: usize,
-    r0: usize,
-    width: usize,
-    height: usize,
-    sun: Vec<f32>,
-    camera: Vec<f32>,
-}
-
-impl Visibility {
-    fn sample(field: &[f32], v: &Visibility, fc: f64, fr: f64) -> f32 {
-        bilinear(field, v.width, v.height, fc - v.c0 as f64, fr - v.r0 as f64)
-    }
-}
-
 /// The true world an ortho is rendered from.
 pub struct TruthScene<'a> {
     pub crs: &'a LunarCrs,
     pub fine: &'a Grid,
-    pub heights: &'a [f32],
+    pub field: HeightField<'a>,
     pub maps: &'a HapkeMaps,
-    /// Highest minus lowest true height: bounds the longest shadow any ortho can receive.
-    pub relief_m: f64,
 }
 
 impl<'a> TruthScene<'a> {
     pub fn new(crs: &'a LunarCrs, fine: &'a Grid, heights: &'a [f32], maps: &'a HapkeMaps) -> Self {
-        let (lo, hi) = heights
-            .iter()
-            .filter(|h| h.is_finite())
-            .fold((f32::MAX, f32::MIN), |(a, b), &h| (a.min(h), b.max(h)));
+        let field = HeightField::new(heights, fine.width, fine.height, fine.transform());
         Self {
             crs,
             fine,
-            heights,
+            field,
             maps,
-            relief_m: (hi - lo) as f64,
         }
-    }
-}
-
-fn sweep_window(
-    scene: &TruthScene,
-    strip: &Strip,
-    frame: &LocalFrame,
-    acq: &AcquisitionConfig,
-) -> Visibility {
-    let (fine, heights) = (scene.fine, scene.heights);
-    // Shadows can be cast from beyond the strip: extend the window by the longest possible shadow.
-    let sun_enu = frame.sun_dir_enu(strip.meta.sun_body());
-    let elevation = sun_enu.z.asin().max(1e-3);
-    let margin_m = (scene.relief_m / elevation.tan()).min(20_000.0) + 4.0 * fine.gsd_m;
-    let g = &strip.grid;
-    let to_col = |x: f64| ((x - fine.min_x) / fine.gsd_m).floor();
-    let to_row = |y: f64| ((fine.max_y - y) / fine.gsd_m).floor();
-    let c0 = to_col(g.min_x - margin_m).max(0.0) as usize;
-    let c1 = (to_col(g.max_x() + margin_m) as usize + 1).min(fine.width);
-    let r0 = to_row(g.max_y + margin_m).max(0.0) as usize;
-    let r1 = (to_row(g.min_y() - margin_m) as usize + 1).min(fine.height);
-    let (width, height) = (c1 - c0, r1 - r0);
-    let mut window: Vec<f32> = (r0..r1)
-        .flat_map(|r| {
-            heights[r * fine.width + c0..r * fine.width + c1]
-                .iter()
-                .copied()
-        })
-        .collect();
-    // Heights in the strip frame's up coordinate, so its single sun/camera direction holds across the window.
-    let (oc, or) = fine.to_pixel(frame.origin_map.x, frame.origin_map.y);
-    drop_for_curvature(
-        &mut window,
-        width,
-        fine.gsd_m,
-        oc - c0 as f64,
-        or - r0 as f64,
-    );
-    let horizon = HorizonGrid::new(&window, width, height, fine.gsd_m);
-    let sun_dir = SourceDirection::from_enu(sun_enu, frame, SUN_ANGULAR_RADIUS_RAD);
-    let sun = horizon.sweep_visible_fraction(&sun_dir, acq.sun_disk_samples);
-    // Camera ~50 km away: one direction per strip (mid-strip) is accurate to the strip's angular width.
-    let mid = dataset::geometry::spacecraft_position_at(
-        strip.meta.spacecraft_start_body_m.into(),
-        strip.meta.spacecraft_stop_body_m.into(),
-        0.5,
-    );
-    let cam_dir = (frame.body_point_to_enu(mid)).normalize();
-    let camera = horizon.sweep_visible_fraction(&SourceDirection::from_enu(cam_dir, frame, 0.0), 1);
-    Visibility {
-        c0,
-        r0,
-        width,
-        height,
-        sun,
-        camera,
     }
 }
 
@@ -137,11 +59,40 @@ pub fn render_ortho(
     seed: u64,
     progress: &indicatif::ProgressBar,
 ) -> (Vec<f32>, RenderStats) {
-    let (crs, fine, heights, maps) = (scene.crs, scene.fine, scene.heights, scene.maps);
+    let (crs, fine, heights, maps) = (scene.crs, scene.fine, scene.field.heights, scene.maps);
     let g = &strip.grid;
     let center = g.center(g.width / 2, g.height / 2);
     let strip_frame = LocalFrame::new(crs, center.0, center.1, 0.0).expect("valid CRS");
-    let vis = sweep_window(scene, strip, &strip_frame, acq);
+    // Sun (soft disk) and camera (point, ~50 km away: one direction per strip, mid-strip) visibility on the truth.
+    let (fc0, fr0) = fine.to_pixel(g.min_x, g.max_y);
+    let cols = (fc0.floor().max(0.0) as usize)
+        ..((fc0 + (g.width as f64 * g.gsd_m / fine.gsd_m)).ceil() as usize + 1).min(fine.width);
+    let rows = (fr0.floor().max(0.0) as usize)
+        ..((fr0 + (g.height as f64 * g.gsd_m / fine.gsd_m)).ceil() as usize + 1).min(fine.height);
+    let sun_enu = strip_frame.sun_dir_enu(strip.meta.sun_body());
+    let sun_vis = visibility_window(
+        &scene.field,
+        cols.clone(),
+        rows.clone(),
+        &strip_frame,
+        sun_enu,
+        SUN_ANGULAR_RADIUS_RAD,
+        acq.sun_disk_samples,
+    );
+    let mid = dataset::geometry::spacecraft_position_at(
+        strip.meta.spacecraft_start_body_m.into(),
+        strip.meta.spacecraft_stop_body_m.into(),
+        0.5,
+    );
+    let camera_vis = visibility_window(
+        &scene.field,
+        cols,
+        rows,
+        &strip_frame,
+        strip_frame.body_point_to_enu(mid).normalize(),
+        0.0,
+        1,
+    );
     let constants = HapkeParams {
         w: 0.0,
         b: refl.b,
@@ -196,7 +147,7 @@ pub fn render_ortho(
                         1.0,
                     )
                     .normalize();
-                    let camera_visible = Visibility::sample(&vis.camera, &vis, fc, fr);
+                    let camera_visible = camera_vis.at(fc, fr);
                     if camera_visible < 0.5 {
                         stats.occluded += 1;
                         continue;
@@ -209,7 +160,7 @@ pub fn render_ortho(
                         b: bilinear(&maps.b, fine.width, fine.height, fc, fr) as f64,
                         ..constants
                     };
-                    let lit = Visibility::sample(&vis.sun, &vis, fc, fr) as f64;
+                    let lit = sun_vis.at(fc, fr) as f64;
                     if lit < 0.5 {
                         stats.shadowed += 1;
                     }
