@@ -40,19 +40,6 @@ fn sample(i: usize) -> Sample {
     }
 }
 
-/// The interpreter with pyarrow: $G2R_PYTHON, else the project's .venv (made by .ci/setup), else python3.
-fn python() -> std::path::PathBuf {
-    if let Some(p) = std::env::var_os("G2R_PYTHON") {
-        return p.into();
-    }
-    let venv = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../.venv/bin/python");
-    if venv.exists() {
-        venv
-    } else {
-        "python3".into()
-    }
-}
-
 #[test]
 fn shard_reads_back_with_pyarrow_without_custom_code() {
     let dir = tempfile::tempdir().unwrap();
@@ -80,7 +67,7 @@ assert t.schema.field("dem").metadata[b"unit"] == b"m"
 encodings = f.metadata.row_group(0).column(t.schema.get_field_index("dem")).encodings
 print("ok", encodings)
 "#;
-    let output = Command::new(python())
+    let output = Command::new(g2r_tests::python())
         .arg("-c")
         .arg(script)
         .arg(&path)

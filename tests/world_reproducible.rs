@@ -2,19 +2,10 @@
 
 use std::path::Path;
 
-use pipeline::synth::{config, WorldConfig};
+use pipeline::synth::WorldConfig;
 
-/// A tiny world (3 × 3 km, two strips) so generating it several times stays cheap.
 fn tiny() -> WorldConfig {
-    let mut cfg = WorldConfig::from_toml(config::preset("demo").unwrap()).unwrap();
-    cfg.world.width_m = 3000.0;
-    cfg.world.height_m = 3000.0;
-    cfg.terrain.crater_max_diameter_m = 300.0;
-    cfg.terrain.fbm_largest_wavelength_m = 2000.0;
-    cfg.complex_crater = None;
-    cfg.acquisitions.count = 2;
-    cfg.acquisitions.strip_width_m = 1200.0;
-    cfg
+    g2r_tests::tiny_world_config()
 }
 
 fn file_hashes(dir: &Path) -> Vec<(String, String)> {
@@ -43,8 +34,8 @@ fn same_seed_gives_byte_identical_world_and_other_seed_differs() {
     let (ha, hb, hc) = (file_hashes(&a), file_hashes(&b), file_hashes(&c));
     assert_eq!(
         ha.len(),
-        4 + 2 * 2,
-        "dem, 3 truth files, 2 × (ortho + metadata)"
+        4 + 3 * 2,
+        "dem, 3 truth files, 3 × (ortho + metadata)"
     );
     assert_eq!(ha, hb);
     assert_eq!(

@@ -47,6 +47,32 @@ enum Command {
         #[arg(long)]
         force: bool,
     },
+    /// Run the stale stages of a pipeline manifest: ingest -> erode -> sample -> project -> split -> publish.
+    ///
+    /// A stage is stale when its code version, parameters or input files changed, or an output is missing or
+    /// modified (see `status`). Outputs go to the manifest's output.dir: stages/ (intermediate Parquet tables),
+    /// dataset/ (shards, manifest.json, README.md card, croissant.json, summary.json, map.png) and
+    /// pipeline.lock.json. Outputs are written under temporary names and renamed when a stage succeeds.
+    Run {
+        /// Pipeline manifest (TOML), e.g. manifests/demo.toml.
+        manifest: PathBuf,
+        /// Stop after this stage (ingest, erode, sample, project, split, publish).
+        #[arg(long)]
+        until: Option<String>,
+        /// Re-run this stage even if it is up to date (repeatable); later stages follow.
+        #[arg(long)]
+        force: Vec<String>,
+    },
+    /// Say for each stage whether it is up to date, and if not, why (params, inputs, code version, outputs).
+    Status {
+        /// Pipeline manifest (TOML).
+        manifest: PathBuf,
+    },
+    /// Remove every stage output and the lock of a pipeline manifest.
+    Clean {
+        /// Pipeline manifest (TOML).
+        manifest: PathBuf,
+    },
 }
 
 fn main() -> ExitCode {
@@ -82,6 +108,49 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             let dir = pipeline::synth::generate(&world, seed, &out, force)?;
             let bytes: u64 = walk_bytes(&dir);
             tracing::info!(out = %dir.display(), seconds = format!("{:.1}", started.elapsed().as_secs_f64()), mib = bytes / (1 << 20), "world written");
+        }
+        Command::Run {
+            manifest,
+            until,
+            force,
+        } => {
+            let manifest = pipeline::manifest::PipelineManifest::load(&manifest)?;
+            let progress = indicatif::ProgressBar::new(0);
+            progress.set_style(
+                indicatif::ProgressStyle::with_template(
+                    "{prefix:>10} [{bar:30}] {pos}/{len} crops {elapsed_precise} eta {eta}",
+                )?
+                .progress_chars("=> "),
+            );
+            progress.set_prefix("project");
+            let runner = pipeline::stages::pipeline(&manifest, progress.clone())?;
+            let started = Instant::now();
+            let force: Vec<&str> = force.iter().map(String::as_str).collect();
+            let ran = runner.run(until.as_deref(), &force)?;
+            progress.finish_and_clear();
+            if ran.is_empty() {
+                tracing::info!("everything up to date");
+            } else {
+                tracing::info!(stages = ran.join(","), seconds = format!("{:.1}", started.elapsed().as_secs_f64()), out = %manifest.out_dir().display(), "pipeline run");
+            }
+        }
+        Command::Status { manifest } => {
+            let manifest = pipeline::manifest::PipelineManifest::load(&manifest)?;
+            let runner = pipeline::stages::pipeline(&manifest, indicatif::ProgressBar::hidden())?;
+            for (stage, status) in runner.status()? {
+                println!("{stage:>8}: {status}");
+            }
+        }
+        Command::Clean { manifest } => {
+            let manifest = pipeline::manifest::PipelineManifest::load(&manifest)?;
+            let runner = pipeline::stages::pipeline(&manifest, indicatif::ProgressBar::hidden())?;
+            let removed = runner.clean()?;
+            // Shards are listed by the published manifest, not by the runner: remove them with it.
+            let dataset_dir = manifest.dataset_dir();
+            if dataset_dir.exists() {
+                std::fs::remove_dir_all(&dataset_dir)?;
+            }
+            tracing::info!(files = removed, "cleaned");
         }
     }
     Ok(())

@@ -1,7 +1,252 @@
-//! Pipeline stages (DESIGN §7). Built so far: the erosion, sampling, projection and split algorithms; the runner, file IO and the
-//! ingest / project / split / publish stages follow in the pipeline issue.
+//! Pipeline stages (DESIGN §7), in data-flow order: [`ingest`] → [`erode`] → [`sample`] → [`project`] →
+//! [`split`] → [`publish`]. [`pipeline`] declares them to the [`crate::runner`] with their inputs, params and
+//! outputs; each module holds the algorithm (tested on its own) and the stage function that does the file IO.
 
 pub mod erode;
+pub mod ingest;
 pub mod project;
+pub mod publish;
 pub mod sample;
 pub mod split;
+pub mod table;
+
+use std::path::PathBuf;
+
+use anyhow::Context;
+use dataset::raster::Raster;
+
+use crate::manifest::PipelineManifest;
+use crate::runner::{Runner, Stage};
+
+/// Stage names in order.
+pub const STAGES: [&str; 6] = ["ingest", "erode", "sample", "project", "split", "publish"];
+
+/// Outputs of each stage, under the manifest's output directory.
+pub struct Layout {
+    pub orthos: PathBuf,
+    pub runs: PathBuf,
+    pub positions: PathBuf,
+    pub samples: PathBuf,
+    pub rejections: PathBuf,
+    pub assignment: PathBuf,
+    pub split_summary: PathBuf,
+    pub dataset: PathBuf,
+}
+
+impl Layout {
+    pub fn of(manifest: &PipelineManifest) -> Self {
+        let s = manifest.stage_dir();
+        Self {
+            orthos: s.join("ingest/orthos.parquet"),
+            runs: s.join("erode/runs.parquet"),
+            positions: s.join("sample/positions.parquet"),
+            samples: s.join("project/samples.parquet"),
+            rejections: s.join("project/rejections.json"),
+            assignment: s.join("split/assignment.parquet"),
+            split_summary: s.join("split/summary.json"),
+            dataset: manifest.dataset_dir(),
+        }
+    }
+}
+
+/// Loads the DEM once, on first use by a stage that needs it (status never reads rasters).
+struct LazyDem {
+    path: PathBuf,
+    cell: std::sync::OnceLock<Raster>,
+}
+
+impl LazyDem {
+    fn get(&self) -> anyhow::Result<&Raster> {
+        if let Some(dem) = self.cell.get() {
+            return Ok(dem);
+        }
+        let dem = dataset::raster::read_raster(&self.path)?;
+        Ok(self.cell.get_or_init(|| dem))
+    }
+}
+
+/// Declare the six stages of `manifest` to a runner.
+pub fn pipeline(
+    manifest: &PipelineManifest,
+    progress: indicatif::ProgressBar,
+) -> anyhow::Result<Runner<'static>> {
+    let m = manifest.clone();
+    let layout = Layout::of(&m);
+    let dem_path = m.resolve(&m.inputs.dem);
+    let ortho_dir = m.resolve(&m.inputs.ortho_dir);
+    if !dem_path.exists() {
+        anyhow::bail!("{}: DEM not found; check inputs.dem in the manifest (paths are relative to the manifest)", dem_path.display());
+    }
+    let metadata = ingest::metadata_files(&ortho_dir)?;
+    let images: Vec<PathBuf> = metadata
+        .iter()
+        .map(|p| -> anyhow::Result<PathBuf> {
+            let meta = dataset::acquisition::AcquisitionMetadata::load(p)?;
+            Ok(p.with_file_name(meta.image_file))
+        })
+        .collect::<anyhow::Result<_>>()?;
+    let dem = std::sync::Arc::new(LazyDem {
+        path: dem_path.clone(),
+        cell: Default::default(),
+    });
+    let provenance = format!("g2r-pipeline {}", env!("CARGO_PKG_VERSION"));
+    let crop_half_m = |dem: &Raster| dataset::schema::CROP_PX as f64 / 2.0 * dem.transform.gsd_m();
+    let seed = m.dataset.seed;
+    let out_dir = m.out_dir();
+    let lock_path = out_dir.join("pipeline.lock.json");
+
+    let (od, l) = (ortho_dir.clone(), Layout::of(&m));
+    let ingest = Stage {
+        name: "ingest",
+        code_version: "1",
+        inputs: std::iter::once(dem_path.clone())
+            .chain(metadata.iter().cloned())
+            .chain(images.iter().cloned())
+            .collect(),
+        params: serde_json::json!({}),
+        outputs: vec![layout.orthos.clone()],
+        run: Box::new(move |out| ingest::run(&dem_path, &od, &out.paths[0]).context("ingest")),
+    };
+    let (od, l2, dem2) = (ortho_dir.clone(), Layout::of(&m), dem.clone());
+    let erode = Stage {
+        name: "erode",
+        code_version: "1",
+        inputs: std::iter::once(l.orthos.clone())
+            .chain(images.iter().cloned())
+            .collect(),
+        params: serde_json::json!({ "crop_with_apron_px": dataset::schema::DEM_PX }),
+        outputs: vec![layout.runs.clone()],
+        run: Box::new(move |out| {
+            erode::run(dem2.get()?, &ingest::read(&l2.orthos, &od)?, &out.paths[0])
+        }),
+    };
+    let (l3, dem3, coverage) = (Layout::of(&m), dem.clone(), m.sample.coverage);
+    let sample = Stage {
+        name: "sample",
+        code_version: "1",
+        inputs: vec![layout.runs.clone()],
+        params: serde_json::json!({ "coverage": coverage, "seed": seed }),
+        outputs: vec![layout.positions.clone()],
+        run: Box::new(move |out| {
+            sample::run(
+                &l3.runs,
+                coverage,
+                dem3.get()?.transform.gsd_m(),
+                seed,
+                &out.paths[0],
+            )
+        }),
+    };
+    let (od, l4, dem4, pp, prov) = (
+        ortho_dir.clone(),
+        Layout::of(&m),
+        dem.clone(),
+        m.project.clone(),
+        provenance.clone(),
+    );
+    let progress4 = progress.clone();
+    let project = Stage {
+        name: "project",
+        code_version: "1",
+        inputs: vec![layout.positions.clone(), layout.orthos.clone()],
+        params: serde_json::to_value(&m.project)?,
+        outputs: vec![layout.samples.clone(), layout.rejections.clone()],
+        run: Box::new(move |out| {
+            let orthos = ingest::read(&l4.orthos, &od)?;
+            project::run(
+                dem4.get()?,
+                &orthos,
+                &l4.positions,
+                &pp,
+                &prov,
+                (&out.paths[0], &out.paths[1]),
+                &progress4,
+            )
+        }),
+    };
+    let (l5, dem5, sp) = (Layout::of(&m), dem.clone(), m.split.clone());
+    let split = Stage {
+        name: "split",
+        code_version: "1",
+        inputs: vec![layout.samples.clone()],
+        params: serde_json::json!({ "split": serde_json::to_value(&m.split)?, "seed": seed }),
+        outputs: vec![layout.assignment.clone(), layout.split_summary.clone()],
+        run: Box::new(move |out| {
+            split::run(
+                &l5.samples,
+                crop_half_m(dem5.get()?),
+                seed,
+                &sp,
+                &out.paths[0],
+                &out.paths[1],
+            )
+        }),
+    };
+    let (l6, dem6, m6, lock6) = (Layout::of(&m), dem.clone(), m.clone(), lock_path.clone());
+    let publish = Stage {
+        name: "publish",
+        code_version: "1",
+        inputs: vec![
+            layout.samples.clone(),
+            layout.assignment.clone(),
+            layout.rejections.clone(),
+            layout.split_summary.clone(),
+        ],
+        params: serde_json::json!({ "dataset": serde_json::to_value(&m.dataset)?, "publish": serde_json::to_value(&m.publish)? }),
+        outputs: [
+            "manifest.json",
+            "README.md",
+            "croissant.json",
+            "summary.json",
+            "map.png",
+        ]
+        .iter()
+        .map(|f| layout.dataset.join(f))
+        .collect(),
+        run: Box::new(move |out| {
+            let dem = dem6.get()?;
+            let t = &dem.transform;
+            let bounds = (
+                t.origin_x,
+                t.origin_y + dem.height as f64 * t.pixel_height,
+                t.origin_x + dem.width as f64 * t.pixel_width,
+                t.origin_y,
+            );
+            // The lock as it stands after the five upstream stages: ties the dataset to exactly those inputs.
+            let lock_blake3 = dataset::manifest::hash_file(&lock6).unwrap_or_default();
+            let ctx = publish::PublishContext {
+                name: &m6.dataset.name,
+                license: &m6.dataset.license,
+                seed,
+                crs: &dem.crs.definition,
+                rows_per_shard: m6.publish.rows_per_shard,
+                split_params: &m6.split,
+                dem_bounds: bounds,
+                lock_blake3,
+            };
+            let p = &out.paths;
+            let outputs = publish::PublishOutputs {
+                manifest: &p[0],
+                card: &p[1],
+                croissant: &p[2],
+                summary: &p[3],
+                map: &p[4],
+            };
+            std::fs::create_dir_all(&l6.dataset)?;
+            publish::run(
+                &ctx,
+                &l6.samples,
+                &l6.assignment,
+                &l6.rejections,
+                &l6.split_summary,
+                &l6.dataset,
+                &outputs,
+            )
+        }),
+    };
+    Ok(Runner {
+        root: m.base_dir.clone(),
+        lock_path,
+        stages: vec![ingest, erode, sample, project, split, publish],
+    })
+}

@@ -217,6 +217,62 @@ impl<'a> OrthoProjector<'a> {
     }
 }
 
+/// Stage: project every sampled centre, ortho by ortho (sorted), crops in parallel in chunks of one row group, and
+/// stream accepted samples into one Parquet file; rejections are counted per ortho and reason.
+pub fn run(
+    dem: &Raster,
+    orthos: &[super::ingest::OrthoRecord],
+    positions_path: &std::path::Path,
+    params: &ProjectParams,
+    provenance: &str,
+    (samples_out, rejections_out): (&std::path::Path, &std::path::Path),
+    progress: &indicatif::ProgressBar,
+) -> anyhow::Result<()> {
+    use super::table::{read_table, strings, u32s};
+    use rayon::prelude::*;
+    use std::collections::BTreeMap;
+    let batches = read_table(positions_path)?;
+    let (ids, cols, rows) = (
+        strings(&batches, "ortho_id")?,
+        u32s(&batches, "col")?,
+        u32s(&batches, "row")?,
+    );
+    progress.set_length(ids.len() as u64);
+    let mut writer = dataset::shard::ShardWriter::create(samples_out)?;
+    let mut rejections: BTreeMap<String, BTreeMap<Rejection, u64>> = BTreeMap::new();
+    for record in orthos {
+        let positions: Vec<(usize, usize)> = (0..ids.len())
+            .filter(|&i| ids[i] == record.ortho_id)
+            .map(|i| (cols[i] as usize, rows[i] as usize))
+            .collect();
+        let counts = rejections.entry(record.ortho_id.clone()).or_default();
+        if positions.is_empty() {
+            continue;
+        }
+        let ortho = dataset::raster::read_raster(&record.image_path)?;
+        let meta = AcquisitionMetadata::load(&record.metadata_path)?;
+        let projector = OrthoProjector::new(dem, &ortho, &meta, params, provenance.to_string())?;
+        for chunk in positions.chunks(dataset::shard::ROW_GROUP_ROWS) {
+            let results: Vec<Result<Sample, Rejection>> = chunk
+                .par_iter()
+                .map(|&(c, r)| projector.project(c, r, params))
+                .collect();
+            let mut accepted = Vec::with_capacity(results.len());
+            for result in results {
+                match result {
+                    Ok(sample) => accepted.push(sample),
+                    Err(reason) => *counts.entry(reason).or_default() += 1,
+                }
+            }
+            writer.write(&accepted)?;
+            progress.inc(chunk.len() as u64);
+        }
+    }
+    writer.finish()?;
+    dataset::manifest::write_json_atomic(rejections_out, &rejections)?;
+    Ok(())
+}
+
 /// Exact area average of the ortho over each cell of the 128 × 128 crop whose top-left DEM cell is (c0, r0).
 /// Both rasters are north-up in the same CRS, so each cell is an axis-aligned rectangle in ortho pixel space and
 /// the weights separate into per-column and per-row overlaps. A cell touching any nodata ortho pixel is invalid.

@@ -40,6 +40,58 @@ pub fn sample_positions(runs: &[Run], count: usize, seed: u64, ortho_id: &str) -
         .collect()
 }
 
+/// Stage: read the eroded runs, draw each ortho's crop centres, write (ortho_id, col, row) in draw order.
+pub fn run(
+    runs_path: &std::path::Path,
+    coverage: f64,
+    dem_gsd_m: f64,
+    seed: u64,
+    out: &std::path::Path,
+) -> anyhow::Result<()> {
+    use super::table::{read_table, strings, u32s, write_table, Col};
+    let batches = read_table(runs_path)?;
+    let (ids, rows, starts, lens) = (
+        strings(&batches, "ortho_id")?,
+        u32s(&batches, "row")?,
+        u32s(&batches, "start_col")?,
+        u32s(&batches, "len")?,
+    );
+    let crop_area_m2 = (dataset::schema::CROP_PX as f64 * dem_gsd_m).powi(2);
+    let (mut out_ids, mut out_cols, mut out_rows) = (Vec::new(), Vec::new(), Vec::new());
+    let mut i = 0;
+    while i < ids.len() {
+        let id = ids[i].clone();
+        let mut ortho_runs = Vec::new();
+        while i < ids.len() && ids[i] == id {
+            ortho_runs.push(Run {
+                row: rows[i],
+                start: starts[i],
+                len: lens[i],
+            });
+            i += 1;
+        }
+        let area_m2 = super::erode::run_area_px(&ortho_runs) as f64 * dem_gsd_m * dem_gsd_m;
+        for (col, row) in sample_positions(
+            &ortho_runs,
+            crop_count(coverage, area_m2, crop_area_m2),
+            seed,
+            &id,
+        ) {
+            out_ids.push(id.clone());
+            out_cols.push(col);
+            out_rows.push(row);
+        }
+    }
+    write_table(
+        out,
+        vec![
+            ("ortho_id", Col::Str(out_ids)),
+            ("col", Col::U32(out_cols)),
+            ("row", Col::U32(out_rows)),
+        ],
+    )
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

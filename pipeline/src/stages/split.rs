@@ -89,6 +89,55 @@ pub fn split_of_footprint(
     Some(first)
 }
 
+/// Stage: assign each projected sample to a split by its footprint (crop square ± guard band); write
+/// (sample_id, split, tile_id) for kept samples and the dropped count.
+pub fn run(
+    samples_path: &std::path::Path,
+    crop_half_m: f64,
+    seed: u64,
+    params: &SplitParams,
+    out: &std::path::Path,
+    summary_out: &std::path::Path,
+) -> anyhow::Result<()> {
+    use super::table::{write_table, Col};
+    let positions = dataset::shard::read_sample_positions(samples_path)?;
+    let (ids, xs, ys) = (
+        positions.sample_ids,
+        positions.center_x_m,
+        positions.center_y_m,
+    );
+    let (mut kept_ids, mut splits, mut tiles) = (Vec::new(), Vec::new(), Vec::new());
+    let mut dropped = 0u64;
+    for ((id, x), y) in ids.into_iter().zip(xs).zip(ys) {
+        match split_of_footprint(
+            (x - crop_half_m, y - crop_half_m),
+            (x + crop_half_m, y + crop_half_m),
+            seed,
+            params,
+        ) {
+            Some(split) => {
+                kept_ids.push(id);
+                splits.push(split.name().to_string());
+                tiles.push(tile_id(tile_of(x, y, params.tile_size_m)));
+            }
+            None => dropped += 1,
+        }
+    }
+    write_table(
+        out,
+        vec![
+            ("sample_id", Col::Str(kept_ids)),
+            ("split", Col::Str(splits)),
+            ("tile_id", Col::Str(tiles)),
+        ],
+    )?;
+    dataset::manifest::write_json_atomic(
+        summary_out,
+        &serde_json::json!({ "dropped_straddling_splits": dropped }),
+    )?;
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

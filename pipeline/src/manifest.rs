@@ -1,0 +1,91 @@
+//! The pipeline manifest (`manifests/*.toml`): inputs, output directory and every stage's parameters.
+//! Relative paths are resolved against the manifest file's directory.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+use serde::{Deserialize, Serialize};
+
+use crate::stages::project::ProjectParams;
+use crate::stages::split::SplitParams;
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PipelineManifest {
+    pub dataset: DatasetInfo,
+    pub inputs: Inputs,
+    pub output: Output,
+    pub sample: SampleParams,
+    pub project: ProjectParams,
+    pub split: SplitParams,
+    pub publish: PublishParams,
+    /// Directory of the manifest file (not serialised; set by `load`).
+    #[serde(skip)]
+    pub base_dir: PathBuf,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DatasetInfo {
+    pub name: String,
+    pub license: String,
+    pub seed: u64,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Inputs {
+    /// GeoTIFF DEM in a lunar CRS (heights above the 1737400 m sphere).
+    pub dem: PathBuf,
+    /// Directory of orthoimages (`*.tif`) each with its acquisition metadata (`*.json`).
+    pub ortho_dir: PathBuf,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Output {
+    /// Stage outputs go to `DIR/stages/`, the published dataset to `DIR/dataset/`, the lock to `DIR/pipeline.lock.json`.
+    pub dir: PathBuf,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SampleParams {
+    /// Crops per ortho = ⌊coverage × eroded area / crop area⌋.
+    pub coverage: f64,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PublishParams {
+    pub rows_per_shard: usize,
+}
+
+impl PipelineManifest {
+    pub fn load(path: &Path) -> anyhow::Result<Self> {
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("{}: cannot read the pipeline manifest", path.display()))?;
+        let mut manifest: Self = toml::from_str(&text)
+            .map_err(|e| anyhow::anyhow!("{}: invalid pipeline manifest: {e}", path.display()))?;
+        manifest.base_dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
+        Ok(manifest)
+    }
+
+    pub fn resolve(&self, p: &Path) -> PathBuf {
+        if p.is_absolute() {
+            p.to_path_buf()
+        } else {
+            self.base_dir.join(p)
+        }
+    }
+
+    pub fn out_dir(&self) -> PathBuf {
+        self.resolve(&self.output.dir)
+    }
+    pub fn stage_dir(&self) -> PathBuf {
+        self.out_dir().join("stages")
+    }
+    pub fn dataset_dir(&self) -> PathBuf {
+        self.out_dir().join("dataset")
+    }
+}
