@@ -102,8 +102,12 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                     format!("preset {preset}"),
                 ),
             };
-            let world = WorldConfig::from_toml(&text)
-                .with_context(|| format!("{source}: invalid world config"))?;
+            let world = WorldConfig::from_toml(&text).map_err(|e| {
+                anyhow::anyhow!(
+                    "{source}: invalid world config: {}",
+                    pipeline::manifest::toml_error_line(&text, &e)
+                )
+            })?;
             let started = Instant::now();
             let dir = pipeline::synth::generate(&world, seed, &out, force)?;
             let bytes: u64 = walk_bytes(&dir);

@@ -61,12 +61,29 @@ pub struct PublishParams {
     pub rows_per_shard: usize,
 }
 
+/// A TOML error as one line: the message and where (TOML's own Display is a multi-line source snippet).
+pub fn toml_error_line(text: &str, e: &toml::de::Error) -> String {
+    match e.span() {
+        Some(span) => format!(
+            "{} (line {})",
+            e.message().trim(),
+            text[..span.start.min(text.len())].lines().count().max(1)
+        ),
+        None => e.message().trim().to_string(),
+    }
+}
+
 impl PipelineManifest {
     pub fn load(path: &Path) -> anyhow::Result<Self> {
         let text = std::fs::read_to_string(path)
             .with_context(|| format!("{}: cannot read the pipeline manifest", path.display()))?;
-        let mut manifest: Self = toml::from_str(&text)
-            .map_err(|e| anyhow::anyhow!("{}: invalid pipeline manifest: {e}", path.display()))?;
+        let mut manifest: Self = toml::from_str(&text).map_err(|e| {
+            anyhow::anyhow!(
+                "{}: invalid pipeline manifest: {}",
+                path.display(),
+                toml_error_line(&text, &e)
+            )
+        })?;
         manifest.base_dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
         Ok(manifest)
     }

@@ -134,6 +134,21 @@ pub fn preset(name: &str) -> Option<&'static str> {
     }
 }
 
+/// A tiny world (4 × 4 km, three 2 km strips, no complex crater) that generates in seconds: for tests and smoke
+/// runs of the pipeline.
+pub fn tiny() -> WorldConfig {
+    let mut cfg =
+        WorldConfig::from_toml(preset("demo").expect("demo preset")).expect("demo preset parses");
+    cfg.world.width_m = 4000.0;
+    cfg.world.height_m = 4000.0;
+    cfg.terrain.crater_max_diameter_m = 300.0;
+    cfg.terrain.fbm_largest_wavelength_m = 2000.0;
+    cfg.complex_crater = None;
+    cfg.acquisitions.count = 3;
+    cfg.acquisitions.strip_width_m = 2000.0;
+    cfg
+}
+
 impl WorldConfig {
     pub fn from_toml(text: &str) -> Result<Self, toml::de::Error> {
         toml::from_str(text)
