@@ -228,7 +228,7 @@ fn nan_laden_dem_without_nodata_value() {
         .iter()
         .enumerate()
         .map(|(i, &v)| {
-            if (i / dem.width) % 3 != 0 {
+            if !(i / dem.width).is_multiple_of(3) {
                 f32::NAN
             } else {
                 v
@@ -252,7 +252,6 @@ fn nan_laden_dem_without_nodata_value() {
         &mut gdal::raster::Buffer::new((dem.width, dem.height), values),
     )
     .unwrap();
-    drop(band);
     drop(ds);
     assert_refused(tmp.path(), &m, &["dem.tif", "NaN"]);
 }
