@@ -125,6 +125,24 @@ fn pipeline_is_reproducible_incremental_and_readable() {
         dataset::manifest::DatasetManifest::load(&dir.join("out/dataset/manifest.json")).unwrap();
     assert!(verify.verify(&dir.join("out/dataset")).is_empty());
 
+    // Re-publishing gives the same manifest bytes (its lock hash covers only the upstream stages).
+    let lm = PipelineManifest::load(&m).unwrap();
+    let runner = pipeline::stages::pipeline(&lm, indicatif::ProgressBar::hidden()).unwrap();
+    assert_eq!(runner.run(None, &["publish"]).unwrap(), vec!["publish"]);
+    assert_eq!(published(dir), first);
+    // A deleted shard is not "up to date": publish is stale and rebuilds the same bytes.
+    let shard = dir
+        .join("out/dataset")
+        .join(first.keys().find(|k| k.ends_with(".parquet")).unwrap());
+    std::fs::remove_file(&shard).unwrap();
+    assert!(
+        matches!(status(&m)[5].1, Staleness::OutputChanged(ref why) if why.contains("missing")),
+        "{:?}",
+        status(&m)[5]
+    );
+    assert_eq!(run(&m, None), vec!["publish"]);
+    assert_eq!(published(dir), first);
+
     // A parameter change makes exactly that stage and its successors stale, and says why.
     let m2 = manifest(dir, 3.0);
     let st = status(&m2);

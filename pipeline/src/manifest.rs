@@ -85,6 +85,12 @@ impl PipelineManifest {
             )
         })?;
         manifest.base_dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
+        if manifest.publish.rows_per_shard == 0 {
+            anyhow::bail!(
+                "{}: publish.rows_per_shard must be at least 1",
+                path.display()
+            );
+        }
         Ok(manifest)
     }
 

@@ -20,6 +20,9 @@ pub struct StageOutputs {
 }
 
 type StageFn<'a> = Box<dyn Fn(&StageOutputs) -> anyhow::Result<()> + 'a>;
+/// Extra staleness check for outputs the stage can't declare up front (e.g. shards listed by a manifest):
+/// `Some(reason)` when they no longer match what the stage wrote.
+type CheckFn<'a> = Box<dyn Fn() -> Option<String> + 'a>;
 
 /// One stage: name, code version (bump when its logic changes), inputs, params and outputs.
 pub struct Stage<'a> {
@@ -29,6 +32,7 @@ pub struct Stage<'a> {
     pub params: serde_json::Value,
     pub outputs: Vec<PathBuf>,
     pub run: StageFn<'a>,
+    pub check: Option<CheckFn<'a>>,
 }
 
 /// What the lock remembers about a stage's last successful run.
@@ -145,8 +149,18 @@ impl<'a> Runner<'a> {
                 return Ok(Staleness::OutputMissing(self.key(output)));
             }
         }
+        // A declared set that differs from the recorded one (an ortho added or removed) is a change too.
+        let declared: Vec<String> = stage.inputs.iter().map(|p| self.key(p)).collect();
+        if let Some(gone) = entry.inputs.keys().find(|k| !declared.contains(k)) {
+            return Ok(Staleness::InputChanged(format!(
+                "{gone} (no longer an input)"
+            )));
+        }
         for input in &stage.inputs {
             let key = self.key(input);
+            if !input.exists() {
+                return Ok(Staleness::InputChanged(format!("{key} (missing)")));
+            }
             let now = hash_file(input).map_err(|e| anyhow::anyhow!("{key}: {e}"))?;
             if entry.inputs.get(&key) != Some(&now) {
                 return Ok(Staleness::InputChanged(key));
@@ -157,6 +171,9 @@ impl<'a> Runner<'a> {
             if entry.outputs.get(&key) != Some(&hash_file(output)?) {
                 return Ok(Staleness::OutputChanged(key));
             }
+        }
+        if let Some(reason) = stage.check.as_ref().and_then(|check| check()) {
+            return Ok(Staleness::OutputChanged(reason));
         }
         Ok(Staleness::UpToDate)
     }
@@ -298,6 +315,7 @@ mod tests {
                         std::fs::write(only(out), v.join(" "))?;
                         Ok(())
                     }),
+                    check: None,
                 },
                 Stage {
                     name: "sum",
@@ -315,6 +333,7 @@ mod tests {
                         }
                         Ok(())
                     }),
+                    check: None,
                 },
             ],
         }
@@ -383,6 +402,20 @@ mod tests {
             runner.status().unwrap()[1].1,
             Staleness::OutputMissing(_)
         ));
+        // A middle output deleted: status explains instead of failing on the missing input of the next stage.
+        std::fs::remove_file(dir.path().join("out/doubled.txt")).unwrap();
+        let st = runner.status().unwrap();
+        assert!(
+            matches!(st[0].1, Staleness::OutputMissing(_)) && st[1].1 != Staleness::UpToDate,
+            "{st:?}"
+        );
+        runner.run(None, &[]).unwrap();
+        // An input no longer declared (an ortho removed from the directory) makes the stage stale.
+        let mut fewer = pipeline(dir.path(), 3, &fail, &calls);
+        fewer.stages[1].inputs.clear();
+        assert!(
+            matches!(fewer.status().unwrap()[1].1, Staleness::InputChanged(ref p) if p.contains("no longer an input"))
+        );
         let err = runner.run(Some("nope"), &[]).unwrap_err().to_string();
         assert!(
             err.contains("unknown stage 'nope'") && err.contains("double, sum"),

@@ -336,6 +336,15 @@ fn pipeline_manifest_missing_a_field() {
 }
 
 #[test]
+fn duplicate_ortho_id() {
+    let (tmp, m) = case();
+    let (_, json) = first_ortho(tmp.path());
+    let copy = json.with_file_name("Zcopy.json");
+    std::fs::copy(&json, &copy).unwrap();
+    assert_refused(tmp.path(), &m, &["Zcopy.json", "already used", "unique"]);
+}
+
+#[test]
 fn unknown_stage_name() {
     let (tmp, m) = case();
     let out = Command::new(env!("CARGO_BIN_EXE_g2r-pipeline"))

@@ -84,6 +84,11 @@ pub fn run(dem_path: &Path, ortho_dir: &Path, out: &Path) -> anyhow::Result<()> 
     if finite * 2 < preview.data().len() {
         bail!("{}: more than half of the DEM is nodata or NaN ({} of {} sampled cells valid); fill or crop it before ingesting", dem_path.display(), finite, preview.data().len());
     }
+    if (dem.transform.pixel_width + dem.transform.pixel_height).abs()
+        > 1e-9 * dem.transform.pixel_width
+    {
+        bail!("{}: DEM pixels are not square ({} × {} m); resample with gdalwarp -tr to square pixels", dem_path.display(), dem.transform.pixel_width, -dem.transform.pixel_height);
+    }
     let dem_srs = dem_ds.spatial_ref()?;
     struct Row {
         ortho_id: String,
@@ -96,6 +101,14 @@ pub fn run(dem_path: &Path, ortho_dir: &Path, out: &Path) -> anyhow::Result<()> 
     let mut table = Vec::new();
     for meta_path in metadata_files(ortho_dir)? {
         let meta = AcquisitionMetadata::load(&meta_path)?;
+        if let Some(previous) = table.iter().find(|r: &&Row| r.ortho_id == meta.ortho_id) {
+            bail!(
+                "{}: ortho_id {} is already used by {}; ortho ids must be unique",
+                meta_path.display(),
+                meta.ortho_id,
+                previous.metadata_file
+            );
+        }
         let image_path = meta_path.with_file_name(&meta.image_file);
         let (ds, info) = open_lunar(&image_path)?;
         if ds.spatial_ref()? != dem_srs {

@@ -90,12 +90,13 @@ pub fn pipeline(
         cell: Default::default(),
     });
     let provenance = format!("g2r-pipeline {}", env!("CARGO_PKG_VERSION"));
-    let crop_half_m = |dem: &Raster| dataset::schema::CROP_PX as f64 / 2.0 * dem.transform.gsd_m();
+    // The footprint a split must contain: the whole DEM tensor, crop + apron (130 cells), not just the image.
+    let crop_half_m = |dem: &Raster| dataset::schema::DEM_PX as f64 / 2.0 * dem.transform.gsd_m();
     let seed = m.dataset.seed;
     let out_dir = m.out_dir();
     let lock_path = out_dir.join("pipeline.lock.json");
 
-    let (od, l) = (ortho_dir.clone(), Layout::of(&m));
+    let (od, l, dem_input) = (ortho_dir.clone(), Layout::of(&m), dem_path.clone());
     let ingest = Stage {
         name: "ingest",
         code_version: "1",
@@ -106,12 +107,14 @@ pub fn pipeline(
         params: serde_json::json!({}),
         outputs: vec![layout.orthos.clone()],
         run: Box::new(move |out| ingest::run(&dem_path, &od, &out.paths[0]).context("ingest")),
+        check: None,
     };
     let (od, l2, dem2) = (ortho_dir.clone(), Layout::of(&m), dem.clone());
     let erode = Stage {
         name: "erode",
         code_version: "1",
-        inputs: std::iter::once(l.orthos.clone())
+        inputs: [l.orthos.clone(), dem_input.clone()]
+            .into_iter()
             .chain(images.iter().cloned())
             .collect(),
         params: serde_json::json!({ "crop_with_apron_px": dataset::schema::DEM_PX }),
@@ -119,12 +122,13 @@ pub fn pipeline(
         run: Box::new(move |out| {
             erode::run(dem2.get()?, &ingest::read(&l2.orthos, &od)?, &out.paths[0])
         }),
+        check: None,
     };
     let (l3, dem3, coverage) = (Layout::of(&m), dem.clone(), m.sample.coverage);
     let sample = Stage {
         name: "sample",
         code_version: "1",
-        inputs: vec![layout.runs.clone()],
+        inputs: vec![layout.runs.clone(), dem_input.clone()],
         params: serde_json::json!({ "coverage": coverage, "seed": seed }),
         outputs: vec![layout.positions.clone()],
         run: Box::new(move |out| {
@@ -136,6 +140,7 @@ pub fn pipeline(
                 &out.paths[0],
             )
         }),
+        check: None,
     };
     let (od, l4, dem4, pp, prov) = (
         ortho_dir.clone(),
@@ -148,7 +153,16 @@ pub fn pipeline(
     let project = Stage {
         name: "project",
         code_version: "1",
-        inputs: vec![layout.positions.clone(), layout.orthos.clone()],
+        // Everything projection reads: positions, the DEM, and each ortho's image and metadata.
+        inputs: [
+            layout.positions.clone(),
+            layout.orthos.clone(),
+            dem_input.clone(),
+        ]
+        .into_iter()
+        .chain(images.iter().cloned())
+        .chain(metadata.iter().cloned())
+        .collect(),
         params: serde_json::to_value(&m.project)?,
         outputs: vec![layout.samples.clone(), layout.rejections.clone()],
         run: Box::new(move |out| {
@@ -163,12 +177,13 @@ pub fn pipeline(
                 &progress4,
             )
         }),
+        check: None,
     };
     let (l5, dem5, sp) = (Layout::of(&m), dem.clone(), m.split.clone());
     let split = Stage {
         name: "split",
         code_version: "1",
-        inputs: vec![layout.samples.clone()],
+        inputs: vec![layout.samples.clone(), dem_input.clone()],
         params: serde_json::json!({ "split": serde_json::to_value(&m.split)?, "seed": seed }),
         outputs: vec![layout.assignment.clone(), layout.split_summary.clone()],
         run: Box::new(move |out| {
@@ -181,8 +196,10 @@ pub fn pipeline(
                 &out.paths[1],
             )
         }),
+        check: None,
     };
     let (l6, dem6, m6, lock6) = (Layout::of(&m), dem.clone(), m.clone(), lock_path.clone());
+    let check_dir = layout.dataset.clone();
     let publish = Stage {
         name: "publish",
         code_version: "1",
@@ -191,14 +208,21 @@ pub fn pipeline(
             layout.assignment.clone(),
             layout.rejections.clone(),
             layout.split_summary.clone(),
+            dem_input,
         ],
-        params: serde_json::json!({ "dataset": serde_json::to_value(&m.dataset)?, "publish": serde_json::to_value(&m.publish)? }),
+        // The split parameters shape the card and the map, so they are publish parameters too.
+        params: serde_json::json!({
+            "dataset": serde_json::to_value(&m.dataset)?,
+            "publish": serde_json::to_value(&m.publish)?,
+            "split": serde_json::to_value(&m.split)?,
+        }),
+        // manifest.json last: the runner renames in this order, and the manifest is what makes a dataset finished.
         outputs: [
-            "manifest.json",
             "README.md",
             "croissant.json",
             "summary.json",
             "map.png",
+            "manifest.json",
         ]
         .iter()
         .map(|f| layout.dataset.join(f))
@@ -212,8 +236,15 @@ pub fn pipeline(
                 t.origin_x + dem.width as f64 * t.pixel_width,
                 t.origin_y,
             );
-            // The lock as it stands after the five upstream stages: ties the dataset to exactly those inputs.
-            let lock_blake3 = dataset::manifest::hash_file(&lock6).unwrap_or_default();
+            // The lock entries of the five upstream stages (not publish's own previous entry): ties the dataset to
+            // exactly those inputs and stays the same across re-publishing.
+            let text = std::fs::read_to_string(&lock6)
+                .with_context(|| format!("{}: lock missing", lock6.display()))?;
+            let mut lock: crate::runner::Lock = serde_json::from_str(&text)?;
+            lock.stages.remove("publish");
+            let lock_blake3 = blake3::hash(serde_json::to_string(&lock)?.as_bytes())
+                .to_hex()
+                .to_string();
             let ctx = publish::PublishContext {
                 name: &m6.dataset.name,
                 license: &m6.dataset.license,
@@ -226,11 +257,11 @@ pub fn pipeline(
             };
             let p = &out.paths;
             let outputs = publish::PublishOutputs {
-                manifest: &p[0],
-                card: &p[1],
-                croissant: &p[2],
-                summary: &p[3],
-                map: &p[4],
+                card: &p[0],
+                croissant: &p[1],
+                summary: &p[2],
+                map: &p[3],
+                manifest: &p[4],
             };
             std::fs::create_dir_all(&l6.dataset)?;
             publish::run(
@@ -243,6 +274,12 @@ pub fn pipeline(
                 &outputs,
             )
         }),
+        // Shards are listed by manifest.json, not declared up front: a missing or altered shard makes publish stale.
+        check: Some(Box::new(move || {
+            let manifest =
+                dataset::manifest::DatasetManifest::load(&check_dir.join("manifest.json")).ok()?;
+            manifest.verify(&check_dir).into_iter().next()
+        })),
     };
     Ok(Runner {
         root: m.base_dir.clone(),

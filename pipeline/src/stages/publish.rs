@@ -58,9 +58,15 @@ pub fn run(
     for (split, _) in assignment.values() {
         *split_counts.get_mut(split).expect("known split") += 1;
     }
-    // Remove shards of an earlier publish (their count may differ) before writing new ones.
+    // The dataset stops looking finished before any shard changes: its manifest goes first (written back last).
+    let published = dataset_dir.join("manifest.json");
+    if published.exists() {
+        std::fs::remove_file(&published)?;
+    }
+    // Remove shards of an earlier publish (their count may differ) and leftovers of a killed one.
     for entry in std::fs::read_dir(dataset_dir)?.flatten() {
-        if entry.path().extension().is_some_and(|e| e == "parquet") {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        if name.ends_with(".parquet") || name.ends_with(".parquet.tmp") {
             std::fs::remove_file(entry.path())?;
         }
     }
