@@ -15,13 +15,21 @@ pub mod raster;
 pub mod schema;
 pub mod shard;
 
-/// Initialise structured logging for the binaries (`RUST_LOG` overrides the default `info`).
+/// Initialise structured logging for the binaries (`RUST_LOG` overrides the default `info`), and route GDAL's own
+/// messages into it: by default GDAL prints `ERROR 4: …` lines to stderr next to our one-line errors, which
+/// already carry the file and the fix.
 pub fn init_logging() {
     let filter =
         tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into());
+    // Colour only on a terminal: escape codes in redirected logs make them unreadable and ungreppable.
+    let ansi = std::io::IsTerminal::is_terminal(&std::io::stderr());
     let _ = tracing_subscriber::fmt()
         .with_env_filter(filter)
         .with_target(false)
+        .with_ansi(ansi)
         .with_writer(std::io::stderr)
         .try_init();
+    gdal::config::set_error_handler(|class, number, message| {
+        tracing::debug!(gdal_class = ?class, gdal_error = number, "GDAL: {message}");
+    });
 }
