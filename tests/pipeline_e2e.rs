@@ -20,36 +20,7 @@ fn world(dir: &Path) -> PathBuf {
 
 fn manifest(dir: &Path, coverage: f64) -> PathBuf {
     let path = dir.join("tiny.toml");
-    std::fs::write(
-        &path,
-        format!(
-            r#"[dataset]
-name = "g2r-tiny"
-license = "CC-BY-4.0"
-seed = 9
-[inputs]
-dem = "world/dem/dem.tif"
-ortho_dir = "world/ortho"
-[output]
-dir = "out"
-[sample]
-coverage = {coverage}
-[project]
-min_valid_fraction = 0.9
-max_shadowed_fraction = 0.6
-max_occluded_fraction = 0.05
-sun_disk_samples = 2
-[split]
-tile_size_m = 1300.0
-val_fraction = 0.2
-test_fraction = 0.2
-guard_band_m = 0.0
-[publish]
-rows_per_shard = 40
-"#
-        ),
-    )
-    .unwrap();
+    std::fs::write(&path, pipeline::manifest::tiny_manifest_toml(9, coverage)).unwrap();
     path
 }
 

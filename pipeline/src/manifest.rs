@@ -61,6 +61,37 @@ pub struct PublishParams {
     pub rows_per_shard: usize,
 }
 
+/// A pipeline manifest for a world made by `synth::config::tiny()` at `world/` next to it, output in `out/`:
+/// small thresholds and tiles so a few dozen pairs come out in seconds (tests and smoke runs).
+pub fn tiny_manifest_toml(seed: u64, coverage: f64) -> String {
+    format!(
+        r#"[dataset]
+name = "g2r-tiny"
+license = "CC-BY-4.0"
+seed = {seed}
+[inputs]
+dem = "world/dem/dem.tif"
+ortho_dir = "world/ortho"
+[output]
+dir = "out"
+[sample]
+coverage = {coverage:?}
+[project]
+min_valid_fraction = 0.9
+max_shadowed_fraction = 0.6
+max_occluded_fraction = 0.05
+sun_disk_samples = 2
+[split]
+tile_size_m = 1300.0
+val_fraction = 0.2
+test_fraction = 0.2
+guard_band_m = 0.0
+[publish]
+rows_per_shard = 40
+"#
+    )
+}
+
 /// A TOML error as one line: the message and where (TOML's own Display is a multi-line source snippet).
 pub fn toml_error_line(text: &str, e: &toml::de::Error) -> String {
     match e.span() {

@@ -29,35 +29,10 @@ fn case() -> (tempfile::TempDir, PathBuf) {
             std::fs::copy(entry.path(), tmp.path().join(sub).join(entry.file_name())).unwrap();
         }
     }
+    // The world's files sit in dem/ and ortho/ here, not under world/.
     let manifest = tmp.path().join("m.toml");
-    std::fs::write(
-        &manifest,
-        r#"[dataset]
-name = "bad"
-license = "CC-BY-4.0"
-seed = 1
-[inputs]
-dem = "dem/dem.tif"
-ortho_dir = "ortho"
-[output]
-dir = "out"
-[sample]
-coverage = 1.0
-[project]
-min_valid_fraction = 0.9
-max_shadowed_fraction = 0.6
-max_occluded_fraction = 0.05
-sun_disk_samples = 2
-[split]
-tile_size_m = 1300.0
-val_fraction = 0.2
-test_fraction = 0.2
-guard_band_m = 0.0
-[publish]
-rows_per_shard = 40
-"#,
-    )
-    .unwrap();
+    let text = pipeline::manifest::tiny_manifest_toml(1, 1.0).replace("world/", "");
+    std::fs::write(&manifest, text).unwrap();
     (tmp, manifest)
 }
 
