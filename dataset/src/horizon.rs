@@ -91,33 +91,41 @@ pub fn disk_fraction_above(above: f64, radius: f64) -> f64 {
 impl<'a> HorizonGrid<'a> {
     pub fn new(heights: &'a [f32], width: usize, height: usize, gsd_m: f64) -> Self {
         assert_eq!(heights.len(), width * height);
-        let mut max_height_m = f64::NEG_INFINITY;
-        let mut max_rise = 0.0f64;
-        for row in 0..height {
-            for col in 0..width {
-                let h = heights[row * width + col];
-                if !h.is_finite() {
-                    continue;
-                }
-                max_height_m = max_height_m.max(h as f64);
-                // Right, down, and both diagonals cover every 8-neighbour pair once.
-                for (dc, dr, dist) in [
-                    (1, 0, 1.0),
-                    (0, 1, 1.0),
-                    (1, 1, std::f64::consts::SQRT_2),
-                    (-1, 1, std::f64::consts::SQRT_2),
-                ] {
-                    let (c2, r2) = (col as i64 + dc, row as i64 + dr);
-                    if c2 < 0 || r2 < 0 || c2 >= width as i64 || r2 >= height as i64 {
+        // Max height and steepest 8-neighbour rise, per row in parallel (max is order-independent: same result).
+        use rayon::prelude::*;
+        let (max_height_m, max_rise) = (0..height)
+            .into_par_iter()
+            .map(|row| {
+                let (mut top, mut rise) = (f64::NEG_INFINITY, 0.0f64);
+                for col in 0..width {
+                    let h = heights[row * width + col];
+                    if !h.is_finite() {
                         continue;
                     }
-                    let h2 = heights[r2 as usize * width + c2 as usize];
-                    if h2.is_finite() {
-                        max_rise = max_rise.max((h2 - h).abs() as f64 / (dist * gsd_m));
+                    top = top.max(h as f64);
+                    // Right, down, and both diagonals cover every 8-neighbour pair once.
+                    for (dc, dr, dist) in [
+                        (1, 0, 1.0),
+                        (0, 1, 1.0),
+                        (1, 1, std::f64::consts::SQRT_2),
+                        (-1, 1, std::f64::consts::SQRT_2),
+                    ] {
+                        let (c2, r2) = (col as i64 + dc, row as i64 + dr);
+                        if c2 < 0 || r2 < 0 || c2 >= width as i64 || r2 >= height as i64 {
+                            continue;
+                        }
+                        let h2 = heights[r2 as usize * width + c2 as usize];
+                        if h2.is_finite() {
+                            rise = rise.max((h2 - h).abs() as f64 / (dist * gsd_m));
+                        }
                     }
                 }
-            }
-        }
+                (top, rise)
+            })
+            .reduce(
+                || (f64::NEG_INFINITY, 0.0),
+                |a, b| (a.0.max(b.0), a.1.max(b.1)),
+            );
         // Bilinear interpolation between cells can't be steeper than the steepest 8-neighbour pair by more than √2.
         Self {
             heights,
@@ -203,26 +211,37 @@ impl<'a> HorizonGrid<'a> {
         } else {
             1
         };
+        // Midpoint rule over the disk's vertical extent; weight = chord length at that height. The sweeps are
+        // independent, so they run in parallel; their sum is taken in sample order (same bytes on any thread count).
+        let disk: Vec<(f64, f64)> = (0..samples)
+            .map(|k| {
+                let y = if samples == 1 {
+                    0.0
+                } else {
+                    -1.0 + (2.0 * k as f64 + 1.0) / samples as f64
+                };
+                let weight = if samples == 1 {
+                    1.0
+                } else {
+                    (1.0 - y * y).sqrt()
+                };
+                // A disk straddling the zenith: its samples beyond 90° are the same as at 90° (source overhead).
+                let elevation = (dir.elevation_rad + y * dir.angular_radius_rad)
+                    .min(std::f64::consts::FRAC_PI_2 - 1e-9);
+                (weight, elevation)
+            })
+            .collect();
+        let lit: Vec<Vec<bool>> = {
+            use rayon::prelude::*;
+            disk.par_iter()
+                .map(|&(_, elevation)| self.sweep_hard(dir.toward_col, dir.toward_row, elevation))
+                .collect()
+        };
         let mut total = vec![0.0f32; n];
         let mut weight_sum = 0.0;
-        for k in 0..samples {
-            // Midpoint rule over the disk's vertical extent; weight = chord length at that height.
-            let y = if samples == 1 {
-                0.0
-            } else {
-                -1.0 + (2.0 * k as f64 + 1.0) / samples as f64
-            };
-            let weight = if samples == 1 {
-                1.0
-            } else {
-                (1.0 - y * y).sqrt()
-            };
-            // A disk straddling the zenith: its samples beyond 90° are the same as at 90° (source overhead).
-            let elevation = (dir.elevation_rad + y * dir.angular_radius_rad)
-                .min(std::f64::consts::FRAC_PI_2 - 1e-9);
-            let lit = self.sweep_hard(dir.toward_col, dir.toward_row, elevation);
+        for ((weight, _), lit) in disk.iter().zip(lit) {
             for (t, l) in total.iter_mut().zip(lit) {
-                *t += weight as f32 * l as u8 as f32;
+                *t += *weight as f32 * l as u8 as f32;
             }
             weight_sum += weight;
         }
@@ -348,6 +367,16 @@ pub struct VisibilityWindow {
 }
 
 impl VisibilityWindow {
+    /// Visible fraction of field cell (col, row) (its centre), or 0 outside the window.
+    pub fn cell(&self, col: usize, row: usize) -> f32 {
+        match (col.checked_sub(self.col0), row.checked_sub(self.row0)) {
+            (Some(c), Some(r)) if c < self.width && r < self.height => {
+                self.fraction[r * self.width + c]
+            }
+            _ => 0.0,
+        }
+    }
+
     /// Bilinear visible fraction at continuous *field* pixel coordinates (pixel-centre convention).
     pub fn at(&self, col: f64, row: f64) -> f32 {
         crate::raster::bilinear(

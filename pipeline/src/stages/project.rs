@@ -133,9 +133,11 @@ impl<'a> OrthoProjector<'a> {
         for j in 0..CROP_PX {
             for i in 0..CROP_PX {
                 let k = j * CROP_PX + i;
-                let (dc, dr) = ((crop_c0 + i) as f64, (crop_r0 + j) as f64);
-                sun_lit[k] = self.sun_visibility.at(dc, dr).clamp(0.0, 1.0);
-                if self.camera_visibility.at(dc, dr) < 0.5 {
+                // Crop cells are DEM cells: read the swept fields directly, no interpolation needed.
+                let (dc, dr) = (crop_c0 + i, crop_r0 + j);
+                sun_lit[k] = self.sun_visibility.cell(dc, dr).clamp(0.0, 1.0);
+                // Occlusion is about pixels that have an image: one outside the ortho is missing, not occluded.
+                if valid[k] != 0 && self.camera_visibility.cell(dc, dr) < 0.5 {
                     occluded += 1;
                     valid[k] = 0;
                 }
@@ -238,37 +240,60 @@ pub fn run(
         u32s(&batches, "row")?,
     );
     progress.set_length(ids.len() as u64);
-    let mut writer = dataset::shard::ShardWriter::create(samples_out)?;
     let mut rejections: BTreeMap<String, BTreeMap<Rejection, u64>> = BTreeMap::new();
-    for record in orthos {
-        let positions: Vec<(usize, usize)> = (0..ids.len())
-            .filter(|&i| ids[i] == record.ortho_id)
-            .map(|i| (cols[i] as usize, rows[i] as usize))
-            .collect();
-        let counts = rejections.entry(record.ortho_id.clone()).or_default();
-        if positions.is_empty() {
-            continue;
-        }
-        let ortho = dataset::raster::read_raster(&record.image_path)?;
-        let meta = AcquisitionMetadata::load(&record.metadata_path)?;
-        let projector = OrthoProjector::new(dem, &ortho, &meta, params, provenance.to_string())?;
-        for chunk in positions.chunks(dataset::shard::ROW_GROUP_ROWS) {
-            let results: Vec<Result<Sample, Rejection>> = chunk
-                .par_iter()
-                .map(|&(c, r)| projector.project(c, r, params))
-                .collect();
-            let mut accepted = Vec::with_capacity(results.len());
-            for result in results {
-                match result {
-                    Ok(sample) => accepted.push(sample),
-                    Err(reason) => *counts.entry(reason).or_default() += 1,
+    // Encoding a row group (BYTE_STREAM_SPLIT + zstd) runs on its own thread while rayon projects the next chunk;
+    // the channel keeps chunk order, so the file's bytes don't depend on timing. Bounded: at most two chunks wait.
+    let (send, receive) = std::sync::mpsc::sync_channel::<Vec<Sample>>(2);
+    std::thread::scope(|scope| -> anyhow::Result<()> {
+        let writer_thread = scope.spawn(move || -> anyhow::Result<()> {
+            let mut writer = dataset::shard::ShardWriter::create(samples_out)?;
+            for chunk in receive {
+                writer.write(&chunk)?;
+            }
+            writer.finish()?;
+            Ok(())
+        });
+        let projected = (|| -> anyhow::Result<()> {
+            for record in orthos {
+                let positions: Vec<(usize, usize)> = (0..ids.len())
+                    .filter(|&i| ids[i] == record.ortho_id)
+                    .map(|i| (cols[i] as usize, rows[i] as usize))
+                    .collect();
+                let counts = rejections.entry(record.ortho_id.clone()).or_default();
+                if positions.is_empty() {
+                    continue;
+                }
+                let ortho = dataset::raster::read_raster(&record.image_path)?;
+                let meta = AcquisitionMetadata::load(&record.metadata_path)?;
+                let projector =
+                    OrthoProjector::new(dem, &ortho, &meta, params, provenance.to_string())?;
+                for chunk in positions.chunks(dataset::shard::ROW_GROUP_ROWS) {
+                    let results: Vec<Result<Sample, Rejection>> = chunk
+                        .par_iter()
+                        .map(|&(c, r)| projector.project(c, r, params))
+                        .collect();
+                    let mut accepted = Vec::with_capacity(results.len());
+                    for result in results {
+                        match result {
+                            Ok(sample) => accepted.push(sample),
+                            Err(reason) => *counts.entry(reason).or_default() += 1,
+                        }
+                    }
+                    if send.send(accepted).is_err() {
+                        break; // the writer failed; its error is reported below
+                    }
+                    progress.inc(chunk.len() as u64);
                 }
             }
-            writer.write(&accepted)?;
-            progress.inc(chunk.len() as u64);
-        }
-    }
-    writer.finish()?;
+            Ok(())
+        })();
+        drop(send);
+        let written = writer_thread
+            .join()
+            .map_err(|_| anyhow::anyhow!("shard writer thread panicked"))?;
+        projected?;
+        written
+    })?;
     dataset::manifest::write_json_atomic(rejections_out, &rejections)?;
     Ok(())
 }

@@ -100,8 +100,24 @@ pub fn run(
     ) = Default::default();
     let (mut dem_sq_sum, mut dem_n) = (0f64, 0u64);
     let mut centres: Vec<(f64, f64)> = Vec::new();
-    for group in 0..row_group_sizes(samples_path)?.len() {
-        for mut sample in read_row_group(samples_path, group)? {
+    // Decoding row groups runs on its own thread while this one routes and encodes: order is kept by the channel.
+    let groups = row_group_sizes(samples_path)?.len();
+    let (send, receive) = std::sync::mpsc::sync_channel::<anyhow::Result<Vec<Sample>>>(2);
+    let reader = std::thread::spawn({
+        let samples_path = samples_path.to_path_buf();
+        move || {
+            for group in 0..groups {
+                let decoded = read_row_group(&samples_path, group).map_err(anyhow::Error::from);
+                let failed = decoded.is_err();
+                if send.send(decoded).is_err() || failed {
+                    break;
+                }
+            }
+        }
+    });
+    for decoded in receive {
+        let group_samples = decoded?;
+        for mut sample in group_samples {
             let Some((split, tile)) = assignment.get(&sample.sample_id) else {
                 continue;
             };
@@ -142,6 +158,9 @@ pub fn run(
             }
         }
     }
+    reader
+        .join()
+        .map_err(|_| anyhow::anyhow!("row-group reader thread panicked"))?;
     for state in open.values_mut() {
         if let Some(writer) = state.writer.take() {
             shards.push(writer.finish()?);
