@@ -48,6 +48,16 @@ impl GeoTransform {
         )
     }
 
+    /// Where this raster's pixel *edge* (col, row) (corner coordinates, no +0.5) falls in `other`'s pixel-edge
+    /// coordinates: how cells of one north-up grid cover pixels of another in the same CRS.
+    #[inline]
+    pub fn edge_in(&self, other: &GeoTransform, col: f64, row: f64) -> (f64, f64) {
+        (
+            (self.origin_x + col * self.pixel_width - other.origin_x) / other.pixel_width,
+            (self.origin_y + row * self.pixel_height - other.origin_y) / other.pixel_height,
+        )
+    }
+
     pub fn gsd_m(&self) -> f64 {
         self.pixel_width.abs()
     }

@@ -114,6 +114,20 @@ impl ShardWriter {
         Ok(())
     }
 
+    /// Close and rename into place without hashing: for intermediate files whose checksum someone else takes
+    /// (the pipeline runner hashes every stage output). Returns the row count.
+    pub fn close(self) -> Result<usize, ShardError> {
+        self.writer.close().map_err(|source| ShardError::Parquet {
+            path: self.path.clone(),
+            source,
+        })?;
+        std::fs::rename(&self.tmp, &self.path).map_err(|source| ShardError::Io {
+            path: self.path.clone(),
+            source,
+        })?;
+        Ok(self.rows)
+    }
+
     /// Close, rename into place, and describe the finished shard (size, rows, row groups, blake3).
     pub fn finish(self) -> Result<ShardEntry, ShardError> {
         let metadata = self.writer.close().map_err(|source| ShardError::Parquet {

@@ -145,10 +145,8 @@ pub fn dem_cell_validity(
         let (a, b) = (edge0.floor(), edge1.ceil());
         (a >= 0.0 && b <= len as f64).then_some((a as usize, b as usize))
     };
-    let x_edge =
-        |c: usize| (dt.origin_x + c as f64 * dt.pixel_width - ot.origin_x) / ot.pixel_width;
-    let y_edge =
-        |r: usize| (dt.origin_y + r as f64 * dt.pixel_height - ot.origin_y) / ot.pixel_height;
+    let x_edge = |c: usize| dt.edge_in(ot, c as f64, 0.0).0;
+    let y_edge = |r: usize| dt.edge_in(ot, 0.0, r as f64).1;
     let mut mask = vec![0u8; w * h];
     for j in 0..h {
         let Some((ry0, ry1)) = span(y_edge(r0 + j), y_edge(r0 + j + 1), ortho.height) else {

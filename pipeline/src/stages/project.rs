@@ -250,7 +250,8 @@ pub fn run(
             for chunk in receive {
                 writer.write(&chunk)?;
             }
-            writer.finish()?;
+            // The runner hashes this output; hashing it here too cost a second pass over gigabytes.
+            writer.close()?;
             Ok(())
         });
         let projected = (|| -> anyhow::Result<()> {
@@ -315,12 +316,8 @@ pub fn area_resample(ortho: &Raster, dem: &Raster, c0: usize, r0: usize) -> (Vec
             .collect();
         Some((first as usize, weights))
     };
-    let x_edge = |col: usize| {
-        (dem_t.origin_x + col as f64 * dem_t.pixel_width - ortho_t.origin_x) / ortho_t.pixel_width
-    };
-    let y_edge = |row: usize| {
-        (dem_t.origin_y + row as f64 * dem_t.pixel_height - ortho_t.origin_y) / ortho_t.pixel_height
-    };
+    let x_edge = |col: usize| dem_t.edge_in(ortho_t, col as f64, 0.0).0;
+    let y_edge = |row: usize| dem_t.edge_in(ortho_t, 0.0, row as f64).1;
     let columns: Vec<_> = (0..CROP_PX)
         .map(|i| overlaps(x_edge(c0 + i), x_edge(c0 + i + 1), ortho.width))
         .collect();

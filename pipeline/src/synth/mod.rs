@@ -57,18 +57,12 @@ impl Grid {
     /// Map coordinates of the centre of pixel (col, row).
     #[inline]
     pub fn center(&self, col: usize, row: usize) -> (f64, f64) {
-        (
-            self.min_x + (col as f64 + 0.5) * self.gsd_m,
-            self.max_y - (row as f64 + 0.5) * self.gsd_m,
-        )
+        self.transform().pixel_center(col as f64, row as f64)
     }
     /// Continuous (col, row) whose centre is at (x, y).
     #[inline]
     pub fn to_pixel(&self, x: f64, y: f64) -> (f64, f64) {
-        (
-            (x - self.min_x) / self.gsd_m - 0.5,
-            (self.max_y - y) / self.gsd_m - 0.5,
-        )
+        self.transform().map_to_pixel(x, y)
     }
     /// Pixel range [c0, c1) × [r0, r1) within `reach` metres of (x, y), or None if it misses the grid.
     pub fn window(&self, x: f64, y: f64, reach: f64) -> Option<(usize, usize, usize, usize)> {
