@@ -29,6 +29,8 @@ fn sample(i: usize) -> Sample {
         sun_lit: vec![1.0; n],
         sun_dir_enu: [0.6, 0.0, 0.8],
         camera_pos_enu_m: [0.0, 10.0, 50_000.0],
+        enu_origin_height_m: 0.0,
+        map_to_en: [1.0, 0.0, 0.0, 1.0],
         camera_att: [1.0, 0.0, 0.0, 0.0],
         fov_deg: 2.85,
         gsd_m: 5.0,

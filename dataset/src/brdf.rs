@@ -5,7 +5,7 @@
 //! Terms are ordered (cos i, cos g, …) — the GeoTIFF band descriptions name them in this order.
 //! A surface facing away from the sun (cos i ≤ 0) or from the camera (cos e ≤ 0) reflects nothing toward it: f = 0.
 
-use crate::geometry::{Cosines, HalfDiffCosines};
+use crate::geometry::{Cosines, HalfDiffCosines, PixelGeometry};
 
 /// Negative slope of the LeakyReLU applied to every raw parameter.
 pub const LEAKY_SLOPE: f64 = 0.01;
@@ -107,6 +107,37 @@ pub fn render_pixel(
     lit_fraction: f64,
 ) -> f64 {
     irradiance * lit_fraction * model.evaluate(raw_params, c, hd)
+}
+
+/// Render a whole crop: `planar_params[k * n + p]` is raw parameter k of pixel p (the network's channel-first
+/// output), `geometry` and `lit_fraction` have one entry per pixel. The scalar reference of `train`'s renderer layer.
+pub fn render_crop(
+    model: BrdfModel,
+    planar_params: &[f64],
+    geometry: &[PixelGeometry],
+    lit_fraction: &[f64],
+    irradiance: f64,
+) -> Vec<f64> {
+    let n = geometry.len();
+    assert_eq!(planar_params.len(), model.param_count() * n);
+    assert_eq!(lit_fraction.len(), n);
+    let mut raw = vec![0.0; model.param_count()];
+    (0..n)
+        .map(|p| {
+            for (k, r) in raw.iter_mut().enumerate() {
+                *r = planar_params[k * n + p];
+            }
+            let g = &geometry[p];
+            render_pixel(
+                model,
+                &raw,
+                &g.cosines,
+                &g.half_diff,
+                irradiance,
+                lit_fraction[p],
+            )
+        })
+        .collect()
 }
 
 #[cfg(test)]

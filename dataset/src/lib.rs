@@ -11,7 +11,9 @@ pub mod geometry;
 pub mod hapke;
 pub mod horizon;
 pub mod manifest;
+pub mod planner;
 pub mod raster;
+pub mod rng;
 pub mod schema;
 pub mod shard;
 

@@ -11,7 +11,7 @@ use arrow::array::{
 use arrow::datatypes::{DataType, Field, Schema, SchemaRef};
 
 /// Bumped on any incompatible change; readers refuse other major versions.
-pub const SCHEMA_VERSION: &str = "1.0.0";
+pub const SCHEMA_VERSION: &str = "1.1.0";
 /// Crop edge in pixels (the network's input/output size).
 pub const CROP_PX: usize = 128;
 /// DEM edge in pixels: the crop plus a 1-pixel apron on every side, so border normals are exact.
@@ -41,6 +41,12 @@ pub struct Sample {
     pub sun_lit: Vec<f32>,
     pub sun_dir_enu: [f64; 3],
     pub camera_pos_enu_m: [f64; 3],
+    /// Height above the sphere of the local ENU frame's origin (the crop centre), metres. DEM heights minus this
+    /// are the ENU-relative heights the renderer uses (f32-safe, unlike absolute heights in body-fixed metres).
+    pub enu_origin_height_m: f64,
+    /// Map offset (dx, dy) in metres → (east, north) ground metres at the crop centre, row-major
+    /// `[de/dx, de/dy, dn/dx, dn/dy]` (projection scale and meridian convergence; identity on a true-scale grid).
+    pub map_to_en: [f64; 4],
     /// Camera attitude quaternion (w, x, y, z), body-fixed to camera.
     pub camera_att: [f64; 4],
     pub fov_deg: f64,
@@ -144,6 +150,18 @@ pub fn sample_schema() -> SchemaRef {
             fixed_list(DataType::Float64, 3),
             "camera position in the crop's local ENU frame",
             "m",
+        ),
+        field(
+            "enu_origin_height_m",
+            DataType::Float64,
+            "height above the sphere of the local ENU frame origin (crop centre)",
+            "m",
+        ),
+        field(
+            "map_to_en",
+            fixed_list(DataType::Float64, 4),
+            "map offset to ground east/north at the crop centre: de/dx, de/dy, dn/dx, dn/dy",
+            "1",
         ),
         field(
             "camera_att",
@@ -284,6 +302,8 @@ pub fn samples_to_batch(samples: &[Sample]) -> Result<RecordBatch, SchemaError> 
         f32_list(|s| &s.sun_lit, CROP_PX * CROP_PX),
         f64_list(|s| &s.sun_dir_enu, 3),
         f64_list(|s| &s.camera_pos_enu_m, 3),
+        f64s(samples.iter().map(|s| s.enu_origin_height_m)),
+        f64_list(|s| &s.map_to_en, 4),
         f64_list(|s| &s.camera_att, 4),
         f64s(samples.iter().map(|s| s.fov_deg)),
         f64s(samples.iter().map(|s| s.gsd_m)),
@@ -337,6 +357,7 @@ pub fn batch_to_samples(batch: &RecordBatch) -> Result<Vec<Sample>, SchemaError>
         f("center_lon")?,
         f("center_lat")?,
     );
+    let origin_h = f("enu_origin_height_m")?;
     let (fov, gsd, inc, emi, pha) = (
         f("fov_deg")?,
         f("gsd_m")?,
@@ -352,6 +373,7 @@ pub fn batch_to_samples(batch: &RecordBatch) -> Result<Vec<Sample>, SchemaError>
     let (sun, _) = list_values::<Float64Array>(batch, "sun_dir_enu")?;
     let (cam, _) = list_values::<Float64Array>(batch, "camera_pos_enu")?;
     let (att, _) = list_values::<Float64Array>(batch, "camera_att")?;
+    let (jacobian, _) = list_values::<Float64Array>(batch, "map_to_en")?;
     check_len("dem", dem_len, DEM_PX * DEM_PX)?;
     check_len("image", img_len, CROP_PX * CROP_PX)?;
     check_len("valid", valid_len, CROP_PX * CROP_PX)?;
@@ -374,6 +396,10 @@ pub fn batch_to_samples(batch: &RecordBatch) -> Result<Vec<Sample>, SchemaError>
             sun_lit: lit.values()[i * lit_len..(i + 1) * lit_len].to_vec(),
             sun_dir_enu: arr(sun, i, 3).try_into().expect("length checked by type"),
             camera_pos_enu_m: arr(cam, i, 3).try_into().expect("length checked by type"),
+            enu_origin_height_m: origin_h.value(i),
+            map_to_en: arr(jacobian, i, 4)
+                .try_into()
+                .expect("length checked by type"),
             camera_att: arr(att, i, 4).try_into().expect("length checked by type"),
             fov_deg: fov.value(i),
             gsd_m: gsd.value(i),

@@ -318,6 +318,8 @@ mod tests {
             sun_lit: (0..n).map(|k| ((k % 7) as f32 / 6.0).min(1.0)).collect(),
             sun_dir_enu: [0.5, 0.0, 0.866],
             camera_pos_enu_m: [10.0, -20.0, 50_000.0],
+            enu_origin_height_m: -1200.0,
+            map_to_en: [0.98, 0.01, -0.01, 1.0],
             camera_att: [1.0, 0.0, 0.0, 0.0],
             fov_deg: 2.85,
             gsd_m: 5.0,

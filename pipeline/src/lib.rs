@@ -3,7 +3,8 @@
 //! [`synth`].
 
 pub mod manifest;
-pub mod rng;
+/// Keyed ChaCha streams live in the data contract (the trainer's epoch planner uses them too).
+pub use dataset::rng;
 pub mod runner;
 pub mod stages;
 pub mod synth;

@@ -1,2 +1,11 @@
-//! `train`: the Burn side (U-Net, differentiable renderer layer, streaming trainer). Arrives with the trainer issue;
-//! for now it holds the CLI skeleton so the workspace and `--help` are complete.
+//! `train`: the Burn side. Read in data-flow order: [`data`] (shards → host batches, epoch order, prefetch) with
+//! [`augment`] → [`model`] (U-Net) → [`render`] (differentiable renderer layer, the batched twin of
+//! `dataset::brdf`) → [`metrics`] → [`training`] (fit loop, checkpoints, exact resume) → [`bench`].
+
+pub mod augment;
+pub mod bench;
+pub mod data;
+pub mod metrics;
+pub mod model;
+pub mod render;
+pub mod training;

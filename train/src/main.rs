@@ -1,32 +1,193 @@
-//! `g2r-train`: learn a spatially varying lunar BRDF from DEM geometry (Burn).
+//! `g2r-train`: learn a spatially varying lunar BRDF from DEM geometry (Burn). Argument parsing and wiring only;
+//! the work lives in the library.
 
-use clap::{Parser, Subcommand};
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use anyhow::{bail, Result};
+use clap::{Args, Parser, Subcommand, ValueEnum};
+use dataset::brdf::BrdfModel;
+use train::data::{LocalSource, SampleSource, StreamConfig};
+use train::training::{fit, FitConfig};
 
 #[derive(Parser)]
 #[command(
     name = "g2r-train",
     version,
-    about = "Train and evaluate a U-Net that maps 128x128 DEM crops to per-pixel BRDF parameters (M1-M6)",
-    long_about = "Train and evaluate a U-Net that maps 128x128 DEM crops (5 m/px) to per-pixel parameters of a small \
-cosine-polynomial BRDF, supervised by rendering through a differentiable renderer layer and comparing with the real \
-orthoimage (MSE over valid, lit pixels).\n\nThe trainer, evaluation and rendering commands arrive with the trainer \
-issue; this build lists the BRDF models the data contract defines."
+    about = "Train a U-Net that maps 128x128 DEM crops to per-pixel BRDF parameters (M1-M6) through a differentiable renderer",
+    long_about = "Train a U-Net that maps 128x128 DEM crops (5 m/px) to per-pixel parameters of a small \
+cosine-polynomial BRDF, supervised by rendering through a differentiable renderer layer and comparing with the \
+orthoimage (MSE over valid pixels).\n\nData: a dataset directory published by `g2r-pipeline run` (manifest.json + \
+shards). CPU training is slow (the paper-size U-Net costs ~6 GFLOP per sample): use --width 4 or 8 and \
+--max-train-samples for CPU budgets, the cuda backend on a GPU machine for full runs."
 )]
 struct Cli {
     #[command(subcommand)]
     command: Command,
 }
 
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum BackendKind {
+    /// Burn's CPU backend (always built).
+    Flex,
+    /// NVIDIA GPU (build with `--features cuda`; needs only the driver at run time).
+    Cuda,
+}
+
+#[derive(Args, Debug, Clone)]
+struct TrainArgs {
+    /// BRDF model: m1..m6 (see `g2r-train models`).
+    #[arg(long, default_value = "m2")]
+    model: BrdfModel,
+    #[arg(long, default_value_t = 20)]
+    epochs: usize,
+    #[arg(long, default_value_t = 64)]
+    batch: usize,
+    /// Adam learning rate.
+    #[arg(long, default_value_t = 1e-4)]
+    lr: f64,
+    #[arg(long, default_value_t = 42)]
+    seed: u64,
+    /// U-Net width of the first stage (16 = the paper's ~2.16 M weights; 4 or 8 for CPU budgets).
+    #[arg(long, default_value_t = 16)]
+    width: usize,
+    /// Row groups shuffled together (memory ~ window x 55 MB).
+    #[arg(long, default_value_t = 4)]
+    window: usize,
+    /// Disable rot90/flip augmentation.
+    #[arg(long)]
+    no_augment: bool,
+    /// Disable dropout.
+    #[arg(long)]
+    no_dropout: bool,
+    /// Train samples per epoch (default: the whole train split).
+    #[arg(long)]
+    max_train_samples: Option<usize>,
+    /// Validation samples per epoch (default: the whole val split).
+    #[arg(long)]
+    max_val_samples: Option<usize>,
+    #[arg(long, value_enum, default_value = "flex")]
+    backend: BackendKind,
+}
+
+impl TrainArgs {
+    fn fit_config(&self) -> FitConfig {
+        FitConfig {
+            model: self.model,
+            epochs: self.epochs,
+            learning_rate: self.lr,
+            base_width: self.width,
+            dropout: !self.no_dropout,
+            stream: StreamConfig {
+                seed: self.seed,
+                batch_size: self.batch,
+                window_groups: self.window,
+                augment: !self.no_augment,
+                max_samples: self.max_train_samples,
+            },
+            max_val_samples: self.max_val_samples,
+        }
+    }
+}
+
 #[derive(Subcommand)]
 enum Command {
     /// List the BRDF models M1-M6 with their parameter order (the band order of parameter GeoTIFFs).
     Models,
+    /// Train one model; writes config.json, metrics.jsonl (one line per epoch), best/ and last/ checkpoints.
+    Fit {
+        /// Published dataset directory (contains manifest.json).
+        #[arg(long)]
+        data: PathBuf,
+        /// Run directory.
+        #[arg(long)]
+        out: PathBuf,
+        /// Continue the run in --out exactly where its last checkpoint stopped (same flags required).
+        #[arg(long)]
+        resume: bool,
+        /// Stop after this many optimiser steps in total, leaving a resumable checkpoint.
+        #[arg(long)]
+        stop_after_steps: Option<u64>,
+        #[command(flatten)]
+        train: TrainArgs,
+    },
+    /// Train M1-M6 under the same budget and write a comparison table (val MSE, parameters, step time).
+    CompareModels {
+        #[arg(long)]
+        data: PathBuf,
+        #[arg(long)]
+        out: PathBuf,
+        #[command(flatten)]
+        train: TrainArgs,
+    },
+    /// Samples/s of the train step (U-Net + renderer layer, forward + backward + Adam) and of the layer alone.
+    Bench {
+        #[arg(long, default_value_t = 8)]
+        batch: usize,
+        #[arg(long, default_value_t = 16)]
+        width: usize,
+        #[arg(long, default_value = "m2")]
+        model: BrdfModel,
+        #[arg(long, default_value_t = 3)]
+        iters: usize,
+        #[arg(long, value_enum, default_value = "flex")]
+        backend: BackendKind,
+    },
+}
+
+type FlexTrain = burn::backend::Autodiff<burn::backend::Flex>;
+#[cfg(feature = "cuda")]
+type CudaTrain = burn::backend::Autodiff<burn::backend::Cuda>;
+
+fn no_cuda() -> anyhow::Error {
+    anyhow::anyhow!("this g2r-train was built without CUDA: rebuild with `cargo build --release -p g2r-train --features cuda`")
+}
+
+fn run_fit(
+    source: Arc<dyn SampleSource>,
+    args: &TrainArgs,
+    out: &std::path::Path,
+    resume: bool,
+    stop: Option<u64>,
+) -> Result<train::training::FitOutcome> {
+    let config = args.fit_config();
+    match args.backend {
+        BackendKind::Flex => fit::<FlexTrain>(
+            source,
+            &config,
+            out,
+            resume,
+            stop,
+            &Default::default(),
+            true,
+        ),
+        #[cfg(feature = "cuda")]
+        BackendKind::Cuda => fit::<CudaTrain>(
+            source,
+            &config,
+            out,
+            resume,
+            stop,
+            &Default::default(),
+            true,
+        ),
+        #[cfg(not(feature = "cuda"))]
+        BackendKind::Cuda => Err(no_cuda()),
+    }
 }
 
 fn main() {
-    match Cli::parse().command {
+    dataset::init_logging();
+    if let Err(e) = run(Cli::parse()) {
+        eprintln!("error: {}", format!("{e:#}").replace('\n', " "));
+        std::process::exit(1);
+    }
+}
+
+fn run(cli: Cli) -> Result<()> {
+    match cli.command {
         Command::Models => {
-            for model in dataset::brdf::BrdfModel::ALL {
+            for model in BrdfModel::ALL {
                 println!(
                     "{}: {} params: {}",
                     model.name(),
@@ -35,5 +196,104 @@ fn main() {
                 );
             }
         }
+        Command::Fit {
+            data,
+            out,
+            resume,
+            stop_after_steps,
+            train,
+        } => {
+            let source: Arc<dyn SampleSource> = Arc::new(LocalSource::open(&data)?);
+            let outcome = run_fit(source, &train, &out, resume, stop_after_steps)?;
+            println!(
+                "{}: {} steps, {} trainable parameters, {:.3} s/step; metrics in {}",
+                out.display(),
+                outcome.cursor.step,
+                outcome.trainable_params,
+                outcome.seconds_per_step,
+                out.join("metrics.jsonl").display()
+            );
+            if let Some(last) = outcome.history.last() {
+                println!(
+                    "last epoch: val per-pixel MSE {:.4e}, PSNR {:.2} dB, SSIM {:.3}",
+                    last.val_pixel_mse, last.val_psnr_db, last.val_ssim
+                );
+            }
+        }
+        Command::CompareModels { data, out, train } => {
+            let source: Arc<dyn SampleSource> = Arc::new(LocalSource::open(&data)?);
+            let mut rows = Vec::new();
+            let mut table = String::from("| model | params/pixel | trainable weights | val loss (pixel MSE) | val PSNR dB | val SSIM | s/step |\n|---|---|---|---|---|---|---|\n");
+            for model in BrdfModel::ALL {
+                let mut args = train.clone();
+                args.model = model;
+                let run_dir = out.join(model.name());
+                if run_dir.join("last").exists() {
+                    bail!(
+                        "{}: already holds a run: remove it or choose a new --out",
+                        run_dir.display()
+                    );
+                }
+                let outcome = run_fit(source.clone(), &args, &run_dir, false, None)?;
+                let last = outcome.history.last().cloned();
+                if let Some(m) = &last {
+                    table.push_str(&format!(
+                        "| {} | {} | {} | {:.4e} | {:.2} | {:.3} | {:.3} |\n",
+                        model.name(),
+                        model.param_count(),
+                        outcome.trainable_params,
+                        m.val_loss,
+                        m.val_psnr_db,
+                        m.val_ssim,
+                        outcome.seconds_per_step
+                    ));
+                }
+                rows.push(serde_json::json!({"model": model.name(), "trainable_params": outcome.trainable_params, "seconds_per_step": outcome.seconds_per_step, "last_epoch": last}));
+            }
+            let budget = format!(
+                "Budget: {} epochs x {} train samples, batch {}, width {}, lr {}, seed {}, backend {:?}.\n\n",
+                train.epochs,
+                train.max_train_samples.map_or("all".to_string(), |m| m.to_string()),
+                train.batch, train.width, train.lr, train.seed, train.backend
+            );
+            std::fs::create_dir_all(&out)?;
+            std::fs::write(
+                out.join("compare.md"),
+                format!("# BRDF model comparison\n\n{budget}{table}"),
+            )?;
+            dataset::manifest::write_json_atomic(&out.join("compare.json"), &rows)?;
+            print!("{budget}{table}");
+        }
+        Command::Bench {
+            batch,
+            width,
+            model,
+            iters,
+            backend,
+        } => {
+            let report = match backend {
+                BackendKind::Flex => train::bench::bench::<FlexTrain>(
+                    "flex",
+                    model,
+                    batch,
+                    width,
+                    iters,
+                    &Default::default(),
+                ),
+                #[cfg(feature = "cuda")]
+                BackendKind::Cuda => train::bench::bench::<CudaTrain>(
+                    "cuda",
+                    model,
+                    batch,
+                    width,
+                    iters,
+                    &Default::default(),
+                ),
+                #[cfg(not(feature = "cuda"))]
+                BackendKind::Cuda => return Err(no_cuda()),
+            };
+            println!("{}", serde_json::to_string_pretty(&report)?);
+        }
     }
+    Ok(())
 }

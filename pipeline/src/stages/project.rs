@@ -207,6 +207,13 @@ impl<'a> OrthoProjector<'a> {
             sun_lit,
             sun_dir_enu: sun_dir.into(),
             camera_pos_enu_m: camera_pos.into(),
+            enu_origin_height_m: frame.origin_height_m,
+            map_to_en: [
+                frame.map_to_en[0][0],
+                frame.map_to_en[0][1],
+                frame.map_to_en[1][0],
+                frame.map_to_en[1][1],
+            ],
             camera_att: self.meta.camera_attitude_wxyz,
             fov_deg: self.meta.fov_deg,
             gsd_m: dem.transform.gsd_m(),

@@ -1,4 +1,4 @@
-//! Seeded, purpose-keyed random streams: every draw in the project comes from a ChaCha stream whose key is
+//! Seeded, purpose-keyed random streams: every draw in the project (world, stages, trainer) comes from a ChaCha stream whose key is
 //! blake3(seed, purpose, index), so adding an ortho or a crater never reshuffles the others.
 
 use rand::SeedableRng;

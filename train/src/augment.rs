@@ -1,0 +1,134 @@
+//! Dihedral augmentation (rot90 × flip) applied to a sample's rasters *and* its geometry together.
+//!
+//! Turning the grid alone would leave the sun and camera where they were, so the rendered image would no longer
+//! match the turned photograph (the reference implementation's rotation path had this defect). Here a grid
+//! transform `T` (acting on map offsets) comes with the same physical rotation/mirror `Q = T` of the ENU east/north
+//! axes: sun and camera vectors become `Q·v`, and the map→ground Jacobian becomes `Q·J·T⁻¹`, so every pixel keeps
+//! its ground geometry and `render(augment(s)) = augment(render(s))` (tested against the scalar reference).
+//! Caveat: M6's φh is measured from local east, which a rotation moves: that one term is not rotation-invariant.
+
+use dataset::schema::{Sample, CROP_PX, DEM_PX};
+
+/// One of the 8 symmetries of the square: `mirror` (east↔west) first, then `quarter_turns` × 90° counter-clockwise.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct Dihedral {
+    pub quarter_turns: u8,
+    pub mirror: bool,
+}
+
+impl Dihedral {
+    pub const IDENTITY: Dihedral = Dihedral {
+        quarter_turns: 0,
+        mirror: false,
+    };
+
+    pub fn from_index(index: u8) -> Self {
+        Self {
+            quarter_turns: index % 4,
+            mirror: index >= 4,
+        }
+    }
+
+    /// Apply to a square row-major raster of edge `n` (north row first).
+    pub fn apply_raster<T: Copy>(self, data: &[T], n: usize) -> Vec<T> {
+        assert_eq!(data.len(), n * n);
+        let mut out = data.to_vec();
+        if self.mirror {
+            out = (0..n * n)
+                .map(|k| data[(k / n) * n + (n - 1 - k % n)])
+                .collect();
+        }
+        for _ in 0..self.quarter_turns {
+            // Counter-clockwise: new[r][c] = old[c][n-1-r].
+            let old = out;
+            out = (0..n * n)
+                .map(|k| old[(k % n) * n + (n - 1 - k / n)])
+                .collect();
+        }
+        out
+    }
+
+    /// The 2×2 map (and east/north) transform, row-major `[a, b, c, d]`: (x, y) → (a x + b y, c x + d y).
+    pub fn matrix(self) -> [f64; 4] {
+        let mut m = if self.mirror {
+            [-1.0, 0.0, 0.0, 1.0]
+        } else {
+            [1.0, 0.0, 0.0, 1.0]
+        };
+        for _ in 0..self.quarter_turns {
+            // (x, y) → (−y, x) applied after m.
+            m = [-m[2], -m[3], m[0], m[1]];
+        }
+        m
+    }
+
+    /// Apply to the east/north part of an ENU vector.
+    pub fn apply_enu(self, v: [f64; 3]) -> [f64; 3] {
+        let m = self.matrix();
+        [m[0] * v[0] + m[1] * v[1], m[2] * v[0] + m[3] * v[1], v[2]]
+    }
+
+    /// Transform a whole sample: rasters, sun and camera vectors, and the map→ground Jacobian.
+    pub fn apply(self, sample: &Sample) -> Sample {
+        if self == Self::IDENTITY {
+            return sample.clone();
+        }
+        let q = self.matrix();
+        // Q and T are orthogonal with T = Q, so T⁻¹ = Qᵀ and J' = Q·J·Qᵀ.
+        let j = sample.map_to_en;
+        let qj = [
+            q[0] * j[0] + q[1] * j[2],
+            q[0] * j[1] + q[1] * j[3],
+            q[2] * j[0] + q[3] * j[2],
+            q[2] * j[1] + q[3] * j[3],
+        ];
+        let map_to_en = [
+            qj[0] * q[0] + qj[1] * q[1],
+            qj[0] * q[2] + qj[1] * q[3],
+            qj[2] * q[0] + qj[3] * q[1],
+            qj[2] * q[2] + qj[3] * q[3],
+        ];
+        Sample {
+            dem_m: self.apply_raster(&sample.dem_m, DEM_PX),
+            image: self.apply_raster(&sample.image, CROP_PX),
+            valid: self.apply_raster(&sample.valid, CROP_PX),
+            sun_lit: self.apply_raster(&sample.sun_lit, CROP_PX),
+            sun_dir_enu: self.apply_enu(sample.sun_dir_enu),
+            camera_pos_enu_m: self.apply_enu(sample.camera_pos_enu_m),
+            map_to_en,
+            ..sample.clone()
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn quarter_turn_moves_north_row_to_west_column() {
+        // 3×3 with values = index; a CCW turn puts the top row (north) on the left column (west), reversed.
+        let data: Vec<u8> = (0..9).collect();
+        let turned = Dihedral::from_index(1).apply_raster(&data, 3);
+        assert_eq!(turned, vec![2, 5, 8, 1, 4, 7, 0, 3, 6]);
+        let mirrored = Dihedral::from_index(4).apply_raster(&data, 3);
+        assert_eq!(mirrored, vec![2, 1, 0, 5, 4, 3, 8, 7, 6]);
+        // A CCW turn sends east (1, 0) to north (0, 1).
+        assert_eq!(
+            Dihedral::from_index(1).apply_enu([1.0, 0.0, 0.5]),
+            [0.0, 1.0, 0.5]
+        );
+        for i in 0..8 {
+            let d = Dihedral::from_index(i);
+            let m = d.matrix();
+            assert!((m[0] * m[3] - m[1] * m[2]).abs() == 1.0);
+            // Four quarter turns (or two mirrors) give the identity on rasters.
+            let mut x = data.clone();
+            for _ in 0..if d.mirror { 2 } else { 4 } {
+                x = d.apply_raster(&x, 3);
+            }
+            // Every mirrored element of the group is a reflection, hence an involution.
+            assert_eq!(x, data, "{d:?}");
+        }
+    }
+}

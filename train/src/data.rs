@@ -1,0 +1,279 @@
+//! Streaming training data: a [`SampleSource`] (local shards now; an HTTP source can implement the same trait),
+//! the epoch order from [`dataset::planner`], dihedral augmentation, and a background thread that prefetches host
+//! batches while the device computes.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::mpsc::{sync_channel, Receiver};
+use std::sync::Arc;
+use std::thread::JoinHandle;
+
+use anyhow::{bail, Context, Result};
+use dataset::manifest::DatasetManifest;
+use dataset::planner::{plan_epoch, RowGroupRef};
+use dataset::rng::keyed_rng;
+use dataset::schema::{Sample, CROP_PX, DEM_PX};
+use rand::Rng;
+
+use crate::augment::Dihedral;
+
+/// Where samples come from. Implementations must return identical rows for identical references, so the same
+/// (seed, epoch) gives the same batches from any source.
+pub trait SampleSource: Send + Sync {
+    /// For messages: a path or URL.
+    fn describe(&self) -> String;
+    fn manifest(&self) -> &DatasetManifest;
+    /// Row groups of one split, in a fixed order (shard name, then row-group index).
+    fn row_groups(&self, split: &str) -> Result<Vec<RowGroupRef>>;
+    fn read_row_group(&self, group: &RowGroupRef) -> Result<Vec<Sample>>;
+}
+
+/// A published dataset directory (`manifest.json` + shards).
+pub struct LocalSource {
+    dir: PathBuf,
+    manifest: DatasetManifest,
+}
+
+impl LocalSource {
+    pub fn open(dir: &Path) -> Result<Self> {
+        let path = dir.join("manifest.json");
+        if !path.exists() {
+            bail!(
+                "{}: no manifest.json: point --data at a published dataset directory (g2r-pipeline run writes OUT/dataset)",
+                dir.display()
+            );
+        }
+        let manifest = DatasetManifest::load(&path)?;
+        Ok(Self {
+            dir: dir.to_path_buf(),
+            manifest,
+        })
+    }
+}
+
+impl SampleSource for LocalSource {
+    fn describe(&self) -> String {
+        self.dir.display().to_string()
+    }
+
+    fn manifest(&self) -> &DatasetManifest {
+        &self.manifest
+    }
+
+    fn row_groups(&self, split: &str) -> Result<Vec<RowGroupRef>> {
+        let mut shards: Vec<&str> = self
+            .manifest
+            .shards
+            .iter()
+            .map(|s| s.path.as_str())
+            .filter(|p| p.starts_with(&format!("{split}-")))
+            .collect();
+        shards.sort_unstable();
+        let mut groups = Vec::new();
+        for shard in shards {
+            let sizes = dataset::shard::row_group_sizes(&self.dir.join(shard))?;
+            groups.extend(
+                sizes
+                    .into_iter()
+                    .enumerate()
+                    .map(|(row_group, rows)| RowGroupRef {
+                        shard: shard.to_string(),
+                        row_group,
+                        rows,
+                    }),
+            );
+        }
+        Ok(groups)
+    }
+
+    fn read_row_group(&self, group: &RowGroupRef) -> Result<Vec<Sample>> {
+        Ok(dataset::shard::read_row_group(
+            &self.dir.join(&group.shard),
+            group.row_group,
+        )?)
+    }
+}
+
+/// One batch on the host, f64 (the device's float type decides the precision on upload). Rasters are
+/// `N × edge²` row-major, north row first.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct HostBatch {
+    pub sample_ids: Vec<String>,
+    /// Network input `N × 128²`: interior heights minus the crop mean, over the train-split std.
+    pub net_input: Vec<f64>,
+    /// `N × 130²` heights relative to each crop's ENU origin (with apron), metres.
+    pub relative_heights_m: Vec<f64>,
+    pub image: Vec<f64>,
+    pub valid: Vec<f64>,
+    pub lit: Vec<f64>,
+    pub sun_dir_enu: Vec<f64>,
+    pub camera_pos_enu_m: Vec<f64>,
+    pub map_to_en: Vec<f64>,
+    pub gsd_m: Vec<f64>,
+    pub origin_height_m: Vec<f64>,
+}
+
+impl HostBatch {
+    pub fn len(&self) -> usize {
+        self.sample_ids.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.sample_ids.is_empty()
+    }
+
+    /// Assemble a batch; `dem_std_m` is the manifest's train-split DEM std (DESIGN §5).
+    pub fn from_samples(samples: &[Sample], dem_std_m: f64) -> Self {
+        let mut b = HostBatch::default();
+        for s in samples {
+            b.sample_ids.push(s.sample_id.clone());
+            let interior: Vec<f64> = (0..CROP_PX * CROP_PX)
+                .map(|k| s.dem_m[(k / CROP_PX + 1) * DEM_PX + k % CROP_PX + 1] as f64)
+                .collect();
+            let mean = interior.iter().sum::<f64>() / interior.len() as f64;
+            b.net_input
+                .extend(interior.iter().map(|h| (h - mean) / dem_std_m));
+            b.relative_heights_m
+                .extend(s.dem_m.iter().map(|&h| h as f64 - s.enu_origin_height_m));
+            b.image.extend(s.image.iter().map(|&v| v as f64));
+            b.valid.extend(s.valid.iter().map(|&v| f64::from(v != 0)));
+            b.lit.extend(s.sun_lit.iter().map(|&v| v as f64));
+            b.sun_dir_enu.extend(s.sun_dir_enu);
+            b.camera_pos_enu_m.extend(s.camera_pos_enu_m);
+            b.map_to_en.extend(s.map_to_en);
+            b.gsd_m.push(s.gsd_m);
+            b.origin_height_m.push(s.enu_origin_height_m);
+        }
+        b
+    }
+}
+
+/// How an epoch is streamed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct StreamConfig {
+    pub seed: u64,
+    pub batch_size: usize,
+    /// Row groups shuffled together (memory ≈ window × 256 rows × 215 KB).
+    pub window_groups: usize,
+    /// Apply a random dihedral transform per sample.
+    pub augment: bool,
+    /// Cap on samples per epoch (CPU budgets); `None` = the whole split.
+    pub max_samples: Option<usize>,
+}
+
+/// The dihedral transform of the sample at `position` of epoch `epoch` (keyed, so resuming reproduces it).
+pub fn augmentation_for(seed: u64, epoch: u64, position: usize) -> Dihedral {
+    let index = keyed_rng(seed, "augment", (epoch << 32) | position as u64).random_range(0..8u8);
+    Dihedral::from_index(index)
+}
+
+/// Batches of one epoch from `start_batch` on, produced by a background thread (bounded queue of 2).
+pub struct EpochStream {
+    receiver: Receiver<Result<HostBatch>>,
+    worker: Option<JoinHandle<()>>,
+    pub batches: usize,
+}
+
+impl EpochStream {
+    pub fn start(
+        source: Arc<dyn SampleSource>,
+        split: &str,
+        config: StreamConfig,
+        epoch: u64,
+        start_batch: usize,
+    ) -> Result<Self> {
+        let groups = source.row_groups(split)?;
+        if groups.is_empty() {
+            bail!(
+                "{}: split '{split}' has no shards: check the manifest's split counts",
+                source.describe()
+            );
+        }
+        let plan = plan_epoch(&groups, config.seed, epoch, config.window_groups, 0, 1);
+        let total = config
+            .max_samples
+            .map_or(plan.rows.len(), |m| m.min(plan.rows.len()));
+        let batches = total.div_ceil(config.batch_size);
+        let dem_std = source.manifest().dem_std_m;
+        let (sender, receiver) = sync_channel(2);
+        let worker = std::thread::spawn(move || {
+            let mut cache: BTreeMap<usize, Vec<Sample>> = BTreeMap::new();
+            let mut cached_window = usize::MAX;
+            for batch in start_batch..batches {
+                let range = batch * config.batch_size..((batch + 1) * config.batch_size).min(total);
+                let mut samples = Vec::with_capacity(range.len());
+                for position in range {
+                    let row = plan.rows[position];
+                    let window = plan.window_of[position];
+                    if window != cached_window {
+                        // Hold one window's row groups at a time: bounded memory whatever the split size.
+                        cache.clear();
+                        for &g in &plan.windows[window] {
+                            match source.read_row_group(&groups[g]) {
+                                Ok(rows) => {
+                                    cache.insert(g, rows);
+                                }
+                                Err(e) => {
+                                    let _ = sender.send(Err(e));
+                                    return;
+                                }
+                            }
+                        }
+                        cached_window = window;
+                    }
+                    let sample = &cache[&row.group][row.row];
+                    samples.push(if config.augment {
+                        augmentation_for(config.seed, epoch, position).apply(sample)
+                    } else {
+                        sample.clone()
+                    });
+                }
+                if sender
+                    .send(Ok(HostBatch::from_samples(&samples, dem_std)))
+                    .is_err()
+                {
+                    return; // the consumer stopped early
+                }
+            }
+        });
+        Ok(Self {
+            receiver,
+            worker: Some(worker),
+            batches,
+        })
+    }
+}
+
+impl Iterator for EpochStream {
+    type Item = Result<HostBatch>;
+    fn next(&mut self) -> Option<Self::Item> {
+        match self.receiver.recv() {
+            Ok(item) => Some(item),
+            Err(_) => {
+                if let Some(worker) = self.worker.take() {
+                    if worker.join().is_err() {
+                        return Some(Err(anyhow::anyhow!("data loader thread panicked")));
+                    }
+                }
+                None
+            }
+        }
+    }
+}
+
+/// Read every sample of a split in file order (evaluation and small tests).
+pub fn read_split(source: &dyn SampleSource, split: &str, limit: usize) -> Result<Vec<Sample>> {
+    let mut out = Vec::new();
+    for group in source.row_groups(split)? {
+        if out.len() >= limit {
+            break;
+        }
+        out.extend(
+            source
+                .read_row_group(&group)
+                .with_context(|| format!("reading {}", group.shard))?,
+        );
+    }
+    out.truncate(limit);
+    Ok(out)
+}

@@ -1,0 +1,137 @@
+//! The U-Net of the paper (DESIGN §8): four down stages (16-32-64-128 at width 16) and a 256 bottleneck, each
+//! block two × (conv3×3 → BatchNorm → LeakyReLU) then dropout by depth; max-pool down, nearest ×2 up + conv3×3,
+//! skip concatenation, 1×1 head to the BRDF's parameter count. ≈ 2.16 M trainable weights at width 16.
+//! `base_width` scales every stage (CPU budgets use 4 or 8; say which).
+
+use burn::nn::conv::{Conv2d, Conv2dConfig};
+use burn::nn::pool::{MaxPool2d, MaxPool2dConfig};
+use burn::nn::{BatchNorm, BatchNormConfig, Dropout, DropoutConfig, PaddingConfig2d};
+use burn::prelude::*;
+use burn::tensor::activation::leaky_relu;
+use burn::tensor::module::interpolate;
+use burn::tensor::ops::{InterpolateMode, InterpolateOptions};
+
+/// Negative slope of the network's activations.
+const ACTIVATION_SLOPE: f64 = 0.01;
+/// Dropout by depth: stages 1-4, then the bottleneck (the up path mirrors the down path).
+const DROPOUT_BY_DEPTH: [f64; 5] = [0.0, 0.1, 0.2, 0.3, 0.3];
+
+#[derive(Config, Debug)]
+pub struct UNetConfig {
+    /// Output channels = the BRDF model's parameter count.
+    pub out_channels: usize,
+    /// Channels of the first stage; the others double per stage.
+    #[config(default = 16)]
+    pub base_width: usize,
+    #[config(default = true)]
+    pub dropout: bool,
+}
+
+#[derive(Module, Debug)]
+pub struct ConvBlock<B: Backend> {
+    conv1: Conv2d<B>,
+    norm1: BatchNorm<B>,
+    conv2: Conv2d<B>,
+    norm2: BatchNorm<B>,
+    dropout: Dropout,
+}
+
+fn conv3<B: Backend>(c_in: usize, c_out: usize, device: &B::Device) -> Conv2d<B> {
+    Conv2dConfig::new([c_in, c_out], [3, 3])
+        .with_padding(PaddingConfig2d::Explicit(1, 1, 1, 1))
+        .init(device)
+}
+
+impl<B: Backend> ConvBlock<B> {
+    fn new(c_in: usize, c_out: usize, dropout: f64, device: &B::Device) -> Self {
+        Self {
+            conv1: conv3(c_in, c_out, device),
+            norm1: BatchNormConfig::new(c_out).init(device),
+            conv2: conv3(c_out, c_out, device),
+            norm2: BatchNormConfig::new(c_out).init(device),
+            dropout: DropoutConfig::new(dropout).init(),
+        }
+    }
+
+    fn forward(&self, x: Tensor<B, 4>) -> Tensor<B, 4> {
+        let x = leaky_relu(self.norm1.forward(self.conv1.forward(x)), ACTIVATION_SLOPE);
+        let x = leaky_relu(self.norm2.forward(self.conv2.forward(x)), ACTIVATION_SLOPE);
+        self.dropout.forward(x)
+    }
+}
+
+#[derive(Module, Debug)]
+pub struct UNet<B: Backend> {
+    down: Vec<ConvBlock<B>>,
+    bottleneck: ConvBlock<B>,
+    up_convs: Vec<Conv2d<B>>,
+    up_blocks: Vec<ConvBlock<B>>,
+    head: Conv2d<B>,
+    pool: MaxPool2d,
+}
+
+impl UNetConfig {
+    pub fn init<B: Backend>(&self, device: &B::Device) -> UNet<B> {
+        let w = self.base_width;
+        let widths = [w, 2 * w, 4 * w, 8 * w];
+        let p = |depth: usize| {
+            if self.dropout {
+                DROPOUT_BY_DEPTH[depth]
+            } else {
+                0.0
+            }
+        };
+        let mut down = Vec::new();
+        let mut c_in = 1;
+        for (depth, &c) in widths.iter().enumerate() {
+            down.push(ConvBlock::new(c_in, c, p(depth), device));
+            c_in = c;
+        }
+        let bottleneck = ConvBlock::new(c_in, 16 * w, p(4), device);
+        let (mut up_convs, mut up_blocks) = (Vec::new(), Vec::new());
+        let mut c_up = 16 * w;
+        for (depth, &c) in widths.iter().enumerate().rev() {
+            up_convs.push(conv3(c_up, c, device));
+            up_blocks.push(ConvBlock::new(2 * c, c, p(depth), device));
+            c_up = c;
+        }
+        UNet {
+            down,
+            bottleneck,
+            up_convs,
+            up_blocks,
+            head: Conv2dConfig::new([w, self.out_channels], [1, 1]).init(device),
+            pool: MaxPool2dConfig::new([2, 2]).init(),
+        }
+    }
+
+    /// BatchNorm running means and variances, which Burn's `num_params` counts but nothing trains.
+    pub fn running_stat_count(&self) -> usize {
+        let w = self.base_width;
+        let block_channels: usize = [w, 2 * w, 4 * w, 8 * w].iter().sum::<usize>() * 2 + 16 * w;
+        // Two BatchNorms per block, each with a running mean and a running variance.
+        2 * 2 * block_channels
+    }
+}
+
+impl<B: Backend> UNet<B> {
+    /// `[N, 1, 128, 128]` normalised heights → `[N, P, 128, 128]` raw BRDF parameters.
+    pub fn forward(&self, x: Tensor<B, 4>) -> Tensor<B, 4> {
+        let mut skips = Vec::new();
+        let mut x = x;
+        for block in &self.down {
+            let y = block.forward(x);
+            x = self.pool.forward(y.clone());
+            skips.push(y);
+        }
+        x = self.bottleneck.forward(x);
+        for (conv, block) in self.up_convs.iter().zip(&self.up_blocks) {
+            let skip = skips.pop().expect("one skip per stage");
+            let [_, _, h, w] = skip.dims();
+            let up = interpolate(x, [h, w], InterpolateOptions::new(InterpolateMode::Nearest));
+            let up = leaky_relu(conv.forward(up), ACTIVATION_SLOPE);
+            x = block.forward(Tensor::cat(vec![up, skip], 1));
+        }
+        self.head.forward(x)
+    }
+}

@@ -1,0 +1,453 @@
+//! The fit loop: Adam on the masked MSE through the renderer layer, metrics JSONL per epoch, best-val and last
+//! checkpoints, and exact resume.
+//!
+//! Exact resume rests on three things: (1) batches are a pure function of (seed, epoch, position)
+//! ([`crate::data`]); (2) the backend RNG, which drives dropout, is re-seeded before every step from
+//! (seed, step), so no RNG state needs saving; (3) the last checkpoint holds the model (with BatchNorm running
+//! stats and parameter ids), the Adam state keyed by those ids, and the cursor (epoch, next batch, step).
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use burn::module::AutodiffModule;
+use burn::optim::{AdamConfig, GradientsParams, Optimizer};
+use burn::prelude::*;
+use burn::record::{FullPrecisionSettings, NamedMpkFileRecorder, Recorder};
+use burn::tensor::backend::AutodiffBackend;
+use dataset::brdf::BrdfModel;
+use dataset::rng::keyed_rng;
+use indicatif::{ProgressBar, ProgressStyle};
+use rand::RngCore;
+
+use crate::data::{EpochStream, HostBatch, SampleSource, StreamConfig};
+use crate::metrics::image_metrics;
+use crate::model::{UNet, UNetConfig};
+use crate::render::{masked_mse, render, scene_geometry, SceneInputs};
+
+/// Everything that defines a run (saved as `config.json`; a resume must match it).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct FitConfig {
+    pub model: BrdfModel,
+    pub epochs: usize,
+    pub learning_rate: f64,
+    pub base_width: usize,
+    pub dropout: bool,
+    pub stream: StreamConfig,
+    /// Cap on validation samples per epoch (`None` = the whole split).
+    pub max_val_samples: Option<usize>,
+}
+
+/// One line of `metrics.jsonl`.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct EpochMetrics {
+    pub epoch: usize,
+    pub steps: u64,
+    pub train_loss: f64,
+    pub val_loss: f64,
+    pub val_pixel_mse: f64,
+    pub val_psnr_db: f64,
+    pub val_ssim: f64,
+    pub val_images: usize,
+}
+
+/// Where the next step starts (saved with the last checkpoint).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Cursor {
+    pub epoch: usize,
+    pub next_batch: usize,
+    pub step: u64,
+    /// Sum and count of train losses so far in the current epoch (for its mean).
+    pub epoch_loss_sum: f64,
+    pub epoch_batches: usize,
+    pub best_val_loss: Option<f64>,
+}
+
+impl Cursor {
+    fn start() -> Self {
+        Self {
+            epoch: 0,
+            next_batch: 0,
+            step: 0,
+            epoch_loss_sum: 0.0,
+            epoch_batches: 0,
+            best_val_loss: None,
+        }
+    }
+}
+
+/// What a run ended with.
+#[derive(Debug, Clone)]
+pub struct FitOutcome {
+    pub cursor: Cursor,
+    pub history: Vec<EpochMetrics>,
+    pub trainable_params: usize,
+    pub seconds_per_step: f64,
+}
+
+type Rec = NamedMpkFileRecorder<FullPrecisionSettings>;
+
+fn seed_for(seed: u64, purpose: &str, index: u64) -> u64 {
+    keyed_rng(seed, purpose, index).next_u64()
+}
+
+/// Trainable weights (Burn's `num_params` also counts BatchNorm running stats).
+pub fn trainable_params<B: Backend>(net: &UNet<B>, config: &UNetConfig) -> usize {
+    net.num_params() - config.running_stat_count()
+}
+
+/// One optimisation step's loss and gradients.
+pub fn train_loss<B: AutodiffBackend>(
+    net: &UNet<B>,
+    model: BrdfModel,
+    batch: &HostBatch,
+    device: &B::Device,
+) -> Tensor<B, 1> {
+    let n = batch.len();
+    let scene = SceneInputs::<B>::from_host(batch, device);
+    let geometry = scene_geometry(&scene);
+    let input = Tensor::<B, 4>::from_data(
+        TensorData::new(batch.net_input.clone(), [n, 1, 128, 128]),
+        device,
+    );
+    let image = Tensor::<B, 4>::from_data(
+        TensorData::new(batch.image.clone(), [n, 1, 128, 128]),
+        device,
+    );
+    let rendered = render(model, net.forward(input), &geometry);
+    masked_mse(rendered, image, geometry.valid.clone())
+}
+
+/// Render a batch with the network in inference mode (running BatchNorm stats, no dropout): `N × 128²` f64.
+pub fn predict_images<B: Backend>(
+    net: &UNet<B>,
+    model: BrdfModel,
+    batch: &HostBatch,
+    device: &B::Device,
+) -> Vec<f64> {
+    let n = batch.len();
+    let scene = SceneInputs::<B>::from_host(batch, device);
+    let geometry = scene_geometry(&scene);
+    let input = Tensor::<B, 4>::from_data(
+        TensorData::new(batch.net_input.clone(), [n, 1, 128, 128]),
+        device,
+    );
+    render(model, net.forward(input), &geometry)
+        .into_data()
+        .convert::<f64>()
+        .into_vec::<f64>()
+        .expect("f64 after convert")
+}
+
+/// Validation over (up to `max`) val samples in file order, in inference mode.
+pub fn validate<B: Backend>(
+    net: &UNet<B>,
+    model: BrdfModel,
+    source: &dyn SampleSource,
+    max: Option<usize>,
+    batch_size: usize,
+    device: &B::Device,
+) -> Result<(f64, f64, f64, f64, usize)> {
+    let samples = crate::data::read_split(source, "val", max.unwrap_or(usize::MAX))?;
+    let dem_std = source.manifest().dem_std_m;
+    let (mut sq_sum, mut pixels) = (0.0, 0usize);
+    let (mut mse_sum, mut psnr_sum, mut ssim_sum, mut images, mut ssim_images) =
+        (0.0, 0.0, 0.0, 0, 0);
+    let px = 128 * 128;
+    for chunk in samples.chunks(batch_size) {
+        let batch = HostBatch::from_samples(chunk, dem_std);
+        let rendered = predict_images(net, model, &batch, device);
+        for i in 0..batch.len() {
+            let range = i * px..(i + 1) * px;
+            let valid: Vec<bool> = batch.valid[range.clone()]
+                .iter()
+                .map(|&v| v > 0.0)
+                .collect();
+            if let Some(m) =
+                image_metrics(&rendered[range.clone()], &batch.image[range], &valid, 128)
+            {
+                sq_sum += m.sse;
+                pixels += m.valid_pixels;
+                mse_sum += m.mse;
+                if m.psnr_db.is_finite() {
+                    psnr_sum += m.psnr_db;
+                }
+                if let Some(s) = m.ssim {
+                    ssim_sum += s;
+                    ssim_images += 1;
+                }
+                images += 1;
+            }
+        }
+    }
+    let images_f = images.max(1) as f64;
+    Ok((
+        sq_sum / pixels.max(1) as f64,
+        mse_sum / images_f,
+        psnr_sum / images_f,
+        ssim_sum / ssim_images.max(1) as f64,
+        images,
+    ))
+}
+
+/// Train (or resume) into `out`. `stop_after_steps` ends the run early with a resumable last checkpoint
+/// (used by the resume test and for wall-clock-bounded jobs).
+pub fn fit<B: AutodiffBackend>(
+    source: Arc<dyn SampleSource>,
+    config: &FitConfig,
+    out: &Path,
+    resume: bool,
+    stop_after_steps: Option<u64>,
+    device: &B::Device,
+    show_progress: bool,
+) -> Result<FitOutcome> {
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let config_path = out.join("config.json");
+    let last = out.join("last");
+    let net_config = UNetConfig::new(config.model.param_count())
+        .with_base_width(config.base_width)
+        .with_dropout(config.dropout);
+    let recorder = Rec::new();
+    let seed = config.stream.seed;
+
+    let (mut net, mut optim, mut cursor, mut history) = if resume {
+        let saved: FitConfig = read_json(&config_path)?;
+        if saved.model != config.model {
+            bail!(
+                "{}: checkpoint is for BRDF model {} but --model {} was given: resume with --model {} or use a new --out",
+                config_path.display(),
+                saved.model.name(),
+                config.model.name(),
+                saved.model.name()
+            );
+        }
+        if saved != *config {
+            bail!(
+                "{}: the run was started with different settings ({saved:?}); resume with the same flags or use a new --out",
+                config_path.display()
+            );
+        }
+        let cursor: Cursor = read_json(&last.join("cursor.json"))?;
+        let net = net_config
+            .init::<B>(device)
+            .load_file(last.join("model"), &recorder, device)
+            .with_context(|| format!("{}: cannot load the model checkpoint", last.display()))?;
+        let optim =
+            AdamConfig::new()
+                .with_epsilon(1e-8)
+                .init::<B, UNet<B>>()
+                .load_record(recorder.load(last.join("optim"), device).with_context(|| {
+                    format!("{}: cannot load the optimizer state", last.display())
+                })?);
+        let history = read_history(&out.join("metrics.jsonl"))?;
+        (net, optim, cursor, history)
+    } else {
+        if last.exists() {
+            bail!(
+                "{}: already holds a run: pass --resume to continue it, or choose a new --out",
+                out.display()
+            );
+        }
+        write_json(&config_path, config)?;
+        B::seed(device, seed_for(seed, "init", 0));
+        let net = net_config.init::<B>(device);
+        let _ = net.num_params(); // materialise the lazily initialised weights now, in a fixed order
+        let optim = AdamConfig::new().with_epsilon(1e-8).init::<B, UNet<B>>();
+        (net, optim, Cursor::start(), Vec::new())
+    };
+    let trainable = trainable_params(&net, &net_config);
+    tracing::info!(
+        model = config.model.name(),
+        trainable_params = trainable,
+        base_width = config.base_width,
+        "U-Net ready"
+    );
+
+    let started = Instant::now();
+    let mut steps_this_run = 0u64;
+    while cursor.epoch < config.epochs {
+        let epoch = cursor.epoch;
+        let stream = EpochStream::start(
+            source.clone(),
+            "train",
+            config.stream,
+            epoch as u64,
+            cursor.next_batch,
+        )?;
+        let bar = if show_progress {
+            ProgressBar::new(stream.batches as u64)
+        } else {
+            ProgressBar::hidden()
+        };
+        bar.set_style(
+            ProgressStyle::with_template("epoch {prefix} [{bar:30}] {pos}/{len} {msg} ({eta})")
+                .expect("valid template")
+                .progress_chars("=> "),
+        );
+        bar.set_prefix(format!("{}/{}", epoch + 1, config.epochs));
+        bar.set_position(cursor.next_batch as u64);
+        for batch in stream {
+            let batch = batch?;
+            // Dropout masks from (seed, step): a resumed run draws exactly what an uninterrupted one would.
+            B::seed(device, seed_for(seed, "dropout", cursor.step));
+            let loss = train_loss(&net, config.model, &batch, device);
+            let loss_value: f64 = loss
+                .clone()
+                .into_data()
+                .convert::<f64>()
+                .to_vec::<f64>()
+                .expect("f64")[0];
+            if !loss_value.is_finite() {
+                bail!(
+                    "non-finite training loss at step {} (epoch {epoch}); lower --lr",
+                    cursor.step
+                );
+            }
+            let grads = GradientsParams::from_grads(loss.backward(), &net);
+            net = optim.step(config.learning_rate, net, grads);
+            cursor.step += 1;
+            cursor.next_batch += 1;
+            cursor.epoch_loss_sum += loss_value;
+            cursor.epoch_batches += 1;
+            steps_this_run += 1;
+            bar.inc(1);
+            bar.set_message(format!(
+                "loss {:.3e}",
+                cursor.epoch_loss_sum / cursor.epoch_batches as f64
+            ));
+            if stop_after_steps.is_some_and(|s| cursor.step >= s) {
+                save_last(&net, &optim, &cursor, &last, &recorder)?;
+                bar.abandon_with_message(format!("stopped at step {} (resumable)", cursor.step));
+                return Ok(outcome(cursor, history, trainable, started, steps_this_run));
+            }
+        }
+        bar.finish();
+        let inference = net.valid();
+        let (val_loss, val_pixel_mse, val_psnr_db, val_ssim, val_images) = validate(
+            &inference,
+            config.model,
+            source.as_ref(),
+            config.max_val_samples,
+            config.stream.batch_size,
+            device,
+        )?;
+        let metrics = EpochMetrics {
+            epoch,
+            steps: cursor.step,
+            train_loss: cursor.epoch_loss_sum / cursor.epoch_batches.max(1) as f64,
+            val_loss,
+            val_pixel_mse,
+            val_psnr_db,
+            val_ssim,
+            val_images,
+        };
+        tracing::info!(?metrics, "epoch done");
+        append_jsonl(&out.join("metrics.jsonl"), &metrics)?;
+        history.push(metrics.clone());
+        if cursor.best_val_loss.is_none_or(|b| val_loss < b) {
+            cursor.best_val_loss = Some(val_loss);
+            net.clone()
+                .save_file(out.join("best").join("model"), &recorder)
+                .context("saving the best-val checkpoint")?;
+        }
+        cursor.epoch += 1;
+        cursor.next_batch = 0;
+        cursor.epoch_loss_sum = 0.0;
+        cursor.epoch_batches = 0;
+        save_last(&net, &optim, &cursor, &last, &recorder)?;
+    }
+    Ok(outcome(cursor, history, trainable, started, steps_this_run))
+}
+
+fn outcome(
+    cursor: Cursor,
+    history: Vec<EpochMetrics>,
+    trainable: usize,
+    started: Instant,
+    steps: u64,
+) -> FitOutcome {
+    FitOutcome {
+        cursor,
+        history,
+        trainable_params: trainable,
+        seconds_per_step: started.elapsed().as_secs_f64() / steps.max(1) as f64,
+    }
+}
+
+/// Write the last checkpoint into a temp directory, then swap it in: a killed save leaves the previous one intact.
+fn save_last<B: AutodiffBackend, O: Optimizer<UNet<B>, B>>(
+    net: &UNet<B>,
+    optim: &O,
+    cursor: &Cursor,
+    last: &Path,
+    recorder: &Rec,
+) -> Result<()> {
+    let tmp = last.with_file_name("last.partial");
+    if tmp.exists() {
+        std::fs::remove_dir_all(&tmp)?;
+    }
+    std::fs::create_dir_all(&tmp)?;
+    net.clone()
+        .save_file(tmp.join("model"), recorder)
+        .context("saving the model")?;
+    recorder
+        .record(optim.to_record(), tmp.join("optim"))
+        .context("saving the optimizer state")?;
+    write_json(&tmp.join("cursor.json"), cursor)?;
+    let old = last.with_file_name("last.old");
+    if last.exists() {
+        std::fs::rename(last, &old)?;
+    }
+    std::fs::rename(&tmp, last)?;
+    if old.exists() {
+        std::fs::remove_dir_all(&old)?;
+    }
+    Ok(())
+}
+
+fn write_json<T: serde::Serialize>(path: &Path, value: &T) -> Result<()> {
+    dataset::manifest::write_json_atomic(path, value)
+        .with_context(|| format!("writing {}", path.display()))
+}
+
+fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T> {
+    let text = std::fs::read_to_string(path).with_context(|| {
+        format!(
+            "{}: missing: is this a g2r-train run directory?",
+            path.display()
+        )
+    })?;
+    serde_json::from_str(&text).with_context(|| {
+        format!(
+            "{}: not valid JSON for this g2r-train version",
+            path.display()
+        )
+    })
+}
+
+fn append_jsonl<T: serde::Serialize>(path: &Path, value: &T) -> Result<()> {
+    let mut file = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(path)
+        .with_context(|| format!("opening {}", path.display()))?;
+    writeln!(file, "{}", serde_json::to_string(value)?)?;
+    Ok(())
+}
+
+fn read_history(path: &Path) -> Result<Vec<EpochMetrics>> {
+    if !path.exists() {
+        return Ok(Vec::new());
+    }
+    std::fs::read_to_string(path)?
+        .lines()
+        .map(|l| serde_json::from_str(l).with_context(|| format!("{}: bad line", path.display())))
+        .collect()
+}
+
+/// Paths of a run directory's checkpoints.
+pub fn best_model_path(run: &Path) -> PathBuf {
+    run.join("best").join("model")
+}
