@@ -176,6 +176,12 @@ fn run_fit(
     }
 }
 
+fn ssim_text(ssim: Option<f64>) -> String {
+    ssim.map_or("n/a (no fully valid 7x7 window)".into(), |s| {
+        format!("{s:.3}")
+    })
+}
+
 fn main() {
     dataset::init_logging();
     if let Err(e) = run(Cli::parse()) {
@@ -215,8 +221,10 @@ fn run(cli: Cli) -> Result<()> {
             );
             if let Some(last) = outcome.history.last() {
                 println!(
-                    "last epoch: val per-pixel MSE {:.4e}, PSNR {:.2} dB, SSIM {:.3}",
-                    last.val_pixel_mse, last.val_psnr_db, last.val_ssim
+                    "last epoch: val per-pixel MSE {:.4e}, PSNR {:.2} dB, SSIM {}",
+                    last.val_pixel_mse,
+                    last.val_psnr_db,
+                    ssim_text(last.val_ssim)
                 );
             }
         }
@@ -238,13 +246,13 @@ fn run(cli: Cli) -> Result<()> {
                 let last = outcome.history.last().cloned();
                 if let Some(m) = &last {
                     table.push_str(&format!(
-                        "| {} | {} | {} | {:.4e} | {:.2} | {:.3} | {:.3} |\n",
+                        "| {} | {} | {} | {:.4e} | {:.2} | {} | {:.3} |\n",
                         model.name(),
                         model.param_count(),
                         outcome.trainable_params,
                         m.val_loss,
                         m.val_psnr_db,
-                        m.val_ssim,
+                        ssim_text(m.val_ssim),
                         outcome.seconds_per_step
                     ));
                 }

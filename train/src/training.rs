@@ -49,7 +49,8 @@ pub struct EpochMetrics {
     pub val_loss: f64,
     pub val_pixel_mse: f64,
     pub val_psnr_db: f64,
-    pub val_ssim: f64,
+    /// `None` when no validation image has a fully valid 7×7 window.
+    pub val_ssim: Option<f64>,
     pub val_images: usize,
 }
 
@@ -149,7 +150,7 @@ pub fn validate<B: Backend>(
     max: Option<usize>,
     batch_size: usize,
     device: &B::Device,
-) -> Result<(f64, f64, f64, f64, usize)> {
+) -> Result<(f64, f64, f64, Option<f64>, usize)> {
     let samples = crate::data::read_split(source, "val", max.unwrap_or(usize::MAX))?;
     let dem_std = source.manifest().dem_std_m;
     let (mut sq_sum, mut pixels) = (0.0, 0usize);
@@ -187,7 +188,7 @@ pub fn validate<B: Backend>(
         sq_sum / pixels.max(1) as f64,
         mse_sum / images_f,
         psnr_sum / images_f,
-        ssim_sum / ssim_images.max(1) as f64,
+        (ssim_images > 0).then(|| ssim_sum / ssim_images as f64),
         images,
     ))
 }
