@@ -159,6 +159,8 @@ pub struct BenchReport {
     pub batch: usize,
     pub base_width: usize,
     pub model: String,
+    /// Trainable U-Net weights (Burn's `num_params` minus BatchNorm running stats).
+    pub trainable_params: usize,
     pub train_step_samples_per_s: f64,
     pub train_step_ms: f64,
     pub layer_samples_per_s: f64,
@@ -178,6 +180,7 @@ pub fn bench<B: AutodiffBackend>(
     B::seed(device, 7);
     let config = UNetConfig::new(model.param_count()).with_base_width(base_width);
     let mut net = config.init::<B>(device);
+    let trainable_params = crate::training::trainable_params(&net, &config);
     let mut optim = AdamConfig::new()
         .with_epsilon(1e-8)
         .init::<B, crate::model::UNet<B>>();
@@ -228,6 +231,7 @@ pub fn bench<B: AutodiffBackend>(
         batch: batch_size,
         base_width,
         model: model.name().to_string(),
+        trainable_params,
         train_step_samples_per_s: batch_size as f64 / train_s,
         train_step_ms: train_s * 1e3,
         layer_samples_per_s: batch_size as f64 / layer_s,
