@@ -25,7 +25,7 @@ use rand::RngCore;
 use crate::data::{EpochStream, HostBatch, SampleSource, StreamConfig};
 use crate::metrics::image_metrics;
 use crate::model::{UNet, UNetConfig};
-use crate::render::{masked_mse, render, scene_geometry, SceneInputs};
+use crate::render::{masked_mse, render, scene_geometry, SceneGeometry, SceneInputs};
 
 /// Everything that defines a run (saved as `config.json`; a resume must match it).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -99,26 +99,34 @@ pub fn trainable_params<B: Backend>(net: &UNet<B>, config: &UNetConfig) -> usize
     net.num_params() - config.running_stat_count()
 }
 
-/// One optimisation step's loss and gradients.
+/// Network → renderer for one host batch: the rendered image `[N, 1, 128, 128]` and the batch's geometry.
+fn render_batch<B: Backend>(
+    net: &UNet<B>,
+    model: BrdfModel,
+    batch: &HostBatch,
+    device: &B::Device,
+) -> (Tensor<B, 4>, SceneGeometry<B>) {
+    let geometry = scene_geometry(&SceneInputs::<B>::from_host(batch, device));
+    let input = Tensor::<B, 4>::from_data(
+        TensorData::new(batch.net_input.clone(), [batch.len(), 1, 128, 128]),
+        device,
+    );
+    (render(model, net.forward(input), &geometry), geometry)
+}
+
+/// One optimisation step's loss (masked MSE through the renderer layer).
 pub fn train_loss<B: AutodiffBackend>(
     net: &UNet<B>,
     model: BrdfModel,
     batch: &HostBatch,
     device: &B::Device,
 ) -> Tensor<B, 1> {
-    let n = batch.len();
-    let scene = SceneInputs::<B>::from_host(batch, device);
-    let geometry = scene_geometry(&scene);
-    let input = Tensor::<B, 4>::from_data(
-        TensorData::new(batch.net_input.clone(), [n, 1, 128, 128]),
-        device,
-    );
+    let (rendered, geometry) = render_batch(net, model, batch, device);
     let image = Tensor::<B, 4>::from_data(
-        TensorData::new(batch.image.clone(), [n, 1, 128, 128]),
+        TensorData::new(batch.image.clone(), [batch.len(), 1, 128, 128]),
         device,
     );
-    let rendered = render(model, net.forward(input), &geometry);
-    masked_mse(rendered, image, geometry.valid.clone())
+    masked_mse(rendered, image, geometry.valid)
 }
 
 /// Render a batch with the network in inference mode (running BatchNorm stats, no dropout): `N × 128²` f64.
@@ -128,14 +136,8 @@ pub fn predict_images<B: Backend>(
     batch: &HostBatch,
     device: &B::Device,
 ) -> Vec<f64> {
-    let n = batch.len();
-    let scene = SceneInputs::<B>::from_host(batch, device);
-    let geometry = scene_geometry(&scene);
-    let input = Tensor::<B, 4>::from_data(
-        TensorData::new(batch.net_input.clone(), [n, 1, 128, 128]),
-        device,
-    );
-    render(model, net.forward(input), &geometry)
+    render_batch(net, model, batch, device)
+        .0
         .into_data()
         .convert::<f64>()
         .into_vec::<f64>()
