@@ -34,12 +34,21 @@ pub fn crop_normals_enu(
     let mut normals = Vec::with_capacity(width * height);
     for row in 1..=height {
         for col in 1..=width {
-            let toward_east = enu(col + 1, row) - enu(col - 1, row);
-            let toward_south = enu(col, row + 1) - enu(col, row - 1);
-            normals.push(toward_south.cross(toward_east).normalize());
+            normals.push(central_difference_normal(&enu, col, row));
         }
     }
     normals
+}
+
+/// Unit normal at (col, row) from the ENU points of its four neighbours (upward for a north-up grid).
+fn central_difference_normal(
+    point: &impl Fn(usize, usize) -> DVec3,
+    col: usize,
+    row: usize,
+) -> DVec3 {
+    let toward_east = point(col + 1, row) - point(col - 1, row);
+    let toward_south = point(col, row + 1) - point(col, row - 1);
+    toward_south.cross(toward_east).normalize()
 }
 
 /// How a training sample's grid sits in its crop's local ENU frame: what the renderer (scalar here, batched in
@@ -114,9 +123,7 @@ pub fn crop_pixel_geometry(
     let mut out = Vec::with_capacity(n * n);
     for row in 1..=n {
         for col in 1..=n {
-            let toward_east = point(col + 1, row) - point(col - 1, row);
-            let toward_south = point(col, row + 1) - point(col, row - 1);
-            let normal = toward_south.cross(toward_east).normalize();
+            let normal = central_difference_normal(&point, col, row);
             let view_dir = (camera_pos_enu - point(col, row)).normalize();
             out.push(PixelGeometry {
                 cosines: Cosines::new(normal, sun_dir_enu, view_dir),

@@ -8,7 +8,7 @@ use std::sync::mpsc::{sync_channel, Receiver};
 use std::sync::Arc;
 use std::thread::JoinHandle;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{bail, Result};
 use dataset::manifest::DatasetManifest;
 use dataset::planner::{plan_epoch, RowGroupRef};
 use dataset::rng::keyed_rng;
@@ -259,21 +259,4 @@ impl Iterator for EpochStream {
             }
         }
     }
-}
-
-/// Read every sample of a split in file order (evaluation and small tests).
-pub fn read_split(source: &dyn SampleSource, split: &str, limit: usize) -> Result<Vec<Sample>> {
-    let mut out = Vec::new();
-    for group in source.row_groups(split)? {
-        if out.len() >= limit {
-            break;
-        }
-        out.extend(
-            source
-                .read_row_group(&group)
-                .with_context(|| format!("reading {}", group.shard))?,
-        );
-    }
-    out.truncate(limit);
-    Ok(out)
 }

@@ -135,12 +135,29 @@ enum Command {
     },
 }
 
-type FlexTrain = burn::backend::Autodiff<burn::backend::Flex>;
-#[cfg(feature = "cuda")]
-type CudaTrain = burn::backend::Autodiff<burn::backend::Cuda>;
-
 fn no_cuda() -> anyhow::Error {
-    anyhow::anyhow!("this g2r-train was built without CUDA: rebuild with `cargo build --release -p g2r-train --features cuda`")
+    anyhow::anyhow!(
+        "this g2r-train was built without CUDA: rebuild with `cargo build --release -p g2r-train --features cuda`"
+    )
+}
+
+/// Evaluate `$body` (a `Result`) with `$B` bound to the chosen autodiff backend: one arm per compiled backend.
+macro_rules! with_backend {
+    ($kind:expr, $B:ident => $body:expr) => {
+        match $kind {
+            BackendKind::Flex => {
+                type $B = burn::backend::Autodiff<burn::backend::Flex>;
+                $body
+            }
+            #[cfg(feature = "cuda")]
+            BackendKind::Cuda => {
+                type $B = burn::backend::Autodiff<burn::backend::Cuda>;
+                $body
+            }
+            #[cfg(not(feature = "cuda"))]
+            BackendKind::Cuda => Err(no_cuda()),
+        }
+    };
 }
 
 fn run_fit(
@@ -151,29 +168,7 @@ fn run_fit(
     stop: Option<u64>,
 ) -> Result<train::training::FitOutcome> {
     let config = args.fit_config();
-    match args.backend {
-        BackendKind::Flex => fit::<FlexTrain>(
-            source,
-            &config,
-            out,
-            resume,
-            stop,
-            &Default::default(),
-            true,
-        ),
-        #[cfg(feature = "cuda")]
-        BackendKind::Cuda => fit::<CudaTrain>(
-            source,
-            &config,
-            out,
-            resume,
-            stop,
-            &Default::default(),
-            true,
-        ),
-        #[cfg(not(feature = "cuda"))]
-        BackendKind::Cuda => Err(no_cuda()),
-    }
+    with_backend!(args.backend, B => fit::<B>(source, &config, out, resume, stop, &Default::default(), true))
 }
 
 fn ssim_text(ssim: Option<f64>) -> String {
@@ -279,27 +274,10 @@ fn run(cli: Cli) -> Result<()> {
             iters,
             backend,
         } => {
-            let report = match backend {
-                BackendKind::Flex => train::bench::bench::<FlexTrain>(
-                    "flex",
-                    model,
-                    batch,
-                    width,
-                    iters,
-                    &Default::default(),
-                ),
-                #[cfg(feature = "cuda")]
-                BackendKind::Cuda => train::bench::bench::<CudaTrain>(
-                    "cuda",
-                    model,
-                    batch,
-                    width,
-                    iters,
-                    &Default::default(),
-                ),
-                #[cfg(not(feature = "cuda"))]
-                BackendKind::Cuda => return Err(no_cuda()),
-            };
+            let name = format!("{backend:?}").to_lowercase();
+            let report: train::bench::BenchReport = with_backend!(backend, B => Ok(
+                train::bench::bench::<B>(&name, model, batch, width, iters, &Default::default())
+            ))?;
             println!("{}", serde_json::to_string_pretty(&report)?);
         }
     }

@@ -205,16 +205,12 @@ pub fn scene_geometry<B: Backend>(inputs: &SceneInputs<B>) -> SceneGeometry<B> {
     let normal = toward_south.cross(&toward_east).normalize();
     let centre = points.slice(inner.clone(), inner);
     let view = inputs.camera_pos_enu.sub(&centre).normalize();
+    // Per-sample sun vectors `[N, 1, 1, 1]` broadcast against the per-pixel fields.
     let sun = &inputs.sun_dir_enu;
-    let sun_field = Vec3 {
-        x: normal.x.zeros_like() + sun.x.clone(),
-        y: normal.x.zeros_like() + sun.y.clone(),
-        z: normal.x.zeros_like() + sun.z.clone(),
-    };
-    let cos_i = clamp_unit(normal.dot(&sun_field));
+    let cos_i = clamp_unit(normal.dot(sun));
     let cos_e = clamp_unit(normal.dot(&view));
-    let cos_g = clamp_unit(sun_field.dot(&view));
-    let half_diff = half_diff_cosines(&normal, &sun_field, &view);
+    let cos_g = clamp_unit(sun.dot(&view));
+    let half_diff = half_diff_cosines(&normal, sun, &view);
     let facing = cos_i
         .clone()
         .greater_elem(0.0)

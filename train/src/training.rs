@@ -18,9 +18,8 @@ use burn::prelude::*;
 use burn::record::{FullPrecisionSettings, NamedMpkFileRecorder, Recorder};
 use burn::tensor::backend::AutodiffBackend;
 use dataset::brdf::BrdfModel;
-use dataset::rng::keyed_rng;
+use dataset::rng::keyed_u64;
 use indicatif::{ProgressBar, ProgressStyle};
-use rand::RngCore;
 
 use crate::data::{EpochStream, HostBatch, SampleSource, StreamConfig};
 use crate::metrics::image_metrics;
@@ -85,14 +84,12 @@ pub struct FitOutcome {
     pub cursor: Cursor,
     pub history: Vec<EpochMetrics>,
     pub trainable_params: usize,
+    /// Mean optimiser-step time in this run (forward + backward + Adam; excludes data waits, validation and
+    /// checkpoints).
     pub seconds_per_step: f64,
 }
 
 type Rec = NamedMpkFileRecorder<FullPrecisionSettings>;
-
-fn seed_for(seed: u64, purpose: &str, index: u64) -> u64 {
-    keyed_rng(seed, purpose, index).next_u64()
-}
 
 /// Trainable weights (Burn's `num_params` also counts BatchNorm running stats).
 pub fn trainable_params<B: Backend>(net: &UNet<B>, config: &UNetConfig) -> usize {
@@ -144,7 +141,18 @@ pub fn predict_images<B: Backend>(
         .expect("f64 after convert")
 }
 
-/// Validation over (up to `max`) val samples in file order, in inference mode.
+/// Validation metrics, averaged per image except `pixel_mse_pooled` (all valid pixels pooled = the val loss).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ValMetrics {
+    pub pixel_mse_pooled: f64,
+    pub pixel_mse: f64,
+    /// Over images with a finite PSNR (a perfect or constant image has none).
+    pub psnr_db: f64,
+    pub ssim: Option<f64>,
+    pub images: usize,
+}
+
+/// Validation over (up to `max`) val samples in file order, in inference mode, one row group in memory at a time.
 pub fn validate<B: Backend>(
     net: &UNet<B>,
     model: BrdfModel,
@@ -152,47 +160,55 @@ pub fn validate<B: Backend>(
     max: Option<usize>,
     batch_size: usize,
     device: &B::Device,
-) -> Result<(f64, f64, f64, Option<f64>, usize)> {
-    let samples = crate::data::read_split(source, "val", max.unwrap_or(usize::MAX))?;
+) -> Result<ValMetrics> {
     let dem_std = source.manifest().dem_std_m;
-    let (mut sq_sum, mut pixels) = (0.0, 0usize);
-    let (mut mse_sum, mut psnr_sum, mut ssim_sum, mut images, mut ssim_images) =
-        (0.0, 0.0, 0.0, 0, 0);
+    let mut remaining = max.unwrap_or(usize::MAX);
+    let (mut sq_sum, mut pixels, mut mse_sum, mut images) = (0.0, 0usize, 0.0, 0usize);
+    let (mut psnr_sum, mut psnr_images, mut ssim_sum, mut ssim_images) = (0.0, 0usize, 0.0, 0usize);
     let px = 128 * 128;
-    for chunk in samples.chunks(batch_size) {
-        let batch = HostBatch::from_samples(chunk, dem_std);
-        let rendered = predict_images(net, model, &batch, device);
-        for i in 0..batch.len() {
-            let range = i * px..(i + 1) * px;
-            let valid: Vec<bool> = batch.valid[range.clone()]
-                .iter()
-                .map(|&v| v > 0.0)
-                .collect();
-            if let Some(m) =
-                image_metrics(&rendered[range.clone()], &batch.image[range], &valid, 128)
-            {
+    for group in source.row_groups("val")? {
+        if remaining == 0 {
+            break;
+        }
+        let mut samples = source.read_row_group(&group)?;
+        samples.truncate(remaining);
+        remaining -= samples.len();
+        for chunk in samples.chunks(batch_size) {
+            let batch = HostBatch::from_samples(chunk, dem_std);
+            let rendered = predict_images(net, model, &batch, device);
+            for i in 0..batch.len() {
+                let range = i * px..(i + 1) * px;
+                let valid: Vec<bool> = batch.valid[range.clone()]
+                    .iter()
+                    .map(|&v| v > 0.0)
+                    .collect();
+                let Some(m) =
+                    image_metrics(&rendered[range.clone()], &batch.image[range], &valid, 128)
+                else {
+                    continue;
+                };
                 sq_sum += m.sse;
                 pixels += m.valid_pixels;
                 mse_sum += m.mse;
+                images += 1;
                 if m.psnr_db.is_finite() {
                     psnr_sum += m.psnr_db;
+                    psnr_images += 1;
                 }
                 if let Some(s) = m.ssim {
                     ssim_sum += s;
                     ssim_images += 1;
                 }
-                images += 1;
             }
         }
     }
-    let images_f = images.max(1) as f64;
-    Ok((
-        sq_sum / pixels.max(1) as f64,
-        mse_sum / images_f,
-        psnr_sum / images_f,
-        (ssim_images > 0).then(|| ssim_sum / ssim_images as f64),
+    Ok(ValMetrics {
+        pixel_mse_pooled: sq_sum / pixels.max(1) as f64,
+        pixel_mse: mse_sum / images.max(1) as f64,
+        psnr_db: psnr_sum / psnr_images.max(1) as f64,
+        ssim: (ssim_images > 0).then(|| ssim_sum / ssim_images as f64),
         images,
-    ))
+    })
 }
 
 /// Train (or resume) into `out`. `stop_after_steps` ends the run early with a resumable last checkpoint
@@ -253,8 +269,11 @@ pub fn fit<B: AutodiffBackend>(
                 out.display()
             );
         }
+        // Leftovers of a run that died before its first checkpoint would mix into this one's history.
+        let _ = std::fs::remove_file(out.join("metrics.jsonl"));
+        let _ = std::fs::remove_dir_all(out.join("best"));
         write_json(&config_path, config)?;
-        B::seed(device, seed_for(seed, "init", 0));
+        B::seed(device, keyed_u64(seed, "init", 0));
         let net = net_config.init::<B>(device);
         let _ = net.num_params(); // materialise the lazily initialised weights now, in a fixed order
         let optim = AdamConfig::new().with_epsilon(1e-8).init::<B, UNet<B>>();
@@ -268,8 +287,8 @@ pub fn fit<B: AutodiffBackend>(
         "U-Net ready"
     );
 
-    let started = Instant::now();
-    let mut steps_this_run = 0u64;
+    // Time in optimiser steps only (not data waits, validation or checkpoints), for s/step figures.
+    let mut step_time = StepTime::default();
     while cursor.epoch < config.epochs {
         let epoch = cursor.epoch;
         let stream = EpochStream::start(
@@ -294,7 +313,8 @@ pub fn fit<B: AutodiffBackend>(
         for batch in stream {
             let batch = batch?;
             // Dropout masks from (seed, step): a resumed run draws exactly what an uninterrupted one would.
-            B::seed(device, seed_for(seed, "dropout", cursor.step));
+            B::seed(device, keyed_u64(seed, "dropout", cursor.step));
+            let step_started = Instant::now();
             let loss = train_loss(&net, config.model, &batch, device);
             let loss_value: f64 = loss
                 .clone()
@@ -310,11 +330,11 @@ pub fn fit<B: AutodiffBackend>(
             }
             let grads = GradientsParams::from_grads(loss.backward(), &net);
             net = optim.step(config.learning_rate, net, grads);
+            step_time.add(step_started);
             cursor.step += 1;
             cursor.next_batch += 1;
             cursor.epoch_loss_sum += loss_value;
             cursor.epoch_batches += 1;
-            steps_this_run += 1;
             bar.inc(1);
             bar.set_message(format!(
                 "loss {:.3e}",
@@ -323,12 +343,12 @@ pub fn fit<B: AutodiffBackend>(
             if stop_after_steps.is_some_and(|s| cursor.step >= s) {
                 save_last(&net, &optim, &cursor, &last, &recorder)?;
                 bar.abandon_with_message(format!("stopped at step {} (resumable)", cursor.step));
-                return Ok(outcome(cursor, history, trainable, started, steps_this_run));
+                return Ok(outcome(cursor, history, trainable, step_time));
             }
         }
         bar.finish();
         let inference = net.valid();
-        let (val_loss, val_pixel_mse, val_psnr_db, val_ssim, val_images) = validate(
+        let val = validate(
             &inference,
             config.model,
             source.as_ref(),
@@ -340,17 +360,20 @@ pub fn fit<B: AutodiffBackend>(
             epoch,
             steps: cursor.step,
             train_loss: cursor.epoch_loss_sum / cursor.epoch_batches.max(1) as f64,
-            val_loss,
-            val_pixel_mse,
-            val_psnr_db,
-            val_ssim,
-            val_images,
+            val_loss: val.pixel_mse_pooled,
+            val_pixel_mse: val.pixel_mse,
+            val_psnr_db: val.psnr_db,
+            val_ssim: val.ssim,
+            val_images: val.images,
         };
         tracing::info!(?metrics, "epoch done");
         append_jsonl(&out.join("metrics.jsonl"), &metrics)?;
         history.push(metrics.clone());
-        if cursor.best_val_loss.is_none_or(|b| val_loss < b) {
-            cursor.best_val_loss = Some(val_loss);
+        if cursor
+            .best_val_loss
+            .is_none_or(|b| val.pixel_mse_pooled < b)
+        {
+            cursor.best_val_loss = Some(val.pixel_mse_pooled);
             net.clone()
                 .save_file(out.join("best").join("model"), &recorder)
                 .context("saving the best-val checkpoint")?;
@@ -361,21 +384,33 @@ pub fn fit<B: AutodiffBackend>(
         cursor.epoch_batches = 0;
         save_last(&net, &optim, &cursor, &last, &recorder)?;
     }
-    Ok(outcome(cursor, history, trainable, started, steps_this_run))
+    Ok(outcome(cursor, history, trainable, step_time))
+}
+
+#[derive(Default)]
+struct StepTime {
+    seconds: f64,
+    steps: u64,
+}
+
+impl StepTime {
+    fn add(&mut self, started: Instant) {
+        self.seconds += started.elapsed().as_secs_f64();
+        self.steps += 1;
+    }
 }
 
 fn outcome(
     cursor: Cursor,
     history: Vec<EpochMetrics>,
     trainable: usize,
-    started: Instant,
-    steps: u64,
+    time: StepTime,
 ) -> FitOutcome {
     FitOutcome {
         cursor,
         history,
         trainable_params: trainable,
-        seconds_per_step: started.elapsed().as_secs_f64() / steps.max(1) as f64,
+        seconds_per_step: time.seconds / time.steps.max(1) as f64,
     }
 }
 
