@@ -60,6 +60,33 @@ pub struct Sample {
     pub provenance: String,
 }
 
+impl Sample {
+    /// Where the sample's pixels sit in its crop's ENU frame.
+    pub fn crop_grid(&self) -> crate::geometry::CropGrid {
+        crate::geometry::CropGrid {
+            gsd_m: self.gsd_m,
+            map_to_en: self.map_to_en,
+            origin_height_m: self.enu_origin_height_m,
+        }
+    }
+
+    /// Per-pixel geometry of the crop (scalar reference), from the stored heights, sun and camera.
+    pub fn pixel_geometry(&self) -> Vec<crate::geometry::PixelGeometry> {
+        let relative: Vec<f64> = self
+            .dem_m
+            .iter()
+            .map(|&h| h as f64 - self.enu_origin_height_m)
+            .collect();
+        crate::geometry::crop_pixel_geometry(
+            &relative,
+            CROP_PX,
+            &self.crop_grid(),
+            self.sun_dir_enu.into(),
+            self.camera_pos_enu_m.into(),
+        )
+    }
+}
+
 fn field(name: &str, data_type: DataType, description: &str, unit: &str) -> Field {
     Field::new(name, data_type, false).with_metadata(HashMap::from([
         ("description".to_string(), description.to_string()),

@@ -260,3 +260,24 @@ impl Iterator for EpochStream {
         }
     }
 }
+
+/// Call `f` with the samples of each row group of a split in file order, up to `max` samples in all: one row
+/// group in memory at a time, whatever the split's size.
+pub fn for_each_sample_group(
+    source: &dyn SampleSource,
+    split: &str,
+    max: Option<usize>,
+    mut f: impl FnMut(&[Sample]),
+) -> Result<()> {
+    let mut remaining = max.unwrap_or(usize::MAX);
+    for group in source.row_groups(split)? {
+        if remaining == 0 {
+            break;
+        }
+        let mut samples = source.read_row_group(&group)?;
+        samples.truncate(remaining);
+        remaining -= samples.len();
+        f(&samples);
+    }
+    Ok(())
+}

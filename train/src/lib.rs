@@ -3,6 +3,7 @@
 //! `dataset::brdf`) → [`metrics`] → [`training`] (fit loop, checkpoints, exact resume) → [`bench`].
 
 pub mod augment;
+pub mod baseline;
 pub mod bench;
 pub mod data;
 pub mod metrics;

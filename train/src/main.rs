@@ -120,6 +120,17 @@ enum Command {
         #[command(flatten)]
         train: TrainArgs,
     },
+    /// Metrics of the uniform-Hapke baseline, normalised per image as the paper did (affine to the ground truth's
+    /// mean and range: it peeks at the ground truth), on a split: compare with a run's val metrics.
+    Baseline {
+        #[arg(long)]
+        data: PathBuf,
+        #[arg(long, default_value = "val")]
+        split: String,
+        /// Samples to evaluate (default: the whole split).
+        #[arg(long)]
+        max_samples: Option<usize>,
+    },
     /// Samples/s of the train step (U-Net + renderer layer, forward + backward + Adam) and of the layer alone.
     Bench {
         #[arg(long, default_value_t = 8)]
@@ -266,6 +277,15 @@ fn run(cli: Cli) -> Result<()> {
             )?;
             dataset::manifest::write_json_atomic(&out.join("compare.json"), &rows)?;
             print!("{budget}{table}");
+        }
+        Command::Baseline {
+            data,
+            split,
+            max_samples,
+        } => {
+            let source = LocalSource::open(&data)?;
+            let metrics = train::baseline::normalised_hapke_metrics(&source, &split, max_samples)?;
+            println!("{}", serde_json::to_string_pretty(&metrics)?);
         }
         Command::Bench {
             batch,

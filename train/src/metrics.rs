@@ -17,6 +17,67 @@ pub struct ImageMetrics {
     pub ssim: Option<f64>,
 }
 
+/// Metrics of many images: per-image means, plus the pixel MSE pooled over all valid pixels (the training loss).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct AggregateMetrics {
+    /// Images with at least one valid pixel.
+    pub images: usize,
+    pub pixel_mse_pooled: f64,
+    /// Mean of per-image pixel MSE.
+    pub pixel_mse: f64,
+    /// Mean of per-image SSE (the paper's "MSE").
+    pub sse: f64,
+    /// Mean over images with a finite PSNR (a perfect or constant image has none).
+    pub psnr_db: f64,
+    /// Mean over images with at least one fully valid 7×7 window.
+    pub ssim: Option<f64>,
+}
+
+#[derive(Debug, Clone, Default)]
+pub struct MetricsAccumulator {
+    images: usize,
+    pixels: usize,
+    sse_sum: f64,
+    mse_sum: f64,
+    psnr_sum: f64,
+    psnr_images: usize,
+    ssim_sum: f64,
+    ssim_images: usize,
+}
+
+impl MetricsAccumulator {
+    /// Add one image (`edge²`, row-major); images without a valid pixel are skipped.
+    pub fn add(&mut self, rendered: &[f64], truth: &[f64], valid: &[bool], edge: usize) {
+        let Some(m) = image_metrics(rendered, truth, valid, edge) else {
+            return;
+        };
+        self.images += 1;
+        self.pixels += m.valid_pixels;
+        self.sse_sum += m.sse;
+        self.mse_sum += m.mse;
+        if m.psnr_db.is_finite() {
+            self.psnr_sum += m.psnr_db;
+            self.psnr_images += 1;
+        }
+        if let Some(s) = m.ssim {
+            self.ssim_sum += s;
+            self.ssim_images += 1;
+        }
+    }
+
+    pub fn finish(&self) -> AggregateMetrics {
+        let per_image = |sum: f64, n: usize| sum / n.max(1) as f64;
+        AggregateMetrics {
+            images: self.images,
+            pixel_mse_pooled: per_image(self.sse_sum, self.pixels),
+            pixel_mse: per_image(self.mse_sum, self.images),
+            sse: per_image(self.sse_sum, self.images),
+            psnr_db: per_image(self.psnr_sum, self.psnr_images),
+            ssim: (self.ssim_images > 0).then(|| self.ssim_sum / self.ssim_images as f64),
+        }
+    }
+}
+
 pub const SSIM_WINDOW: usize = 7;
 const K1: f64 = 0.01;
 const K2: f64 = 0.03;

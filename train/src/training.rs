@@ -21,10 +21,12 @@ use dataset::brdf::BrdfModel;
 use dataset::rng::keyed_u64;
 use indicatif::{ProgressBar, ProgressStyle};
 
+use crate::data::for_each_sample_group;
 use crate::data::{EpochStream, HostBatch, SampleSource, StreamConfig};
-use crate::metrics::image_metrics;
+use crate::metrics::{AggregateMetrics, MetricsAccumulator};
 use crate::model::{UNet, UNetConfig};
 use crate::render::{masked_mse, render, scene_geometry, SceneGeometry, SceneInputs};
+use dataset::schema::CROP_PX;
 
 /// Everything that defines a run (saved as `config.json`; a resume must match it).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -141,17 +143,6 @@ pub fn predict_images<B: Backend>(
         .expect("f64 after convert")
 }
 
-/// Validation metrics, averaged per image except `pixel_mse_pooled` (all valid pixels pooled = the val loss).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct ValMetrics {
-    pub pixel_mse_pooled: f64,
-    pub pixel_mse: f64,
-    /// Over images with a finite PSNR (a perfect or constant image has none).
-    pub psnr_db: f64,
-    pub ssim: Option<f64>,
-    pub images: usize,
-}
-
 /// Validation over (up to `max`) val samples in file order, in inference mode, one row group in memory at a time.
 pub fn validate<B: Backend>(
     net: &UNet<B>,
@@ -160,55 +151,30 @@ pub fn validate<B: Backend>(
     max: Option<usize>,
     batch_size: usize,
     device: &B::Device,
-) -> Result<ValMetrics> {
+) -> Result<AggregateMetrics> {
     let dem_std = source.manifest().dem_std_m;
-    let mut remaining = max.unwrap_or(usize::MAX);
-    let (mut sq_sum, mut pixels, mut mse_sum, mut images) = (0.0, 0usize, 0.0, 0usize);
-    let (mut psnr_sum, mut psnr_images, mut ssim_sum, mut ssim_images) = (0.0, 0usize, 0.0, 0usize);
-    let px = 128 * 128;
-    for group in source.row_groups("val")? {
-        if remaining == 0 {
-            break;
-        }
-        let mut samples = source.read_row_group(&group)?;
-        samples.truncate(remaining);
-        remaining -= samples.len();
+    let mut metrics = MetricsAccumulator::default();
+    for_each_sample_group(source, "val", max, |samples| {
         for chunk in samples.chunks(batch_size) {
             let batch = HostBatch::from_samples(chunk, dem_std);
             let rendered = predict_images(net, model, &batch, device);
+            let px = CROP_PX * CROP_PX;
             for i in 0..batch.len() {
                 let range = i * px..(i + 1) * px;
                 let valid: Vec<bool> = batch.valid[range.clone()]
                     .iter()
                     .map(|&v| v > 0.0)
                     .collect();
-                let Some(m) =
-                    image_metrics(&rendered[range.clone()], &batch.image[range], &valid, 128)
-                else {
-                    continue;
-                };
-                sq_sum += m.sse;
-                pixels += m.valid_pixels;
-                mse_sum += m.mse;
-                images += 1;
-                if m.psnr_db.is_finite() {
-                    psnr_sum += m.psnr_db;
-                    psnr_images += 1;
-                }
-                if let Some(s) = m.ssim {
-                    ssim_sum += s;
-                    ssim_images += 1;
-                }
+                metrics.add(
+                    &rendered[range.clone()],
+                    &batch.image[range],
+                    &valid,
+                    CROP_PX,
+                );
             }
         }
-    }
-    Ok(ValMetrics {
-        pixel_mse_pooled: sq_sum / pixels.max(1) as f64,
-        pixel_mse: mse_sum / images.max(1) as f64,
-        psnr_db: psnr_sum / psnr_images.max(1) as f64,
-        ssim: (ssim_images > 0).then(|| ssim_sum / ssim_images as f64),
-        images,
-    })
+    })?;
+    Ok(metrics.finish())
 }
 
 /// Train (or resume) into `out`. `stop_after_steps` ends the run early with a resumable last checkpoint
