@@ -340,6 +340,8 @@ pub fn fit<B: AutodiffBackend>(
             .is_none_or(|b| val.pixel_mse_pooled < b)
         {
             cursor.best_val_loss = Some(val.pixel_mse_pooled);
+            // Remove first: the recorder warns when it replaces a file, which is the normal case here.
+            let _ = std::fs::remove_file(out.join("best").join("model.mpk"));
             net.clone()
                 .save_file(out.join("best").join("model"), &recorder)
                 .context("saving the best-val checkpoint")?;
