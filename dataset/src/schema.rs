@@ -368,6 +368,19 @@ fn list_values<'a, T: 'static>(
 
 /// Decode a record batch back into samples.
 pub fn batch_to_samples(batch: &RecordBatch) -> Result<Vec<Sample>, SchemaError> {
+    decode(batch, true)
+}
+
+/// Decode the metadata columns only (a batch read with a projection that leaves out [`TENSOR_COLUMNS`]):
+/// the samples' raster fields are empty. For indexes and listings that must not decode 215 KB per row.
+pub fn batch_to_sample_metadata(batch: &RecordBatch) -> Result<Vec<Sample>, SchemaError> {
+    decode(batch, false)
+}
+
+/// Every per-pixel column; everything else is per-sample metadata.
+pub const TENSOR_COLUMNS: [&str; 4] = ["dem", "image", "valid", "sun_lit"];
+
+fn decode(batch: &RecordBatch, tensors: bool) -> Result<Vec<Sample>, SchemaError> {
     let s = |name| column::<StringArray>(batch, name);
     let f = |name| column::<Float64Array>(batch, name);
     let (sample_id, split, tile_id, ortho_id, acq_time, provenance) = (
@@ -393,18 +406,23 @@ pub fn batch_to_samples(batch: &RecordBatch) -> Result<Vec<Sample>, SchemaError>
         f("phase_deg")?,
     );
     let (foot, _) = list_values::<Float64Array>(batch, "footprint_lonlat")?;
-    let (dem, dem_len) = list_values::<Float32Array>(batch, "dem")?;
-    let (image, img_len) = list_values::<Float32Array>(batch, "image")?;
-    let (valid, valid_len) = list_values::<UInt8Array>(batch, "valid")?;
-    let (lit, lit_len) = list_values::<Float32Array>(batch, "sun_lit")?;
+    let rasters = if tensors {
+        let (dem, dem_len) = list_values::<Float32Array>(batch, "dem")?;
+        let (image, img_len) = list_values::<Float32Array>(batch, "image")?;
+        let (valid, valid_len) = list_values::<UInt8Array>(batch, "valid")?;
+        let (lit, lit_len) = list_values::<Float32Array>(batch, "sun_lit")?;
+        check_len("dem", dem_len, DEM_PX * DEM_PX)?;
+        check_len("image", img_len, CROP_PX * CROP_PX)?;
+        check_len("valid", valid_len, CROP_PX * CROP_PX)?;
+        check_len("sun_lit", lit_len, CROP_PX * CROP_PX)?;
+        Some((dem, image, valid, lit))
+    } else {
+        None
+    };
     let (sun, _) = list_values::<Float64Array>(batch, "sun_dir_enu")?;
     let (cam, _) = list_values::<Float64Array>(batch, "camera_pos_enu")?;
     let (att, _) = list_values::<Float64Array>(batch, "camera_att")?;
     let (jacobian, _) = list_values::<Float64Array>(batch, "map_to_en")?;
-    check_len("dem", dem_len, DEM_PX * DEM_PX)?;
-    check_len("image", img_len, CROP_PX * CROP_PX)?;
-    check_len("valid", valid_len, CROP_PX * CROP_PX)?;
-    check_len("sun_lit", lit_len, CROP_PX * CROP_PX)?;
     let arr = |a: &Float64Array, i: usize, n: usize| a.values()[i * n..(i + 1) * n].to_vec();
     Ok((0..batch.num_rows())
         .map(|i| Sample {
@@ -417,10 +435,11 @@ pub fn batch_to_samples(batch: &RecordBatch) -> Result<Vec<Sample>, SchemaError>
             center_lon_deg: clon.value(i),
             center_lat_deg: clat.value(i),
             footprint_lonlat_deg: arr(foot, i, 8).try_into().expect("length checked by type"),
-            dem_m: dem.values()[i * dem_len..(i + 1) * dem_len].to_vec(),
-            image: image.values()[i * img_len..(i + 1) * img_len].to_vec(),
-            valid: valid.values()[i * valid_len..(i + 1) * valid_len].to_vec(),
-            sun_lit: lit.values()[i * lit_len..(i + 1) * lit_len].to_vec(),
+            dem_m: rasters.map_or_else(Vec::new, |r| slice_row(r.0.values(), i, DEM_PX * DEM_PX)),
+            image: rasters.map_or_else(Vec::new, |r| slice_row(r.1.values(), i, CROP_PX * CROP_PX)),
+            valid: rasters.map_or_else(Vec::new, |r| slice_row(r.2.values(), i, CROP_PX * CROP_PX)),
+            sun_lit: rasters
+                .map_or_else(Vec::new, |r| slice_row(r.3.values(), i, CROP_PX * CROP_PX)),
             sun_dir_enu: arr(sun, i, 3).try_into().expect("length checked by type"),
             camera_pos_enu_m: arr(cam, i, 3).try_into().expect("length checked by type"),
             enu_origin_height_m: origin_h.value(i),
@@ -437,6 +456,10 @@ pub fn batch_to_samples(batch: &RecordBatch) -> Result<Vec<Sample>, SchemaError>
             provenance: provenance.value(i).to_string(),
         })
         .collect())
+}
+
+fn slice_row<T: Copy>(values: &[T], row: usize, len: usize) -> Vec<T> {
+    values[row * len..(row + 1) * len].to_vec()
 }
 
 /// A human-readable table of the schema (for `g2r-dataset schema` and the dataset card).

@@ -4,16 +4,20 @@
 use std::fs::File;
 use std::path::{Path, PathBuf};
 
-use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
-use parquet::arrow::{ArrowSchemaConverter, ArrowWriter};
+use arrow::record_batch::RecordBatch;
+use parquet::arrow::arrow_reader::{
+    ArrowReaderMetadata, ArrowReaderOptions, ParquetRecordBatchReaderBuilder, RowSelection,
+    RowSelector,
+};
+use parquet::arrow::{ArrowSchemaConverter, ArrowWriter, ProjectionMask};
 use parquet::basic::{Compression, Encoding, Type as PhysicalType, ZstdLevel};
 use parquet::file::properties::WriterProperties;
 
 use crate::manifest::{hash_file, ShardEntry};
 use crate::raster::tmp_path;
 use crate::schema::{
-    batch_to_samples, sample_schema, samples_to_batch, Sample, SchemaError, FLOAT_TENSOR_COLUMNS,
-    SCHEMA_VERSION,
+    batch_to_sample_metadata, batch_to_samples, sample_schema, samples_to_batch, Sample,
+    SchemaError, FLOAT_TENSOR_COLUMNS, SCHEMA_VERSION, TENSOR_COLUMNS,
 };
 
 /// Rows per row group: ~256 samples ≈ 40 MB uncompressed, one HTTP range read for random access.
@@ -35,6 +39,12 @@ pub enum ShardError {
     },
     #[error("{path}: {source}")]
     Schema { path: PathBuf, source: SchemaError },
+    #[error("{path}: no row group {row_group} (the shard has {count})")]
+    RowGroup {
+        path: PathBuf,
+        row_group: usize,
+        count: usize,
+    },
     #[error("{path}: written with schema {found}, this build reads {SCHEMA_VERSION}; rebuild the dataset or use a matching g2r version")]
     SchemaVersion { path: PathBuf, found: String },
 }
@@ -162,63 +172,201 @@ impl ShardWriter {
     }
 }
 
-fn open_reader(path: &Path) -> Result<ParquetRecordBatchReaderBuilder<File>, ShardError> {
-    let file = File::open(path).map_err(|source| ShardError::Io {
-        path: path.to_path_buf(),
-        source,
-    })?;
-    let builder =
-        ParquetRecordBatchReaderBuilder::try_new(file).map_err(|source| ShardError::Parquet {
+/// An open shard with its footer parsed once: random reads of row groups or single rows touch only the needed
+/// column chunks, and a server can hold one per shard instead of re-reading footers per request.
+#[derive(Clone)]
+pub struct ShardFile {
+    path: PathBuf,
+    metadata: ArrowReaderMetadata,
+}
+
+impl ShardFile {
+    /// Open and parse the footer; refuses a shard written with another major schema version.
+    pub fn open(path: &Path) -> Result<Self, ShardError> {
+        let file = File::open(path).map_err(|source| ShardError::Io {
             path: path.to_path_buf(),
             source,
         })?;
-    let found = builder
-        .schema()
-        .metadata()
-        .get("g2r.schema_version")
-        .cloned()
-        .unwrap_or_else(|| "none".into());
-    if found.split('.').next() != SCHEMA_VERSION.split('.').next() {
-        return Err(ShardError::SchemaVersion {
-            path: path.to_path_buf(),
-            found,
-        });
-    }
-    Ok(builder)
-}
-
-fn collect(
-    path: &Path,
-    builder: ParquetRecordBatchReaderBuilder<File>,
-) -> Result<Vec<Sample>, ShardError> {
-    let reader = builder.build().map_err(|source| ShardError::Parquet {
-        path: path.to_path_buf(),
-        source,
-    })?;
-    let mut out = Vec::new();
-    for batch in reader {
-        let batch = batch.map_err(|e| ShardError::Parquet {
-            path: path.to_path_buf(),
-            source: e.into(),
-        })?;
-        out.extend(
-            batch_to_samples(&batch).map_err(|source| ShardError::Schema {
+        let metadata =
+            ArrowReaderMetadata::load(&file, ArrowReaderOptions::default()).map_err(|source| {
+                ShardError::Parquet {
+                    path: path.to_path_buf(),
+                    source,
+                }
+            })?;
+        let found = metadata
+            .schema()
+            .metadata()
+            .get("g2r.schema_version")
+            .cloned()
+            .unwrap_or_else(|| "none".into());
+        if found.split('.').next() != SCHEMA_VERSION.split('.').next() {
+            return Err(ShardError::SchemaVersion {
                 path: path.to_path_buf(),
-                source,
-            })?,
-        );
+                found,
+            });
+        }
+        Ok(Self {
+            path: path.to_path_buf(),
+            metadata,
+        })
     }
-    Ok(out)
+
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Row count per row group, from the footer.
+    pub fn row_group_sizes(&self) -> Vec<usize> {
+        self.metadata
+            .metadata()
+            .row_groups()
+            .iter()
+            .map(|rg| rg.num_rows() as usize)
+            .collect()
+    }
+
+    fn parquet_err(&self, source: parquet::errors::ParquetError) -> ShardError {
+        ShardError::Parquet {
+            path: self.path.clone(),
+            source,
+        }
+    }
+
+    fn builder(&self) -> Result<ParquetRecordBatchReaderBuilder<File>, ShardError> {
+        let file = File::open(&self.path).map_err(|source| ShardError::Io {
+            path: self.path.clone(),
+            source,
+        })?;
+        Ok(ParquetRecordBatchReaderBuilder::new_with_metadata(
+            file,
+            self.metadata.clone(),
+        ))
+    }
+
+    /// Raw Arrow batches of `rows` (within `row_group`), all columns or the metadata columns only.
+    pub fn read_batches(
+        &self,
+        row_group: usize,
+        rows: Option<std::ops::Range<usize>>,
+        tensors: bool,
+    ) -> Result<Vec<RecordBatch>, ShardError> {
+        let sizes = self.row_group_sizes();
+        let Some(&group_rows) = sizes.get(row_group) else {
+            return Err(ShardError::RowGroup {
+                path: self.path.clone(),
+                row_group,
+                count: sizes.len(),
+            });
+        };
+        let mut builder = self
+            .builder()?
+            .with_row_groups(vec![row_group])
+            .with_batch_size(ROW_GROUP_ROWS);
+        if let Some(rows) = rows {
+            let rows = rows.start.min(group_rows)..rows.end.min(group_rows);
+            builder = builder.with_row_selection(RowSelection::from(vec![
+                RowSelector::skip(rows.start),
+                RowSelector::select(rows.len()),
+                RowSelector::skip(group_rows - rows.end),
+            ]));
+        }
+        if !tensors {
+            let schema = sample_schema();
+            let keep: Vec<&str> = schema
+                .fields()
+                .iter()
+                .map(|f| f.name().as_str())
+                .filter(|n| !TENSOR_COLUMNS.contains(n))
+                .collect();
+            let mask = ProjectionMask::columns(builder.parquet_schema(), keep);
+            builder = builder.with_projection(mask);
+        }
+        let reader = builder.build().map_err(|e| self.parquet_err(e))?;
+        reader
+            .map(|b| b.map_err(|e| self.parquet_err(e.into())))
+            .collect()
+    }
+
+    fn decode(&self, batches: &[RecordBatch], tensors: bool) -> Result<Vec<Sample>, ShardError> {
+        let mut out = Vec::new();
+        for batch in batches {
+            let decoded = if tensors {
+                batch_to_samples(batch)
+            } else {
+                batch_to_sample_metadata(batch)
+            };
+            out.extend(decoded.map_err(|source| ShardError::Schema {
+                path: self.path.clone(),
+                source,
+            })?);
+        }
+        Ok(out)
+    }
+
+    /// Every sample of one row group.
+    pub fn read_row_group(&self, row_group: usize) -> Result<Vec<Sample>, ShardError> {
+        self.decode(&self.read_batches(row_group, None, true)?, true)
+    }
+
+    /// Rows `rows` of one row group, decoding only the pages those rows need.
+    pub fn read_rows(
+        &self,
+        row_group: usize,
+        rows: std::ops::Range<usize>,
+    ) -> Result<Vec<Sample>, ShardError> {
+        self.decode(&self.read_batches(row_group, Some(rows), true)?, true)
+    }
+
+    /// Metadata of every row (raster fields empty), reading only the small columns.
+    pub fn read_metadata(&self) -> Result<Vec<Sample>, ShardError> {
+        let mut out = Vec::new();
+        for group in 0..self.row_group_sizes().len() {
+            out.extend(self.decode(&self.read_batches(group, None, false)?, false)?);
+        }
+        Ok(out)
+    }
+
+    /// Every sample of the shard.
+    pub fn read_all(&self) -> Result<Vec<Sample>, ShardError> {
+        let mut out = Vec::new();
+        for group in 0..self.row_group_sizes().len() {
+            out.extend(self.read_row_group(group)?);
+        }
+        Ok(out)
+    }
 }
 
 /// Read every sample of a shard.
 pub fn read_shard(path: &Path) -> Result<Vec<Sample>, ShardError> {
-    collect(path, open_reader(path)?)
+    ShardFile::open(path)?.read_all()
 }
 
 /// Read one row group (random access reads only that group's column chunks).
 pub fn read_row_group(path: &Path, row_group: usize) -> Result<Vec<Sample>, ShardError> {
-    collect(path, open_reader(path)?.with_row_groups(vec![row_group]))
+    ShardFile::open(path)?.read_row_group(row_group)
+}
+
+/// Arrow IPC stream bytes (the wire format of the dataset server's tensor endpoints) of `batches`.
+pub fn ipc_stream_bytes(batches: &[RecordBatch]) -> Result<Vec<u8>, arrow::error::ArrowError> {
+    let schema = batches
+        .first()
+        .map_or_else(sample_schema, RecordBatch::schema);
+    let mut writer = arrow::ipc::writer::StreamWriter::try_new(Vec::new(), &schema)?;
+    for batch in batches {
+        writer.write(batch)?;
+    }
+    writer.into_inner()
+}
+
+/// Decode an Arrow IPC stream of sample rows (what [`ipc_stream_bytes`] wrote).
+pub fn samples_from_ipc_stream(bytes: &[u8]) -> Result<Vec<Sample>, SchemaError> {
+    let reader = arrow::ipc::reader::StreamReader::try_new(std::io::Cursor::new(bytes), None)?;
+    let mut out = Vec::new();
+    for batch in reader {
+        out.extend(batch_to_samples(&batch?)?);
+    }
+    Ok(out)
 }
 
 /// Ids and crop centres (map metres) of every row of a shard.
@@ -232,7 +380,7 @@ pub struct SamplePositions {
 /// (sample_id, center_x, center_y) of every row, reading only those three columns.
 pub fn read_sample_positions(path: &Path) -> Result<SamplePositions, ShardError> {
     use arrow::array::{Array, Float64Array, StringArray};
-    let builder = open_reader(path)?;
+    let builder = ShardFile::open(path)?.builder()?;
     let mask = parquet::arrow::ProjectionMask::columns(
         builder.parquet_schema(),
         ["sample_id", "center_x", "center_y"],
@@ -279,13 +427,7 @@ pub fn read_sample_positions(path: &Path) -> Result<SamplePositions, ShardError>
 
 /// Row count per row group, from the footer only.
 pub fn row_group_sizes(path: &Path) -> Result<Vec<usize>, ShardError> {
-    let builder = open_reader(path)?;
-    Ok(builder
-        .metadata()
-        .row_groups()
-        .iter()
-        .map(|rg| rg.num_rows() as usize)
-        .collect())
+    Ok(ShardFile::open(path)?.row_group_sizes())
 }
 
 /// Shard file name for index `i` of `n` in a split: `{split}-{i:05}-of-{n:05}.parquet`.
@@ -346,6 +488,41 @@ mod tests {
         assert_eq!(entry.blake3, hash_file(&path).unwrap());
         assert_eq!(read_shard(&path).unwrap(), samples);
         assert_eq!(read_row_group(&path, 1).unwrap(), samples[256..]);
+    }
+
+    #[test]
+    fn row_selection_metadata_projection_and_ipc_agree_with_full_reads() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join(shard_name("train", 0, 1));
+        let samples: Vec<Sample> = (0..300).map(synthetic_sample).collect();
+        let mut w = ShardWriter::create(&path).unwrap();
+        w.write(&samples).unwrap();
+        w.finish().unwrap();
+        let shard = ShardFile::open(&path).unwrap();
+        // Rows straddling page boundaries inside the second group, and the group's last row.
+        assert_eq!(shard.read_rows(1, 3..17).unwrap(), samples[259..273]);
+        assert_eq!(shard.read_rows(1, 43..44).unwrap(), samples[299..300]);
+        assert_eq!(shard.read_rows(0, 0..0).unwrap(), Vec::<Sample>::new());
+        let metadata = shard.read_metadata().unwrap();
+        assert_eq!(metadata.len(), 300);
+        for (m, s) in metadata.iter().zip(&samples) {
+            assert!(m.dem_m.is_empty() && m.image.is_empty() && m.valid.is_empty());
+            let stripped = Sample {
+                dem_m: vec![],
+                image: vec![],
+                valid: vec![],
+                sun_lit: vec![],
+                ..s.clone()
+            };
+            assert_eq!(m, &stripped);
+        }
+        let ipc = ipc_stream_bytes(&shard.read_batches(1, None, true).unwrap()).unwrap();
+        assert_eq!(samples_from_ipc_stream(&ipc).unwrap(), samples[256..]);
+        let missing = shard.read_row_group(2).unwrap_err().to_string();
+        assert!(
+            missing.contains("no row group 2 (the shard has 2)"),
+            "{missing}"
+        );
     }
 
     #[test]
