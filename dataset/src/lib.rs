@@ -6,15 +6,19 @@
 
 pub mod acquisition;
 pub mod brdf;
+pub mod client;
 pub mod crs;
 pub mod geometry;
 pub mod hapke;
 pub mod horizon;
+pub mod loadtest;
 pub mod manifest;
 pub mod planner;
+pub mod publication;
 pub mod raster;
 pub mod rng;
 pub mod schema;
+pub mod server;
 pub mod shard;
 
 /// Initialise structured logging for the binaries (`RUST_LOG` overrides the default `info`), and route GDAL's own

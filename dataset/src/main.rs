@@ -30,6 +30,38 @@ enum Command {
         /// Published dataset directory (holds manifest.json and the shards).
         dir: PathBuf,
     },
+    /// Verify every shard against manifest.json, then (re)write the dataset card (README.md) and croissant.json.
+    /// Refuses (exit 1, nothing written) when any shard does not match.
+    Publish {
+        /// Published dataset directory (holds manifest.json, the shards and summary.json).
+        dir: PathBuf,
+    },
+    /// Serve a published dataset read-only over HTTP: JSON API under /v1, a browser viewer at /, shard bytes with
+    /// Range support, and Arrow IPC streams for training (`g2r-train fit --data http://ADDR`).
+    Serve {
+        /// Published dataset directory.
+        dir: PathBuf,
+        /// Address to listen on; port 0 picks a free port. Keep it on loopback unless a proxy fronts it.
+        #[arg(long, default_value = "127.0.0.1:8080")]
+        addr: std::net::SocketAddr,
+        /// Hash every shard against manifest.json before serving (sizes are always checked).
+        #[arg(long)]
+        verify: bool,
+    },
+    /// Hammer a running server with concurrent clients (metadata pages, tensor rows, previews, shard range reads)
+    /// and print requests/s, rows/s, MB/s and latency percentiles as JSON; exit 1 if any request failed.
+    LoadTest {
+        /// Server base URL, e.g. http://127.0.0.1:8080.
+        url: String,
+        #[arg(long, default_value_t = 32)]
+        clients: usize,
+        /// Total requests over all clients.
+        #[arg(long, default_value_t = 3200)]
+        requests: usize,
+        /// Seed of the request mix (same seed, same requests).
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+    },
 }
 
 fn main() -> ExitCode {
@@ -78,6 +110,48 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 return Ok(ExitCode::FAILURE);
             }
             println!("all {} shards match manifest.json", manifest.shards.len());
+        }
+        Command::Publish { dir } => {
+            let manifest = dataset::manifest::DatasetManifest::load(&dir.join("manifest.json"))?;
+            let problems = manifest.verify(&dir);
+            if !problems.is_empty() {
+                for p in &problems {
+                    eprintln!("{p}");
+                }
+                anyhow::bail!(
+                    "{}: {} of {} shards do not match manifest.json; nothing written (re-run the pipeline's publish stage)",
+                    dir.display(),
+                    problems.len(),
+                    manifest.shards.len()
+                );
+            }
+            dataset::publication::write_descriptions(&dir, &manifest)?;
+            println!(
+                "{}: {} shards verified; wrote README.md and croissant.json",
+                dir.display(),
+                manifest.shards.len()
+            );
+        }
+        Command::Serve { dir, addr, verify } => {
+            let runtime = tokio::runtime::Runtime::new()?;
+            runtime.block_on(dataset::server::serve(&dir, addr, verify, |bound| {
+                println!(
+                    "serving {} at http://{bound}/ (viewer) and http://{bound}/v1/info; Ctrl-C stops",
+                    dir.display()
+                );
+            }))?;
+        }
+        Command::LoadTest {
+            url,
+            clients,
+            requests,
+            seed,
+        } => {
+            let report = dataset::loadtest::run(&url, clients, requests, seed)?;
+            println!("{}", serde_json::to_string_pretty(&report)?);
+            if report.errors > 0 {
+                return Ok(ExitCode::FAILURE);
+            }
         }
     }
     Ok(ExitCode::SUCCESS)

@@ -96,6 +96,19 @@ impl DatasetManifest {
         Ok(manifest)
     }
 
+    /// Shard file names of one split, sorted: the fixed order every reader (trainer, server) lists rows in.
+    pub fn split_shards(&self, split: &str) -> Vec<&str> {
+        let prefix = format!("{split}-");
+        let mut names: Vec<&str> = self
+            .shards
+            .iter()
+            .map(|s| s.path.as_str())
+            .filter(|p| p.starts_with(&prefix))
+            .collect();
+        names.sort_unstable();
+        names
+    }
+
     /// Check every shard's size and blake3 against the files in `dir`; returns one line per mismatch.
     pub fn verify(&self, dir: &Path) -> Vec<String> {
         let mut problems = Vec::new();

@@ -436,7 +436,7 @@ pub fn shard_name(split: &str, index: usize, count: usize) -> String {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::schema::{CROP_PX, DEM_PX};
 

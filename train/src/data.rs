@@ -61,16 +61,8 @@ impl SampleSource for LocalSource {
     }
 
     fn row_groups(&self, split: &str) -> Result<Vec<RowGroupRef>> {
-        let mut shards: Vec<&str> = self
-            .manifest
-            .shards
-            .iter()
-            .map(|s| s.path.as_str())
-            .filter(|p| p.starts_with(&format!("{split}-")))
-            .collect();
-        shards.sort_unstable();
         let mut groups = Vec::new();
-        for shard in shards {
+        for shard in self.manifest.split_shards(split) {
             let sizes = dataset::shard::row_group_sizes(&self.dir.join(shard))?;
             groups.extend(
                 sizes

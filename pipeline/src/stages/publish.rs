@@ -7,6 +7,7 @@ use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
 
 use dataset::manifest::{write_json_atomic, DatasetManifest, ShardEntry};
+use dataset::publication::{croissant, dataset_card};
 use dataset::schema::{Sample, CROP_PX, DEM_PX, SCHEMA_VERSION};
 use dataset::shard::{read_row_group, row_group_sizes, shard_name, ShardWriter};
 
@@ -187,18 +188,16 @@ pub fn run(
         serde_json::from_str(&std::fs::read_to_string(rejections_path)?)?;
     let split_summary: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(split_summary_path)?)?;
-    write_json_atomic(
-        out.summary,
-        &serde_json::json!({
-            "split_counts": split_counts,
-            "per_ortho": per_ortho,
-            "per_tile": per_tile,
-            "rejections_by_ortho": rejections,
-            "split": split_summary,
-        }),
-    )?;
-    std::fs::write(out.card, card(ctx, &manifest, &rejections, &split_summary))?;
-    write_json_atomic(out.croissant, &croissant(ctx, &manifest))?;
+    let summary = serde_json::json!({
+        "split_counts": split_counts,
+        "per_ortho": per_ortho,
+        "per_tile": per_tile,
+        "rejections_by_ortho": rejections,
+        "split": split_summary,
+    });
+    write_json_atomic(out.summary, &summary)?;
+    std::fs::write(out.card, dataset_card(&manifest, &summary))?;
+    write_json_atomic(out.croissant, &croissant(&manifest))?;
     draw_map(ctx, &centres, out.map)?;
     write_json_atomic(out.manifest, &manifest)?;
     Ok(())
@@ -210,77 +209,6 @@ fn crop_interior(sample: &Sample) -> Vec<f64> {
         .flat_map(|r| (1..=CROP_PX).map(move |c| (r, c)))
         .map(|(r, c)| sample.dem_m[r * DEM_PX + c] as f64)
         .collect()
-}
-
-fn card(
-    ctx: &PublishContext,
-    m: &DatasetManifest,
-    rejections: &serde_json::Value,
-    split: &serde_json::Value,
-) -> String {
-    let total: u64 = m.split_counts.values().sum();
-    let bytes: u64 = m.shards.iter().map(|s| s.bytes).sum();
-    let mut rejected: BTreeMap<String, u64> = BTreeMap::new();
-    if let Some(per_ortho) = rejections.as_object() {
-        for reasons in per_ortho.values() {
-            for (reason, n) in reasons.as_object().into_iter().flatten() {
-                *rejected.entry(reason.clone()).or_default() += n.as_u64().unwrap_or(0);
-            }
-        }
-    }
-    let mut text = format!(
-        "# {name}\n\nLunar DEM–image pairs for learning a spatially varying BRDF from terrain geometry.\n\n\
-         - pairs: {total} ({splits})\n- shards: {n} Parquet files, {mib:.1} MiB\n- license: {license}\n- seed: {seed}\n\
-         - schema version: {schema}\n- DEM std for normalisation (train split only, crop mean removed): {std:.3} m\n\n\
-         ## How it was made\n\n`g2r-pipeline run` (ingest → erode → sample → project → split → publish). Splits are \
-         geographic: tiles of {tile} m assigned by a keyed hash; a sample's whole footprint (+ {guard} m guard band) \
-         lies in tiles of its split; {dropped} samples straddling splits were dropped. Rejected crops by reason: {rej:?}.\n\n\
-         ## Schema\n\n{schema_table}\n",
-        name = ctx.name,
-        splits = m.split_counts.iter().map(|(k, v)| format!("{k} {v}")).collect::<Vec<_>>().join(", "),
-        n = m.shards.len(),
-        mib = bytes as f64 / (1 << 20) as f64,
-        license = ctx.license,
-        seed = ctx.seed,
-        schema = SCHEMA_VERSION,
-        std = m.dem_std_m,
-        tile = ctx.split_params.tile_size_m,
-        guard = ctx.split_params.guard_band_m,
-        dropped = split["dropped_straddling_splits"],
-        rej = rejected,
-        schema_table = dataset::schema::schema_markdown(),
-    );
-    text.push_str("\nRead with pyarrow: `pyarrow.parquet.read_table(\"train-00000-of-NNNNN.parquet\")`; with polars: `polars.read_parquet(...)`.\n");
-    text
-}
-
-fn croissant(ctx: &PublishContext, m: &DatasetManifest) -> serde_json::Value {
-    let files: Vec<serde_json::Value> = m
-        .shards
-        .iter()
-        .map(|s| {
-            serde_json::json!({
-                "@type": "cr:FileObject", "@id": s.path, "name": s.path, "contentUrl": s.path,
-                "encodingFormat": "application/x-parquet", "sha256": serde_json::Value::Null, "md5": serde_json::Value::Null,
-                "contentSize": format!("{} B", s.bytes), "g2r:blake3": s.blake3,
-            })
-        })
-        .collect();
-    let fields: Vec<serde_json::Value> = dataset::schema::sample_schema()
-        .fields()
-        .iter()
-        .map(|f| serde_json::json!({ "@type": "cr:Field", "name": f.name(), "description": f.metadata().get("description"), "dataType": f.data_type().to_string() }))
-        .collect();
-    serde_json::json!({
-        "@context": { "@vocab": "https://schema.org/", "cr": "http://mlcommons.org/croissant/", "g2r": "https://example.org/g2r#" },
-        "@type": "Dataset",
-        "conformsTo": "http://mlcommons.org/croissant/1.0",
-        "name": ctx.name,
-        "license": ctx.license,
-        "description": "Lunar DEM crops (5 m, 130x130 with apron) paired with orthoimage reflectance and per-pixel geometry.",
-        "distribution": files,
-        "recordSet": [{ "@type": "cr:RecordSet", "name": "samples", "field": fields }],
-    })
 }
 
 /// Tiles coloured by split (train grey, val blue, test orange) with sample centres as dark dots; north up.

@@ -133,7 +133,11 @@ pub fn run(
     )?;
     dataset::manifest::write_json_atomic(
         summary_out,
-        &serde_json::json!({ "dropped_straddling_splits": dropped }),
+        &serde_json::json!({
+            "dropped_straddling_splits": dropped,
+            "tile_size_m": params.tile_size_m,
+            "guard_band_m": params.guard_band_m,
+        }),
     )?;
     Ok(())
 }

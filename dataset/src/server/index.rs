@@ -1,0 +1,256 @@
+//! What the server knows about a published dataset, loaded once at start: the manifest, every shard's footer,
+//! and every row's metadata (ids, splits, tiles, centres, geometry scalars; no rasters), so listings, filters and
+//! id lookups never touch the shards and tensor reads go straight to the one row group they need.
+
+use std::collections::{BTreeMap, HashMap};
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context, Result};
+
+use crate::manifest::{hash_file, DatasetManifest};
+use crate::planner::RowGroupRef;
+use crate::schema::Sample;
+use crate::shard::ShardFile;
+
+/// One row: its metadata and where it lives.
+pub struct RowEntry {
+    /// Raster fields empty (see [`crate::schema::batch_to_sample_metadata`]).
+    pub meta: Sample,
+    pub shard: usize,
+    pub row_group: usize,
+    pub row: usize,
+}
+
+/// One geographic split tile, as the rows describe it.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct TileEntry {
+    pub tile_id: String,
+    pub split: String,
+    pub count: u64,
+    /// Bounds of the sample centres in map metres: [min_x, min_y, max_x, max_y].
+    pub centres_bbox_m: [f64; 4],
+    /// The tile's square in map metres, when `summary.json` states the tile size.
+    pub rect_m: Option<[f64; 4]>,
+}
+
+pub struct DatasetIndex {
+    pub dir: PathBuf,
+    pub manifest: DatasetManifest,
+    pub manifest_bytes: Vec<u8>,
+    pub manifest_blake3: String,
+    pub card: String,
+    pub croissant: serde_json::Value,
+    pub shards: Vec<ShardFile>,
+    pub shard_names: Vec<String>,
+    pub rows: Vec<RowEntry>,
+    /// Split → indices into `rows`, in the split's fixed order (sorted shard names, then file order).
+    pub splits: BTreeMap<String, Vec<usize>>,
+    pub row_groups: BTreeMap<String, Vec<RowGroupRef>>,
+    pub tiles: Vec<TileEntry>,
+    by_id: HashMap<String, usize>,
+}
+
+/// `t_{col}_{row}` → (col, row).
+fn parse_tile_id(tile_id: &str) -> Option<(i64, i64)> {
+    let rest = tile_id.strip_prefix("t_")?;
+    let (col, row) = rest.rsplit_once('_')?;
+    Some((col.parse().ok()?, row.parse().ok()?))
+}
+
+impl DatasetIndex {
+    /// Load `dir/manifest.json`, check every shard's size (and blake3 when `verify_hashes`), read all footers and
+    /// row metadata.
+    pub fn load(dir: &Path, verify_hashes: bool) -> Result<Self> {
+        let dir = dir
+            .canonicalize()
+            .with_context(|| format!("{}: no such dataset directory", dir.display()))?;
+        let manifest_path = dir.join("manifest.json");
+        if !manifest_path.exists() {
+            bail!(
+                "{}: no manifest.json: serve a published dataset directory (g2r-pipeline run writes OUT/dataset)",
+                dir.display()
+            );
+        }
+        let manifest = DatasetManifest::load(&manifest_path)?;
+        let manifest_bytes = std::fs::read(&manifest_path)?;
+        let manifest_blake3 = hash_file(&manifest_path)?;
+        for shard in &manifest.shards {
+            let path = dir.join(&shard.path);
+            let bytes = std::fs::metadata(&path)
+                .with_context(|| {
+                    format!(
+                        "{}: listed in manifest.json but missing; re-publish the dataset",
+                        path.display()
+                    )
+                })?
+                .len();
+            if bytes != shard.bytes {
+                bail!(
+                    "{}: {bytes} bytes, manifest.json says {}; re-publish the dataset (or run g2r-dataset verify)",
+                    path.display(),
+                    shard.bytes
+                );
+            }
+            if verify_hashes && hash_file(&path)? != shard.blake3 {
+                bail!(
+                    "{}: blake3 does not match manifest.json; re-publish the dataset",
+                    path.display()
+                );
+            }
+        }
+        let summary: serde_json::Value = std::fs::read_to_string(dir.join("summary.json"))
+            .ok()
+            .and_then(|t| serde_json::from_str(&t).ok())
+            .unwrap_or(serde_json::Value::Null);
+        let card = std::fs::read_to_string(dir.join("README.md"))
+            .unwrap_or_else(|_| crate::publication::dataset_card(&manifest, &summary));
+        let croissant = crate::publication::croissant(&manifest);
+
+        let (mut shards, mut rows) = (Vec::new(), Vec::new());
+        let mut splits: BTreeMap<String, Vec<usize>> = manifest
+            .split_counts
+            .keys()
+            .map(|k| (k.clone(), Vec::new()))
+            .collect();
+        let mut row_groups: BTreeMap<String, Vec<RowGroupRef>> = BTreeMap::new();
+        for split in manifest.split_counts.keys() {
+            for name in manifest.split_shards(split) {
+                let file = ShardFile::open(&dir.join(name))?;
+                let shard = shards.len();
+                let sizes = file.row_group_sizes();
+                let metadata = file.read_metadata()?;
+                let mut next = metadata.into_iter();
+                for (row_group, &n) in sizes.iter().enumerate() {
+                    row_groups
+                        .entry(split.clone())
+                        .or_default()
+                        .push(RowGroupRef {
+                            shard: name.to_string(),
+                            row_group,
+                            rows: n,
+                        });
+                    for row in 0..n {
+                        let meta = next
+                            .next()
+                            .context("row metadata shorter than the footer says")?;
+                        if meta.split != *split {
+                            bail!(
+                                "{}: row {row} of row group {row_group} says split '{}'; re-publish the dataset",
+                                file.path().display(),
+                                meta.split
+                            );
+                        }
+                        splits.get_mut(split).expect("made above").push(rows.len());
+                        rows.push(RowEntry {
+                            meta,
+                            shard,
+                            row_group,
+                            row,
+                        });
+                    }
+                }
+                shards.push(file);
+            }
+        }
+        let listed: usize = splits.values().map(Vec::len).sum();
+        if listed
+            != manifest
+                .shards
+                .iter()
+                .map(|s| s.rows as usize)
+                .sum::<usize>()
+        {
+            bail!(
+                "{}: shards hold {listed} rows of known splits, manifest.json lists {}; re-publish the dataset",
+                dir.display(),
+                manifest.shards.iter().map(|s| s.rows).sum::<u64>()
+            );
+        }
+        let shard_names: Vec<String> = shards
+            .iter()
+            .map(|s| s.path().file_name().unwrap().to_string_lossy().into_owned())
+            .collect();
+        let by_id = rows
+            .iter()
+            .enumerate()
+            .map(|(i, r)| (r.meta.sample_id.clone(), i))
+            .collect();
+        let tile_size_m = summary["split"]["tile_size_m"].as_f64();
+        let mut tiles: BTreeMap<String, TileEntry> = BTreeMap::new();
+        for r in &rows {
+            let (x, y) = (r.meta.center_x_m, r.meta.center_y_m);
+            let t = tiles
+                .entry(r.meta.tile_id.clone())
+                .or_insert_with(|| TileEntry {
+                    tile_id: r.meta.tile_id.clone(),
+                    split: r.meta.split.clone(),
+                    count: 0,
+                    centres_bbox_m: [x, y, x, y],
+                    rect_m: tile_size_m.zip(parse_tile_id(&r.meta.tile_id)).map(
+                        |(size, (c, rw))| {
+                            [
+                                c as f64 * size,
+                                rw as f64 * size,
+                                (c + 1) as f64 * size,
+                                (rw + 1) as f64 * size,
+                            ]
+                        },
+                    ),
+                });
+            t.count += 1;
+            let b = &mut t.centres_bbox_m;
+            *b = [b[0].min(x), b[1].min(y), b[2].max(x), b[3].max(y)];
+        }
+        Ok(Self {
+            dir,
+            manifest,
+            manifest_bytes,
+            manifest_blake3,
+            card,
+            croissant,
+            shards,
+            shard_names,
+            rows,
+            splits,
+            row_groups,
+            tiles: tiles.into_values().collect(),
+            by_id,
+        })
+    }
+
+    /// Index into `rows` of a sample id.
+    pub fn row_index(&self, sample_id: &str) -> Option<usize> {
+        self.by_id.get(sample_id).copied()
+    }
+
+    /// Index of a shard by its file name, only for names the manifest lists (the server serves nothing else).
+    pub fn shard_by_name(&self, name: &str) -> Option<usize> {
+        self.shard_names.iter().position(|n| n == name)
+    }
+
+    /// Full samples (with rasters) of `rows`, reading each touched row group once with a row selection.
+    pub fn read_full(&self, rows: &[usize]) -> Result<Vec<Sample>> {
+        let mut out: Vec<Option<Sample>> = vec![None; rows.len()];
+        // Group requested rows by (shard, row group); read the covering contiguous range once per group.
+        let mut groups: BTreeMap<(usize, usize), Vec<(usize, usize)>> = BTreeMap::new();
+        for (k, &i) in rows.iter().enumerate() {
+            let r = &self.rows[i];
+            groups
+                .entry((r.shard, r.row_group))
+                .or_default()
+                .push((r.row, k));
+        }
+        for ((shard, row_group), wanted) in groups {
+            let lo = wanted.iter().map(|w| w.0).min().expect("non-empty");
+            let hi = wanted.iter().map(|w| w.0).max().expect("non-empty") + 1;
+            let samples = self.shards[shard].read_rows(row_group, lo..hi)?;
+            for (row, k) in wanted {
+                out[k] = Some(samples[row - lo].clone());
+            }
+        }
+        Ok(out
+            .into_iter()
+            .map(|s| s.expect("every row read"))
+            .collect())
+    }
+}

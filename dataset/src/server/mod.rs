@@ -1,0 +1,561 @@
+//! `g2r-dataset serve`: a read-only HTTP API over one published dataset directory (axum + tower-http).
+//!
+//! Nothing outside the directory can be served: shards are looked up by exact name in the manifest's list (never
+//! joined from a request path), and every other endpoint answers from the in-memory [`index::DatasetIndex`].
+//! File reads run on tokio's blocking pool so slow disks never stall the event loop.
+//!
+//! | endpoint | answer |
+//! |---|---|
+//! | `GET /` | HTML viewer |
+//! | `GET /v1/info` | name, schema, counts, manifest blake3, dataset card |
+//! | `GET /v1/splits` | per split: rows, shards, row groups |
+//! | `GET /v1/rows?split=&offset=&length=[&tensors=base64]` | rows in the split's order (length ≤ 100) |
+//! | `GET /v1/filter?[split=][&tile=][&bbox=lon0,lat0,lon1,lat1][&limit=]` | matching rows' metadata |
+//! | `GET /v1/tiles` | split tiles with counts and bounds |
+//! | `GET /v1/samples/{id}` and `/v1/samples/{id}/{dem,image,lit}.png` | one row, previews |
+//! | `GET /v1/shards/{name}` | the shard's bytes, HTTP Range supported (pyarrow/polars/DuckDB remote reads) |
+//! | `GET /v1/shards/{name}/row-groups/{i}` | one row group as an Arrow IPC stream |
+//! | `GET /v1/row-groups?split=` | the split's row groups in order (what the trainer's planner shuffles) |
+//! | `GET /v1/stream?split=&seed=&epoch=[&rank=&world=&window=]` | a training epoch as an Arrow IPC stream, rows in the planner's order |
+//! | `GET /v1/manifest`, `/v1/croissant` | `manifest.json`, Croissant JSON-LD |
+
+pub mod index;
+pub mod preview;
+
+use std::collections::BTreeMap;
+use std::net::SocketAddr;
+use std::path::Path;
+use std::sync::Arc;
+
+use axum::body::Body;
+use axum::extract::{Path as UrlPath, Query, Request, State};
+use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
+use axum::response::{Html, IntoResponse, Response};
+use axum::routing::get;
+use axum::{Json, Router};
+use base64::Engine;
+use tower::ServiceExt;
+
+use crate::planner::plan_epoch;
+use crate::schema::{Sample, CROP_PX, DEM_PX};
+use index::DatasetIndex;
+use preview::Preview;
+
+/// Most rows one `/v1/rows` request may ask for (tensors of 100 rows ≈ 21 MB as base64).
+pub const MAX_ROWS_PER_REQUEST: usize = 100;
+/// Most rows `/v1/filter` lists (it returns the total count too).
+pub const MAX_FILTER_ROWS: usize = 1000;
+pub const ARROW_STREAM: &str = "application/vnd.apache.arrow.stream";
+
+const VIEWER_HTML: &str = include_str!("viewer.html");
+
+/// An error answer: status and a one-line message, sent as `{"error": message}`.
+#[derive(Debug)]
+pub struct ApiError(StatusCode, String);
+
+impl ApiError {
+    fn bad_request(message: impl Into<String>) -> Self {
+        Self(StatusCode::BAD_REQUEST, message.into())
+    }
+    fn not_found(message: impl Into<String>) -> Self {
+        Self(StatusCode::NOT_FOUND, message.into())
+    }
+    fn internal(error: impl std::fmt::Display) -> Self {
+        tracing::error!("{error}");
+        Self(StatusCode::INTERNAL_SERVER_ERROR, error.to_string())
+    }
+}
+
+impl IntoResponse for ApiError {
+    fn into_response(self) -> Response {
+        (self.0, Json(serde_json::json!({ "error": self.1 }))).into_response()
+    }
+}
+
+type ApiResult<T> = Result<T, ApiError>;
+type Params = Query<BTreeMap<String, String>>;
+type Shared = State<Arc<DatasetIndex>>;
+
+/// The router over a loaded index (tests and `serve` both use it).
+pub fn router(index: Arc<DatasetIndex>) -> Router {
+    Router::new()
+        .route("/", get(viewer))
+        .route("/v1/info", get(info))
+        .route("/v1/splits", get(splits))
+        .route("/v1/rows", get(rows))
+        .route("/v1/filter", get(filter))
+        .route("/v1/tiles", get(tiles))
+        .route("/v1/samples/{id}", get(sample))
+        .route("/v1/samples/{id}/{file}", get(sample_preview))
+        .route("/v1/shards/{name}", get(shard_file))
+        .route("/v1/shards/{name}/row-groups/{group}", get(row_group_ipc))
+        .route("/v1/row-groups", get(row_groups))
+        .route("/v1/stream", get(epoch_stream))
+        .route("/v1/manifest", get(manifest))
+        .route("/v1/croissant", get(croissant))
+        .fallback(|| async {
+            ApiError::not_found("no such endpoint; GET /v1/info lists the dataset, / is the viewer")
+        })
+        .with_state(index)
+}
+
+/// Serve `dir` on `addr` until Ctrl-C; `ready` is called with the bound address (port 0 picks a free one).
+pub async fn serve(
+    dir: &Path,
+    addr: SocketAddr,
+    verify_hashes: bool,
+    ready: impl FnOnce(SocketAddr),
+) -> anyhow::Result<()> {
+    let index = tokio::task::block_in_place(|| DatasetIndex::load(dir, verify_hashes))?;
+    tracing::info!(
+        rows = index.rows.len(),
+        shards = index.shards.len(),
+        "loaded {}",
+        index.dir.display()
+    );
+    let listener = tokio::net::TcpListener::bind(addr)
+        .await
+        .map_err(|e| anyhow::anyhow!("{addr}: cannot listen ({e}); pick another --addr port"))?;
+    ready(listener.local_addr()?);
+    axum::serve(listener, router(Arc::new(index)))
+        .with_graceful_shutdown(async {
+            let _ = tokio::signal::ctrl_c().await;
+        })
+        .await?;
+    Ok(())
+}
+
+/// Run blocking file work off the event loop.
+async fn blocking<T: Send + 'static>(
+    work: impl FnOnce() -> anyhow::Result<T> + Send + 'static,
+) -> ApiResult<T> {
+    tokio::task::spawn_blocking(work)
+        .await
+        .map_err(ApiError::internal)?
+        .map_err(ApiError::internal)
+}
+
+fn param<'a>(params: &'a BTreeMap<String, String>, name: &str) -> Option<&'a str> {
+    params.get(name).map(String::as_str)
+}
+
+/// A non-negative integer query parameter, or `default` when absent.
+fn integer(params: &BTreeMap<String, String>, name: &str, default: Option<u64>) -> ApiResult<u64> {
+    match (param(params, name), default) {
+        (Some(text), _) => text.parse::<u64>().map_err(|_| {
+            ApiError::bad_request(format!(
+                "'{name}' must be a non-negative integer, got '{text}'"
+            ))
+        }),
+        (None, Some(d)) => Ok(d),
+        (None, None) => Err(ApiError::bad_request(format!(
+            "missing query parameter '{name}'"
+        ))),
+    }
+}
+
+/// The rows of a split, or 404 naming the splits there are.
+fn split_rows<'a>(index: &'a DatasetIndex, split: &str) -> ApiResult<&'a [usize]> {
+    index.splits.get(split).map(Vec::as_slice).ok_or_else(|| {
+        ApiError::not_found(format!(
+            "unknown split '{split}'; this dataset has {:?}",
+            index.splits.keys().collect::<Vec<_>>()
+        ))
+    })
+}
+
+fn required_split<'a>(
+    index: &'a DatasetIndex,
+    params: &BTreeMap<String, String>,
+) -> ApiResult<(&'a str, &'a [usize])> {
+    let split = param(params, "split")
+        .ok_or_else(|| ApiError::bad_request("missing query parameter 'split'"))?;
+    let (name, _) = index
+        .splits
+        .get_key_value(split)
+        .ok_or_else(|| split_rows(index, split).unwrap_err())?;
+    Ok((name.as_str(), split_rows(index, split)?))
+}
+
+/// A sample's metadata as JSON (column names as in the schema) plus where it lives.
+fn sample_json(index: &DatasetIndex, row: usize) -> serde_json::Value {
+    let r = &index.rows[row];
+    let s = &r.meta;
+    serde_json::json!({
+        "sample_id": s.sample_id, "split": s.split, "tile_id": s.tile_id, "ortho_id": s.ortho_id,
+        "center_x": s.center_x_m, "center_y": s.center_y_m, "center_lon": s.center_lon_deg, "center_lat": s.center_lat_deg,
+        "footprint_lonlat": s.footprint_lonlat_deg, "sun_dir_enu": s.sun_dir_enu, "camera_pos_enu": s.camera_pos_enu_m,
+        "enu_origin_height_m": s.enu_origin_height_m, "map_to_en": s.map_to_en, "camera_att": s.camera_att,
+        "fov_deg": s.fov_deg, "gsd_m": s.gsd_m, "incidence_deg": s.incidence_deg, "emission_deg": s.emission_deg,
+        "phase_deg": s.phase_deg, "acq_time": s.acq_time, "provenance": s.provenance,
+        "location": { "shard": index.shard_names[r.shard], "row_group": r.row_group, "row": r.row },
+    })
+}
+
+/// Rasters as little-endian base64 with dtype and shape (row-major, north row first).
+fn tensors_json(s: &Sample) -> serde_json::Value {
+    let b64 = |bytes: &[u8]| base64::engine::general_purpose::STANDARD.encode(bytes);
+    let f32s = |v: &[f32]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
+    serde_json::json!({
+        "dem": { "dtype": "float32", "shape": [DEM_PX, DEM_PX], "base64": b64(&f32s(&s.dem_m)) },
+        "image": { "dtype": "float32", "shape": [CROP_PX, CROP_PX], "base64": b64(&f32s(&s.image)) },
+        "valid": { "dtype": "uint8", "shape": [CROP_PX, CROP_PX], "base64": b64(&s.valid) },
+        "sun_lit": { "dtype": "float32", "shape": [CROP_PX, CROP_PX], "base64": b64(&f32s(&s.sun_lit)) },
+    })
+}
+
+async fn viewer() -> Html<&'static str> {
+    Html(VIEWER_HTML)
+}
+
+async fn info(State(index): Shared) -> Json<serde_json::Value> {
+    let schema: Vec<serde_json::Value> = crate::schema::sample_schema()
+        .fields()
+        .iter()
+        .map(|f| {
+            serde_json::json!({
+                "name": f.name(), "type": f.data_type().to_string(),
+                "unit": f.metadata().get("unit"), "description": f.metadata().get("description"),
+            })
+        })
+        .collect();
+    let m = &index.manifest;
+    Json(serde_json::json!({
+        "name": m.name, "license": m.license, "seed": m.seed, "crs": m.crs,
+        "schema_version": m.schema_version, "schema": schema,
+        "split_counts": m.split_counts, "rows": index.rows.len(), "shards": index.shards.len(),
+        "dem_std_m": m.dem_std_m, "manifest_blake3": index.manifest_blake3, "card": index.card,
+    }))
+}
+
+async fn splits(State(index): Shared) -> Json<serde_json::Value> {
+    let splits: Vec<serde_json::Value> = index
+        .splits
+        .iter()
+        .map(|(name, rows)| {
+            serde_json::json!({
+                "name": name, "rows": rows.len(),
+                "shards": index.manifest.split_shards(name),
+                "row_groups": index.row_groups.get(name).map_or(0, Vec::len),
+            })
+        })
+        .collect();
+    Json(serde_json::json!({ "splits": splits }))
+}
+
+async fn rows(State(index): Shared, Query(params): Params) -> ApiResult<Json<serde_json::Value>> {
+    let (split, rows) = required_split(&index, &params)?;
+    let offset = integer(&params, "offset", Some(0))? as usize;
+    let length = integer(&params, "length", Some(20))? as usize;
+    if length == 0 || length > MAX_ROWS_PER_REQUEST {
+        return Err(ApiError::bad_request(format!(
+            "'length' must be 1..={MAX_ROWS_PER_REQUEST}, got {length}; page with 'offset'"
+        )));
+    }
+    let tensors = match param(&params, "tensors") {
+        None | Some("none") => false,
+        Some("base64") => true,
+        Some(other) => {
+            return Err(ApiError::bad_request(format!(
+                "'tensors' must be 'none' or 'base64', got '{other}'"
+            )))
+        }
+    };
+    let selected: Vec<usize> = rows.iter().skip(offset).take(length).copied().collect();
+    let mut listed: Vec<serde_json::Value> =
+        selected.iter().map(|&r| sample_json(&index, r)).collect();
+    if tensors && !selected.is_empty() {
+        let full = {
+            let (index, selected) = (index.clone(), selected.clone());
+            blocking(move || index.read_full(&selected)).await?
+        };
+        for (row, sample) in listed.iter_mut().zip(&full) {
+            row["tensors"] = tensors_json(sample);
+        }
+    }
+    Ok(Json(serde_json::json!({
+        "split": split, "offset": offset, "total": rows.len(), "rows": listed,
+    })))
+}
+
+/// `lon0,lat0,lon1,lat1` in degrees.
+fn parse_bbox(text: &str) -> ApiResult<[f64; 4]> {
+    let values: Vec<f64> = text
+        .split(',')
+        .map(|v| v.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|_| {
+            ApiError::bad_request(format!(
+                "'bbox' must be lon0,lat0,lon1,lat1 in degrees, got '{text}'"
+            ))
+        })?;
+    match values[..] {
+        [a, b, c, d] if a <= c && b <= d && values.iter().all(|v| v.is_finite()) => Ok([a, b, c, d]),
+        _ => Err(ApiError::bad_request(format!(
+            "'bbox' must be four finite numbers lon0,lat0,lon1,lat1 with lon0 <= lon1 and lat0 <= lat1, got '{text}'"
+        ))),
+    }
+}
+
+async fn filter(State(index): Shared, Query(params): Params) -> ApiResult<Json<serde_json::Value>> {
+    if let Some(split) = param(&params, "split") {
+        split_rows(&index, split)?;
+    }
+    let bbox = param(&params, "bbox").map(parse_bbox).transpose()?;
+    let limit = integer(&params, "limit", Some(100))? as usize;
+    if limit > MAX_FILTER_ROWS {
+        return Err(ApiError::bad_request(format!(
+            "'limit' must be at most {MAX_FILTER_ROWS}, got {limit}"
+        )));
+    }
+    let (split, tile) = (param(&params, "split"), param(&params, "tile"));
+    let matches: Vec<usize> = (0..index.rows.len())
+        .filter(|&i| {
+            let s = &index.rows[i].meta;
+            split.is_none_or(|v| s.split == v)
+                && tile.is_none_or(|v| s.tile_id == v)
+                && bbox.is_none_or(|b| {
+                    (b[0]..=b[2]).contains(&s.center_lon_deg)
+                        && (b[1]..=b[3]).contains(&s.center_lat_deg)
+                })
+        })
+        .collect();
+    let listed: Vec<serde_json::Value> = matches
+        .iter()
+        .take(limit)
+        .map(|&r| sample_json(&index, r))
+        .collect();
+    Ok(Json(
+        serde_json::json!({ "count": matches.len(), "rows": listed }),
+    ))
+}
+
+async fn tiles(State(index): Shared) -> Json<serde_json::Value> {
+    Json(serde_json::json!({ "tiles": index.tiles }))
+}
+
+fn row_of(index: &DatasetIndex, id: &str) -> ApiResult<usize> {
+    index
+        .row_index(id)
+        .ok_or_else(|| ApiError::not_found(format!("no sample '{id}' in this dataset")))
+}
+
+async fn sample(
+    State(index): Shared,
+    UrlPath(id): UrlPath<String>,
+) -> ApiResult<Json<serde_json::Value>> {
+    Ok(Json(sample_json(&index, row_of(&index, &id)?)))
+}
+
+async fn sample_preview(
+    State(index): Shared,
+    UrlPath((id, file)): UrlPath<(String, String)>,
+) -> ApiResult<Response> {
+    let preview = Preview::from_file_name(&file).ok_or_else(|| {
+        ApiError::not_found(format!(
+            "no preview '{file}'; use dem.png, image.png or lit.png"
+        ))
+    })?;
+    let row = row_of(&index, &id)?;
+    let png = blocking(move || {
+        let sample = index.read_full(&[row])?.pop().expect("one row");
+        Ok(preview::render_png(&sample, preview))
+    })
+    .await?;
+    Ok((
+        [
+            (header::CONTENT_TYPE, "image/png"),
+            (header::CACHE_CONTROL, "max-age=3600"),
+        ],
+        png,
+    )
+        .into_response())
+}
+
+fn listed_shard(index: &DatasetIndex, name: &str) -> ApiResult<usize> {
+    index.shard_by_name(name).ok_or_else(|| {
+        ApiError::not_found(format!(
+            "no shard '{name}' in manifest.json; GET /v1/splits lists them"
+        ))
+    })
+}
+
+/// The shard's bytes via tower-http's `ServeFile` (single byte ranges → 206, malformed or unsatisfiable → 416).
+async fn shard_file(
+    State(index): Shared,
+    UrlPath(name): UrlPath<String>,
+    request: Request,
+) -> ApiResult<Response> {
+    let shard = listed_shard(&index, &name)?;
+    let path = index.shards[shard].path().to_path_buf();
+    let response = tower_http::services::ServeFile::new_with_mime(
+        &path,
+        &"application/vnd.apache.parquet"
+            .parse()
+            .expect("valid mime"),
+    )
+    .oneshot(request)
+    .await
+    .map_err(ApiError::internal)?;
+    Ok(response.map(Body::new))
+}
+
+fn arrow_response(bytes: Vec<u8>) -> Response {
+    (
+        [(header::CONTENT_TYPE, HeaderValue::from_static(ARROW_STREAM))],
+        bytes,
+    )
+        .into_response()
+}
+
+async fn row_group_ipc(
+    State(index): Shared,
+    UrlPath((name, group)): UrlPath<(String, String)>,
+) -> ApiResult<Response> {
+    let shard = listed_shard(&index, &name)?;
+    let group: usize = group.parse().map_err(|_| {
+        ApiError::bad_request(format!(
+            "row group must be a non-negative integer, got '{group}'"
+        ))
+    })?;
+    let count = index.shards[shard].row_group_sizes().len();
+    if group >= count {
+        return Err(ApiError::not_found(format!(
+            "{name} has {count} row groups, no row group {group}"
+        )));
+    }
+    let bytes = blocking(move || {
+        let batches = index.shards[shard].read_batches(group, None, true)?;
+        Ok(crate::shard::ipc_stream_bytes(&batches)?)
+    })
+    .await?;
+    Ok(arrow_response(bytes))
+}
+
+async fn row_groups(
+    State(index): Shared,
+    Query(params): Params,
+) -> ApiResult<Json<serde_json::Value>> {
+    let (split, _) = required_split(&index, &params)?;
+    let groups: Vec<serde_json::Value> = index.row_groups[split]
+        .iter()
+        .map(|g| serde_json::json!({ "shard": g.shard, "row_group": g.row_group, "rows": g.rows }))
+        .collect();
+    Ok(Json(
+        serde_json::json!({ "split": split, "row_groups": groups }),
+    ))
+}
+
+/// One epoch in the trainer's order (`dataset::planner::plan_epoch`), one IPC record batch per shuffle window,
+/// streamed as windows are read: memory is one window, whatever the split's size.
+async fn epoch_stream(
+    State(index): Shared,
+    Query(params): Params,
+    headers: HeaderMap,
+) -> ApiResult<Response> {
+    let accept = headers
+        .get(header::ACCEPT)
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("");
+    if !accept.contains(ARROW_STREAM) {
+        return Err(ApiError(
+            StatusCode::NOT_ACCEPTABLE,
+            format!("/v1/stream answers only 'Accept: {ARROW_STREAM}'"),
+        ));
+    }
+    let (split, _) = required_split(&index, &params)?;
+    let split = split.to_string();
+    let seed = integer(&params, "seed", None)?;
+    let epoch = integer(&params, "epoch", None)?;
+    let rank = integer(&params, "rank", Some(0))? as usize;
+    let world = integer(&params, "world", Some(1))? as usize;
+    let window = integer(&params, "window", Some(4))? as usize;
+    if world == 0 || rank >= world || world > 1024 {
+        return Err(ApiError::bad_request(format!(
+            "need 0 <= rank < world <= 1024, got rank {rank} world {world}"
+        )));
+    }
+    if window == 0 || window > 64 {
+        return Err(ApiError::bad_request(format!(
+            "'window' must be 1..=64 row groups, got {window}"
+        )));
+    }
+    let (sender, mut receiver) = tokio::sync::mpsc::channel::<Result<Vec<u8>, std::io::Error>>(2);
+    tokio::task::spawn_blocking(move || {
+        let groups = &index.row_groups[&split];
+        let plan = plan_epoch(groups, seed, epoch, window, rank, world);
+        let send = |item| sender.blocking_send(item).is_ok();
+        let result = (|| -> anyhow::Result<()> {
+            let mut writer = arrow::ipc::writer::StreamWriter::try_new(
+                Vec::new(),
+                &crate::schema::sample_schema(),
+            )?;
+            let mut start = 0;
+            for (w, window_groups) in plan.windows.iter().enumerate() {
+                let end = start
+                    + plan.window_of[start..]
+                        .iter()
+                        .take_while(|&&x| x == w)
+                        .count();
+                let mut batches = Vec::new();
+                let mut offsets = BTreeMap::new();
+                let mut rows_so_far = 0;
+                for &g in window_groups {
+                    let group = &groups[g];
+                    let shard = index
+                        .shard_by_name(&group.shard)
+                        .expect("row groups come from the index");
+                    offsets.insert(g, rows_so_far);
+                    for batch in index.shards[shard].read_batches(group.row_group, None, true)? {
+                        rows_so_far += batch.num_rows();
+                        batches.push(batch);
+                    }
+                }
+                let all =
+                    arrow::compute::concat_batches(&crate::schema::sample_schema(), &batches)?;
+                let take: Vec<u32> = plan.rows[start..end]
+                    .iter()
+                    .map(|r| (offsets[&r.group] + r.row) as u32)
+                    .collect();
+                let ordered = arrow::compute::take_record_batch(
+                    &all,
+                    &arrow::array::UInt32Array::from(take),
+                )?;
+                writer.write(&ordered)?;
+                if !send(Ok(std::mem::take(writer.get_mut()))) {
+                    return Ok(()); // client went away
+                }
+                start = end;
+            }
+            writer.finish()?;
+            send(Ok(std::mem::take(writer.get_mut())));
+            Ok(())
+        })();
+        if let Err(e) = result {
+            tracing::error!("stream {split} epoch {epoch}: {e:#}");
+            send(Err(std::io::Error::other(e.to_string())));
+        }
+    });
+    let stream = futures_util::stream::poll_fn(move |cx| receiver.poll_recv(cx));
+    Ok((
+        [(header::CONTENT_TYPE, HeaderValue::from_static(ARROW_STREAM))],
+        Body::from_stream(stream),
+    )
+        .into_response())
+}
+
+async fn manifest(State(index): Shared) -> Response {
+    (
+        [(header::CONTENT_TYPE, "application/json")],
+        index.manifest_bytes.clone(),
+    )
+        .into_response()
+}
+
+async fn croissant(State(index): Shared) -> Response {
+    (
+        [(header::CONTENT_TYPE, "application/ld+json")],
+        serde_json::to_vec_pretty(&index.croissant).expect("JSON value serialises"),
+    )
+        .into_response()
+}
