@@ -82,11 +82,16 @@ impl DatasetManifest {
             path: path.to_path_buf(),
             source,
         })?;
-        let manifest: Self =
-            serde_json::from_str(&text).map_err(|source| ManifestError::Parse {
-                path: path.to_path_buf(),
-                source,
-            })?;
+        Self::parse(&text, path)
+    }
+
+    /// Parse manifest JSON that came from `origin` (a path or URL, for messages), checking the schema version.
+    pub fn parse(text: &str, origin: &Path) -> Result<Self, ManifestError> {
+        let path = origin;
+        let manifest: Self = serde_json::from_str(text).map_err(|source| ManifestError::Parse {
+            path: path.to_path_buf(),
+            source,
+        })?;
         if manifest.schema_version.split('.').next() != SCHEMA_VERSION.split('.').next() {
             return Err(ManifestError::SchemaVersion {
                 path: path.to_path_buf(),

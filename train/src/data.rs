@@ -8,7 +8,7 @@ use std::sync::mpsc::{sync_channel, Receiver};
 use std::sync::Arc;
 use std::thread::JoinHandle;
 
-use anyhow::{bail, Result};
+use anyhow::{bail, Context, Result};
 use dataset::manifest::DatasetManifest;
 use dataset::planner::{plan_epoch, RowGroupRef};
 use dataset::rng::keyed_rng;
@@ -83,6 +83,90 @@ impl SampleSource for LocalSource {
             &self.dir.join(&group.shard),
             group.row_group,
         )?)
+    }
+}
+
+/// A dataset served by `g2r-dataset serve`: the manifest, row-group lists and row groups (Arrow IPC) come over
+/// HTTP, so the planner runs here on the same row-group list as [`LocalSource`] and yields the same batches.
+pub struct HttpSource {
+    client: dataset::client::HttpClient,
+    manifest: DatasetManifest,
+}
+
+impl HttpSource {
+    pub fn open(url: &str) -> Result<Self> {
+        let client = dataset::client::HttpClient::new(url)?;
+        let response = client.get_ok("/v1/manifest", &[])?;
+        let origin = PathBuf::from(format!("{}/v1/manifest", client.base_url()));
+        let manifest = DatasetManifest::parse(&response.text(), &origin)?;
+        Ok(Self { client, manifest })
+    }
+}
+
+impl SampleSource for HttpSource {
+    fn describe(&self) -> String {
+        self.client.base_url().to_string()
+    }
+
+    fn manifest(&self) -> &DatasetManifest {
+        &self.manifest
+    }
+
+    fn row_groups(&self, split: &str) -> Result<Vec<RowGroupRef>> {
+        #[derive(serde::Deserialize)]
+        struct Listed {
+            shard: String,
+            row_group: usize,
+            rows: usize,
+        }
+        #[derive(serde::Deserialize)]
+        struct Answer {
+            row_groups: Vec<Listed>,
+        }
+        let answer: Answer = self
+            .client
+            .get_json(&format!("/v1/row-groups?split={split}"))?;
+        Ok(answer
+            .row_groups
+            .into_iter()
+            .map(|g| RowGroupRef {
+                shard: g.shard,
+                row_group: g.row_group,
+                rows: g.rows,
+            })
+            .collect())
+    }
+
+    fn read_row_group(&self, group: &RowGroupRef) -> Result<Vec<Sample>> {
+        let path = format!("/v1/shards/{}/row-groups/{}", group.shard, group.row_group);
+        let response = self
+            .client
+            .get_ok(&path, &[("Accept", dataset::server::ARROW_STREAM)])?;
+        let samples =
+            dataset::shard::samples_from_ipc_stream(&response.body).with_context(|| {
+                format!(
+                    "{}{path}: not an Arrow IPC stream of samples",
+                    self.client.base_url()
+                )
+            })?;
+        if samples.len() != group.rows {
+            bail!(
+                "{}{path}: {} rows, the row-group list said {}",
+                self.client.base_url(),
+                samples.len(),
+                group.rows
+            );
+        }
+        Ok(samples)
+    }
+}
+
+/// `--data`: an `http://` URL of `g2r-dataset serve`, or a published dataset directory.
+pub fn open_source(data: &str) -> Result<Arc<dyn SampleSource>> {
+    if data.starts_with("http://") || data.starts_with("https://") {
+        Ok(Arc::new(HttpSource::open(data)?))
+    } else {
+        Ok(Arc::new(LocalSource::open(Path::new(data))?))
     }
 }
 

@@ -7,7 +7,7 @@ use std::sync::Arc;
 use anyhow::{bail, Result};
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use dataset::brdf::BrdfModel;
-use train::data::{LocalSource, SampleSource, StreamConfig};
+use train::data::{open_source, SampleSource, StreamConfig};
 use train::training::{fit, FitConfig};
 
 #[derive(Parser)]
@@ -96,9 +96,10 @@ enum Command {
     Models,
     /// Train one model; writes config.json, metrics.jsonl (one line per epoch), best/ and last/ checkpoints.
     Fit {
-        /// Published dataset directory (contains manifest.json).
+        /// Published dataset directory (contains manifest.json), or the URL of `g2r-dataset serve`
+        /// (http://127.0.0.1:8080): both give the same batches.
         #[arg(long)]
-        data: PathBuf,
+        data: String,
         /// Run directory.
         #[arg(long)]
         out: PathBuf,
@@ -113,8 +114,9 @@ enum Command {
     },
     /// Train M1-M6 under the same budget and write a comparison table (val MSE, parameters, step time).
     CompareModels {
+        /// Dataset directory or server URL, as for `fit`.
         #[arg(long)]
-        data: PathBuf,
+        data: String,
         #[arg(long)]
         out: PathBuf,
         #[command(flatten)]
@@ -123,8 +125,9 @@ enum Command {
     /// Metrics of the uniform-Hapke baseline, normalised per image as the paper did (affine to the ground truth's
     /// mean and range: it peeks at the ground truth), on a split: compare with a run's val metrics.
     Baseline {
+        /// Dataset directory or server URL, as for `fit`.
         #[arg(long)]
-        data: PathBuf,
+        data: String,
         #[arg(long, default_value = "val")]
         split: String,
         /// Samples to evaluate (default: the whole split).
@@ -215,7 +218,7 @@ fn run(cli: Cli) -> Result<()> {
             stop_after_steps,
             train,
         } => {
-            let source: Arc<dyn SampleSource> = Arc::new(LocalSource::open(&data)?);
+            let source = open_source(&data)?;
             let outcome = run_fit(source, &train, &out, resume, stop_after_steps)?;
             println!(
                 "{}: {} steps, {} trainable parameters, {:.3} s/step; metrics in {}",
@@ -235,7 +238,7 @@ fn run(cli: Cli) -> Result<()> {
             }
         }
         Command::CompareModels { data, out, train } => {
-            let source: Arc<dyn SampleSource> = Arc::new(LocalSource::open(&data)?);
+            let source = open_source(&data)?;
             let mut rows = Vec::new();
             let mut table = String::from("| model | params/pixel | trainable weights | val loss (pixel MSE) | val PSNR dB | val SSIM | s/step |\n|---|---|---|---|---|---|---|\n");
             for model in BrdfModel::ALL {
@@ -283,8 +286,9 @@ fn run(cli: Cli) -> Result<()> {
             split,
             max_samples,
         } => {
-            let source = LocalSource::open(&data)?;
-            let metrics = train::baseline::normalised_hapke_metrics(&source, &split, max_samples)?;
+            let source = open_source(&data)?;
+            let metrics =
+                train::baseline::normalised_hapke_metrics(source.as_ref(), &split, max_samples)?;
             println!("{}", serde_json::to_string_pretty(&metrics)?);
         }
         Command::Bench {
