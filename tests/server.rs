@@ -1,0 +1,701 @@
+//! `g2r-dataset serve` end to end over loopback: every endpoint's shape, rows equal to what pyarrow reads, exact
+//! Range bytes, hostile requests refused, 32 concurrent clients without errors, the trainer streaming the same
+//! batches over HTTP as from local files, and the viewer rendered by a real headless Chromium.
+
+use std::collections::BTreeMap;
+use std::io::{Read, Write};
+use std::net::{SocketAddr, TcpStream};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::sync::{Arc, OnceLock};
+
+use dataset::client::HttpClient;
+use dataset::manifest::{DatasetManifest, ShardEntry};
+use dataset::planner::plan_epoch;
+use dataset::schema::{Sample, CROP_PX, DEM_PX, SCHEMA_VERSION};
+use dataset::shard::{read_shard, shard_name, ShardWriter};
+use train::data::{EpochStream, HttpSource, LocalSource, SampleSource, StreamConfig};
+
+const TILE_M: f64 = 2560.0;
+/// (split, rows per shard): train spans two shards and three row groups.
+const LAYOUT: [(&str, &[usize]); 3] = [("train", &[300, 40]), ("val", &[30]), ("test", &[20])];
+
+/// A varied sample: each split owns its own 2 × 2 tiles (a 6 × 2 tile map), centres and lon/lat spread so filters have something to find.
+fn sample(split_index: usize, split: &str, i: usize) -> Sample {
+    let n = CROP_PX * CROP_PX;
+    let tile = (
+        split_index as i64 * 2 + (i % 2) as i64,
+        -512 + ((i / 2) % 2) as i64,
+    );
+    let x = tile.0 as f64 * TILE_M + 200.0 + (i % 9) as f64 * 100.0;
+    let y = tile.1 as f64 * TILE_M + 300.0 + (i % 5) as f64 * 150.0;
+    Sample {
+        sample_id: format!("M{split_index}:{i}:{}", i * 7 % 1000),
+        split: split.into(),
+        tile_id: format!("t_{}_{}", tile.0, tile.1),
+        ortho_id: format!("M{split_index}"),
+        center_x_m: x,
+        center_y_m: y,
+        center_lon_deg: -11.5 + x / 30_000.0,
+        center_lat_deg: -43.3 + (y + 1_310_000.0) / 30_000.0,
+        footprint_lonlat_deg: [i as f64, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.5],
+        dem_m: (0..DEM_PX * DEM_PX)
+            .map(|k| {
+                ((k % DEM_PX) as f32 * 0.11 + i as f32).sin() * 20.0 - 1200.0
+                    + (k / DEM_PX) as f32 * 0.3
+            })
+            .collect(),
+        image: (0..n)
+            .map(|k| ((k * 31 + i * 17) % 1000) as f32 / 20_000.0)
+            .collect(),
+        valid: (0..n)
+            .map(|k| u8::from(!(k + i).is_multiple_of(11)))
+            .collect(),
+        sun_lit: (0..n).map(|k| ((k + i) % 5) as f32 / 4.0).collect(),
+        sun_dir_enu: [0.6, 0.0, 0.8],
+        camera_pos_enu_m: [i as f64, -20.0, 50_000.0],
+        enu_origin_height_m: -1200.0 + i as f64 * 0.5,
+        map_to_en: [0.99, 0.01, -0.01, 1.0],
+        camera_att: [1.0, 0.0, 0.0, 0.0],
+        fov_deg: 2.85,
+        gsd_m: 5.0,
+        incidence_deg: 40.0 + (i % 30) as f64,
+        emission_deg: 1.5,
+        phase_deg: 41.0 + (i % 30) as f64,
+        acq_time: "2010-01-01T00:00:00.000Z".into(),
+        provenance: "server-test".into(),
+    }
+}
+
+struct Fixture {
+    dir: PathBuf,
+    addr: SocketAddr,
+    samples: BTreeMap<String, Vec<Sample>>,
+    _root: tempfile::TempDir,
+}
+
+impl Fixture {
+    fn url(&self) -> String {
+        format!("http://{}", self.addr)
+    }
+    fn client(&self) -> HttpClient {
+        HttpClient::new(&self.url()).unwrap()
+    }
+}
+
+/// Publish the fixture dataset under `root/dataset` (plus a secret file next to it, outside the served dir).
+fn publish(root: &Path) -> (PathBuf, BTreeMap<String, Vec<Sample>>) {
+    let dir = root.join("dataset");
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(root.join("secret.txt"), "TOP-SECRET-OUTSIDE-DIR").unwrap();
+    let (mut shards, mut all, mut counts) =
+        (Vec::<ShardEntry>::new(), BTreeMap::new(), BTreeMap::new());
+    for (s, (split, sizes)) in LAYOUT.iter().enumerate() {
+        let mut next = 0;
+        let mut split_samples = Vec::new();
+        for (k, &size) in sizes.iter().enumerate() {
+            let rows: Vec<Sample> = (next..next + size).map(|i| sample(s, split, i)).collect();
+            next += size;
+            let mut w = ShardWriter::create(&dir.join(shard_name(split, k, sizes.len()))).unwrap();
+            w.write(&rows).unwrap();
+            shards.push(w.finish().unwrap());
+            split_samples.extend(rows);
+        }
+        counts.insert(split.to_string(), next as u64);
+        all.insert(split.to_string(), split_samples);
+    }
+    shards.sort_by(|a, b| a.path.cmp(&b.path));
+    let manifest = DatasetManifest {
+        schema_version: SCHEMA_VERSION.into(),
+        name: "server-fixture".into(),
+        license: "CC-BY-4.0".into(),
+        seed: 9,
+        crs: "test".into(),
+        split_counts: counts,
+        shards,
+        dem_std_m: 20.0,
+        pipeline_lock_blake3: String::new(),
+    };
+    let summary = serde_json::json!({
+        "split": { "dropped_straddling_splits": 0, "tile_size_m": TILE_M, "guard_band_m": 0.0 },
+        "rejections_by_ortho": {},
+    });
+    dataset::manifest::write_json_atomic(&dir.join("summary.json"), &summary).unwrap();
+    dataset::manifest::write_json_atomic(&dir.join("manifest.json"), &manifest).unwrap();
+    dataset::publication::write_descriptions(&dir, &manifest).unwrap();
+    (dir, all)
+}
+
+/// Tests of this file run one at a time: the load test measures this process's memory, and the others would
+/// add theirs (the trainer test holds f64 batches).
+static SERIAL: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+/// One server for the whole file, on a free loopback port, in its own runtime thread.
+fn fixture() -> (&'static Fixture, std::sync::MutexGuard<'static, ()>) {
+    let guard = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    (fixture_once(), guard)
+}
+
+fn fixture_once() -> &'static Fixture {
+    static FIXTURE: OnceLock<Fixture> = OnceLock::new();
+    FIXTURE.get_or_init(|| {
+        let root = tempfile::tempdir().unwrap();
+        let (dir, samples) = publish(root.path());
+        let (send, receive) = std::sync::mpsc::channel();
+        let serve_dir = dir.clone();
+        std::thread::spawn(move || {
+            let runtime = tokio::runtime::Runtime::new().unwrap();
+            runtime
+                .block_on(dataset::server::serve(
+                    &serve_dir,
+                    "127.0.0.1:0".parse().unwrap(),
+                    true,
+                    |addr| {
+                        send.send(addr).unwrap();
+                    },
+                ))
+                .unwrap();
+        });
+        let addr = receive.recv().expect("server started");
+        Fixture {
+            dir,
+            addr,
+            samples,
+            _root: root,
+        }
+    })
+}
+
+/// Send raw request bytes (no client-side path normalisation) and return (status, body).
+fn raw_get(addr: SocketAddr, target: &str) -> (u16, String) {
+    let mut stream = TcpStream::connect(addr).unwrap();
+    write!(
+        stream,
+        "GET {target} HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\r\n"
+    )
+    .unwrap();
+    let mut response = String::new();
+    stream.read_to_string(&mut response).unwrap();
+    let status = response.split_whitespace().nth(1).unwrap().parse().unwrap();
+    (status, response)
+}
+
+#[test]
+fn every_endpoint_answers_with_its_documented_shape() {
+    let (f, _serial) = fixture();
+    let c = f.client();
+    let info: serde_json::Value = c.get_json("/v1/info").unwrap();
+    assert_eq!(info["name"], "server-fixture");
+    assert_eq!(info["rows"], 390);
+    assert_eq!(info["split_counts"]["train"], 340);
+    assert_eq!(info["schema_version"], SCHEMA_VERSION);
+    assert_eq!(
+        info["schema"].as_array().unwrap().len(),
+        dataset::schema::sample_schema().fields().len()
+    );
+    assert_eq!(
+        info["manifest_blake3"].as_str().unwrap(),
+        dataset::manifest::hash_file(&f.dir.join("manifest.json")).unwrap()
+    );
+    assert!(info["card"]
+        .as_str()
+        .unwrap()
+        .starts_with("# server-fixture"));
+
+    let splits: serde_json::Value = c.get_json("/v1/splits").unwrap();
+    let train = &splits["splits"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|s| s["name"] == "train")
+        .unwrap();
+    assert_eq!(
+        (train["rows"].as_u64(), train["row_groups"].as_u64()),
+        (Some(340), Some(3))
+    );
+    assert_eq!(train["shards"][1], "train-00001-of-00002.parquet");
+
+    // Rows in the split's order, across the shard boundary (300 | 40).
+    let page: serde_json::Value = c
+        .get_json("/v1/rows?split=train&offset=295&length=10")
+        .unwrap();
+    assert_eq!(
+        (page["total"].as_u64(), page["offset"].as_u64()),
+        (Some(340), Some(295))
+    );
+    let ids: Vec<&str> = page["rows"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| r["sample_id"].as_str().unwrap())
+        .collect();
+    let expected: Vec<&str> = f.samples["train"][295..305]
+        .iter()
+        .map(|s| s.sample_id.as_str())
+        .collect();
+    assert_eq!(ids, expected);
+    assert!(
+        page["rows"][0].get("tensors").is_none(),
+        "tensors only when asked"
+    );
+    assert_eq!(
+        page["rows"][6]["location"]["shard"],
+        "train-00001-of-00002.parquet"
+    );
+    assert_eq!(page["rows"][6]["location"]["row"], 1);
+    let tail: serde_json::Value = c
+        .get_json("/v1/rows?split=test&offset=18&length=100")
+        .unwrap();
+    assert_eq!(tail["rows"].as_array().unwrap().len(), 2);
+
+    // Filters against an independent count over the fixture.
+    let by_tile: serde_json::Value = c.get_json("/v1/filter?tile=t_3_-511&limit=3").unwrap();
+    let want = f
+        .samples
+        .values()
+        .flatten()
+        .filter(|s| s.tile_id == "t_3_-511")
+        .count();
+    assert_eq!(by_tile["count"].as_u64(), Some(want as u64));
+    assert_eq!(by_tile["rows"].as_array().unwrap().len(), 3.min(want));
+    let bbox = [-11.5, -43.35, -10.0, -43.3];
+    let by_box: serde_json::Value = c
+        .get_json(&format!(
+            "/v1/filter?split=train&bbox={},{},{},{}&limit=1000",
+            bbox[0], bbox[1], bbox[2], bbox[3]
+        ))
+        .unwrap();
+    let want = f.samples["train"]
+        .iter()
+        .filter(|s| {
+            (bbox[0]..=bbox[2]).contains(&s.center_lon_deg)
+                && (bbox[1]..=bbox[3]).contains(&s.center_lat_deg)
+        })
+        .count();
+    assert!(want > 0 && want < 340, "the box must cut the split: {want}");
+    assert_eq!(by_box["count"].as_u64(), Some(want as u64));
+
+    // Tiles: one split each, exact squares from summary.json's tile size.
+    let tiles: serde_json::Value = c.get_json("/v1/tiles").unwrap();
+    let tiles = tiles["tiles"].as_array().unwrap();
+    assert_eq!(tiles.len(), 12);
+    let t = tiles.iter().find(|t| t["tile_id"] == "t_5_-512").unwrap();
+    assert_eq!(t["split"], "test");
+    assert_eq!(
+        t["rect_m"],
+        serde_json::json!([5.0 * TILE_M, -512.0 * TILE_M, 6.0 * TILE_M, -511.0 * TILE_M])
+    );
+
+    // One sample and its previews (PNG, 128 × 128).
+    let s = &f.samples["val"][7];
+    let one: serde_json::Value = c.get_json(&format!("/v1/samples/{}", s.sample_id)).unwrap();
+    assert_eq!(one["incidence_deg"].as_f64(), Some(s.incidence_deg));
+    for file in ["dem.png", "image.png", "lit.png"] {
+        let png = c
+            .get_ok(&format!("/v1/samples/{}/{file}", s.sample_id), &[])
+            .unwrap();
+        assert_eq!(png.header("content-type"), Some("image/png"));
+        let decoded = image::load_from_memory(&png.body).unwrap();
+        assert_eq!(
+            (decoded.width(), decoded.height()),
+            (CROP_PX as u32, CROP_PX as u32)
+        );
+    }
+
+    // Manifest bytes as published; Croissant lists every shard.
+    assert_eq!(
+        c.get_ok("/v1/manifest", &[]).unwrap().body,
+        std::fs::read(f.dir.join("manifest.json")).unwrap()
+    );
+    let croissant: serde_json::Value = c.get_json("/v1/croissant").unwrap();
+    assert_eq!(croissant["distribution"].as_array().unwrap().len(), 4);
+
+    // A row group as Arrow IPC equals the shard's rows.
+    let ipc = c
+        .get_ok("/v1/shards/train-00000-of-00002.parquet/row-groups/1", &[])
+        .unwrap();
+    assert_eq!(
+        ipc.header("content-type"),
+        Some(dataset::server::ARROW_STREAM)
+    );
+    assert_eq!(
+        dataset::shard::samples_from_ipc_stream(&ipc.body).unwrap(),
+        f.samples["train"][256..300]
+    );
+
+    // The viewer page.
+    let page = c.get_ok("/", &[]).unwrap();
+    assert!(page.text().contains("<canvas id=\"map\""));
+}
+
+#[test]
+fn epoch_stream_serves_rows_in_the_planners_order() {
+    let (f, _serial) = fixture();
+    let local = LocalSource::open(&f.dir).unwrap();
+    let groups = local.row_groups("train").unwrap();
+    let by_group: Vec<Vec<Sample>> = groups
+        .iter()
+        .map(|g| local.read_row_group(g).unwrap())
+        .collect();
+    for (rank, world, window) in [(0, 1, 2), (1, 2, 1)] {
+        let plan = plan_epoch(&groups, 5, 3, window, rank, world);
+        let expected: Vec<&Sample> = plan
+            .rows
+            .iter()
+            .map(|r| &by_group[r.group][r.row])
+            .collect();
+        let body = f
+            .client()
+            .get_ok(
+                &format!("/v1/stream?split=train&seed=5&epoch=3&rank={rank}&world={world}&window={window}"),
+                &[("Accept", dataset::server::ARROW_STREAM)],
+            )
+            .unwrap()
+            .body;
+        let streamed = dataset::shard::samples_from_ipc_stream(&body).unwrap();
+        assert_eq!(streamed.len(), expected.len());
+        assert!(
+            streamed.iter().zip(&expected).all(|(a, b)| a == *b),
+            "rank {rank}/{world}"
+        );
+    }
+    let refused = f
+        .client()
+        .get("/v1/stream?split=train&seed=5&epoch=3", &[])
+        .unwrap();
+    assert_eq!(refused.status, 406);
+}
+
+#[test]
+fn rows_and_remote_shard_reads_equal_what_pyarrow_and_polars_read() {
+    let (f, _serial) = fixture();
+    let script = r#"
+import sys, json, base64, urllib.request
+import numpy as np, pyarrow.parquet as pq, polars as pl
+url, shard_dir = sys.argv[1], sys.argv[2]
+name = "train-00000-of-00002.parquet"
+table = pq.read_table(f"{shard_dir}/{name}")
+body = json.load(urllib.request.urlopen(f"{url}/v1/rows?split=train&offset=250&length=20&tensors=base64"))
+assert len(body["rows"]) == 20
+scalars = ["sample_id", "split", "tile_id", "ortho_id", "center_x", "center_y", "center_lon", "center_lat",
+           "enu_origin_height_m", "fov_deg", "gsd_m", "incidence_deg", "emission_deg", "phase_deg", "acq_time",
+           "provenance", "footprint_lonlat", "sun_dir_enu", "camera_pos_enu", "map_to_en", "camera_att"]
+for k, row in enumerate(body["rows"]):
+    i = 250 + k
+    for col in scalars:
+        assert table.column(col)[i].as_py() == row[col], (col, i, row[col])
+    for col, dtype in [("dem", np.float32), ("image", np.float32), ("valid", np.uint8), ("sun_lit", np.float32)]:
+        t = row["tensors"][col]
+        got = np.frombuffer(base64.b64decode(t["base64"]), dtype=dtype).reshape(t["shape"])
+        want = np.asarray(table.column(col)[i].values.to_numpy(zero_copy_only=False), dtype=dtype).reshape(t["shape"])
+        assert t["dtype"] == np.dtype(dtype).name and np.array_equal(got, want), col
+# Remote reads through HTTP Range requests, with no custom code.
+remote = pl.read_parquet(f"{url}/v1/shards/{name}", columns=["sample_id", "incidence_deg", "dem"])
+local = pl.read_parquet(f"{shard_dir}/{name}", columns=["sample_id", "incidence_deg", "dem"])
+assert remote.equals(local), "polars over HTTP differs from the file"
+print("ok", len(body["rows"]), remote.shape)
+"#;
+    let out = Command::new(g2r_tests::python())
+        .args(["-c", script, &f.url(), f.dir.to_str().unwrap()])
+        .output()
+        .expect("python with pyarrow/polars/numpy (bash .ci/setup makes .venv)");
+    assert!(
+        out.status.success(),
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+#[test]
+fn range_reads_return_exactly_the_files_bytes() {
+    let (f, _serial) = fixture();
+    let c = f.client();
+    let name = "val-00000-of-00001.parquet";
+    let bytes = std::fs::read(f.dir.join(name)).unwrap();
+    let n = bytes.len();
+    let whole = c.get_ok(&format!("/v1/shards/{name}"), &[]).unwrap();
+    assert_eq!(whole.status, 200);
+    assert_eq!(whole.body, bytes);
+    assert_eq!(whole.header("accept-ranges"), Some("bytes"));
+    for (range, expected) in [
+        ("bytes=0-99".to_string(), &bytes[..100]),
+        (
+            format!("bytes={}-{}", n / 2, n / 2 + 4095),
+            &bytes[n / 2..n / 2 + 4096],
+        ),
+        ("bytes=-8".to_string(), &bytes[n - 8..]), // the Parquet footer length + magic, as readers ask for it
+        (format!("bytes={}-", n - 1000), &bytes[n - 1000..]),
+        (format!("bytes={}-{}", n - 10, n + 500), &bytes[n - 10..]), // clamped to the file's end
+    ] {
+        let part = c
+            .get(&format!("/v1/shards/{name}"), &[("Range", &range)])
+            .unwrap();
+        assert_eq!(part.status, 206, "{range}");
+        assert_eq!(part.body, expected, "{range}");
+        let content_range = part.header("content-range").unwrap();
+        assert!(
+            content_range.ends_with(&format!("/{n}")),
+            "{range}: {content_range}"
+        );
+    }
+    for bad in [
+        "bytes=abc",
+        "bytes=10-5",
+        "pages=0-1",
+        &format!("bytes={}-{}", n + 10, n + 20),
+    ] {
+        let r = c
+            .get(&format!("/v1/shards/{name}"), &[("Range", bad)])
+            .unwrap();
+        assert_eq!(r.status, 416, "{bad}");
+    }
+}
+
+#[test]
+fn hostile_and_malformed_requests_get_4xx_and_nothing_outside_the_directory() {
+    let (f, _serial) = fixture();
+    let secret = "TOP-SECRET-OUTSIDE-DIR";
+    for target in [
+        "/v1/shards/../secret.txt",
+        "/v1/shards/..%2Fsecret.txt",
+        "/v1/shards/%2e%2e%2fsecret.txt",
+        "/v1/shards/%2E%2E/secret.txt",
+        "/v1/shards/..%5Csecret.txt",
+        "/v1/shards/%2Fetc%2Fpasswd",
+        "/v1/shards//etc/passwd",
+        "/v1/shards/summary.json", // inside the directory, but not a listed shard
+        "/../secret.txt",
+        "/%2e%2e/secret.txt",
+        "//etc/passwd",
+        "/v1/samples/..%2F..%2Fsecret.txt/dem.png",
+        "/v1/samples/M0:1:7/..%2F..%2Fsecret.txt",
+        "/v1/shards/train-00000-of-00002.parquet/row-groups/..%2F..%2Fsecret.txt",
+        "/v1/shards/train-00000-of-00002.parquet/row-groups/99",
+    ] {
+        let (status, body) = raw_get(f.addr, target);
+        assert!((400..500).contains(&status), "{target}: {status}");
+        assert!(
+            !body.contains(secret) && !body.contains("root:x:0"),
+            "{target} leaked a file"
+        );
+    }
+    let c = f.client();
+    for (query, status, message) in [
+        (
+            "/v1/rows?split=train&length=101",
+            400,
+            "'length' must be 1..=100",
+        ),
+        (
+            "/v1/rows?split=train&length=0",
+            400,
+            "'length' must be 1..=100",
+        ),
+        (
+            "/v1/rows?split=train&length=-5",
+            400,
+            "non-negative integer, got '-5'",
+        ),
+        (
+            "/v1/rows?split=train&length=ten",
+            400,
+            "non-negative integer, got 'ten'",
+        ),
+        (
+            "/v1/rows?split=train&offset=-1",
+            400,
+            "'offset' must be a non-negative integer",
+        ),
+        ("/v1/rows?split=train&tensors=raw", 400, "'tensors' must be"),
+        ("/v1/rows?length=5", 400, "missing query parameter 'split'"),
+        ("/v1/rows?split=holdout", 404, "unknown split 'holdout'"),
+        ("/v1/filter?split=holdout", 404, "unknown split"),
+        ("/v1/filter?bbox=1,2,3", 400, "'bbox' must be"),
+        ("/v1/filter?bbox=5,0,1,1", 400, "lon0 <= lon1"),
+        ("/v1/filter?limit=100000", 400, "'limit' must be at most"),
+        ("/v1/samples/nope:1:2", 404, "no sample 'nope:1:2'"),
+        ("/v1/samples/M0:1:7/dem.jpg", 404, "no preview 'dem.jpg'"),
+        (
+            "/v1/stream?split=train&epoch=1",
+            400,
+            "missing query parameter 'seed'",
+        ),
+        ("/v1/nothing", 404, "no such endpoint"),
+    ] {
+        let headers = [("Accept", dataset::server::ARROW_STREAM)];
+        let r = c.get(query, &headers).unwrap();
+        assert_eq!(r.status, status, "{query}: {}", r.text());
+        let body: serde_json::Value = serde_json::from_slice(&r.body).unwrap();
+        assert!(
+            body["error"].as_str().unwrap().contains(message),
+            "{query}: {}",
+            r.text()
+        );
+    }
+}
+
+/// Resident memory of this process, bytes (Linux).
+fn rss_bytes() -> u64 {
+    let status = std::fs::read_to_string("/proc/self/status").unwrap();
+    let line = status.lines().find(|l| l.starts_with("VmRSS:")).unwrap();
+    line.split_whitespace()
+        .nth(1)
+        .unwrap()
+        .parse::<u64>()
+        .unwrap()
+        * 1024
+}
+
+#[test]
+fn thirty_two_concurrent_clients_get_no_errors_in_bounded_memory() {
+    let (f, _serial) = fixture();
+    // Warm-up round so one-time allocations (runtime threads, footers) are not counted as growth.
+    dataset::loadtest::run(&f.url(), 32, 320, 1).unwrap();
+    let before = rss_bytes();
+    let report = dataset::loadtest::run(&f.url(), 32, 3200, 2).unwrap();
+    let grown = rss_bytes().saturating_sub(before);
+    eprintln!(
+        "load: {} requests from {} clients in {:.2} s: {:.0} req/s, {:.0} rows/s, {:.1} MB/s, p50 {:.1} ms, p99 {:.1} ms; RSS +{} MiB",
+        report.requests,
+        report.clients,
+        report.wall_s,
+        report.requests_per_s,
+        report.rows_per_s,
+        report.mb_per_s,
+        report.p50_ms,
+        report.p99_ms,
+        grown >> 20
+    );
+    assert_eq!(report.errors, 0, "{:?}", report.error_samples);
+    assert_eq!(report.requests, 3200);
+    assert!(
+        grown < 512 << 20,
+        "RSS grew by {} MiB under load",
+        grown >> 20
+    );
+}
+
+#[test]
+fn trainer_over_http_gets_the_same_first_epoch_batches_as_from_local_files() {
+    let (f, _serial) = fixture();
+    let config = StreamConfig {
+        seed: 11,
+        batch_size: 8,
+        window_groups: 2,
+        augment: true,
+        max_samples: None,
+    };
+    let local: Arc<dyn SampleSource> = Arc::new(LocalSource::open(&f.dir).unwrap());
+    let remote: Arc<dyn SampleSource> = Arc::new(HttpSource::open(&f.url()).unwrap());
+    assert_eq!(local.manifest(), remote.manifest());
+    assert_eq!(
+        local.row_groups("train").unwrap(),
+        remote.row_groups("train").unwrap()
+    );
+    let from_local: Vec<_> = EpochStream::start(local, "train", config, 0, 0)
+        .unwrap()
+        .map(Result::unwrap)
+        .collect();
+    let from_http: Vec<_> = EpochStream::start(remote, "train", config, 0, 0)
+        .unwrap()
+        .map(Result::unwrap)
+        .collect();
+    assert_eq!(from_local.len(), 340usize.div_ceil(8));
+    assert!(
+        from_local == from_http,
+        "HTTP batches differ from local batches"
+    );
+    // And the shuffle really shuffles: the first batch is not the file's first rows.
+    let file_order: Vec<String> = read_shard(&f.dir.join("train-00000-of-00002.parquet")).unwrap()
+        [..8]
+        .iter()
+        .map(|s| s.sample_id.clone())
+        .collect();
+    assert_ne!(from_http[0].sample_ids, file_order);
+}
+
+/// A Chromium/Chrome binary: $G2R_CHROMIUM, else the first on PATH.
+fn chromium() -> PathBuf {
+    if let Some(path) = std::env::var_os("G2R_CHROMIUM") {
+        return path.into();
+    }
+    for name in ["chromium", "chromium-browser", "google-chrome"] {
+        if let Ok(out) = Command::new("which").arg(name).output() {
+            if out.status.success() {
+                return String::from_utf8_lossy(&out.stdout).trim().into();
+            }
+        }
+    }
+    panic!("no chromium on PATH: install it (bash .ci/setup does: apt-get install chromium) or set G2R_CHROMIUM");
+}
+
+#[test]
+fn viewer_renders_samples_and_the_tile_map_in_headless_chromium() {
+    let (f, _serial) = fixture();
+    let shots = tempfile::tempdir().unwrap();
+    let screenshot = shots.path().join("viewer.png");
+    let common = [
+        "--headless",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--hide-scrollbars",
+        "--window-size=1280,900",
+        "--virtual-time-budget=15000",
+    ];
+    let profile = format!("--user-data-dir={}", shots.path().join("profile").display());
+    let dom = Command::new(chromium())
+        .args(common)
+        .arg(&profile)
+        .arg("--dump-dom")
+        .arg(f.url())
+        .output()
+        .unwrap();
+    let dom = String::from_utf8_lossy(&dom.stdout);
+    assert!(
+        dom.contains("data-ready=\"1\""),
+        "viewer never finished loading:\n{dom}"
+    );
+    assert_eq!(
+        dom.matches("class=\"sample\"").count(),
+        12,
+        "one page of samples"
+    );
+    assert!(dom.contains("<h1 id=\"title\">server-fixture</h1>"));
+    assert!(dom.contains(&format!(
+        "data-sample-id=\"{}\"",
+        f.samples["train"][0].sample_id
+    )));
+    assert!(dom.contains("train: 1–12 of 340"));
+    let status = Command::new(chromium())
+        .args(common)
+        .arg(&profile)
+        .arg(format!("--screenshot={}", screenshot.display()))
+        .arg(f.url())
+        .output()
+        .unwrap();
+    assert!(
+        screenshot.exists(),
+        "no screenshot: {}",
+        String::from_utf8_lossy(&status.stderr)
+    );
+    let shot = image::open(&screenshot).unwrap().to_rgb8();
+    assert_eq!((shot.width(), shot.height()), (1280, 900));
+    let count = |rgb: [u8; 3]| shot.pixels().filter(|p| p.0 == rgb).count();
+    // The canvas map paints val tiles #6ea0e6 and test tiles #f0a050 (legend chips are far smaller).
+    assert!(
+        count([0x6e, 0xa0, 0xe6]) > 2000 && count([0xf0, 0xa0, 0x50]) > 2000,
+        "tile map not drawn"
+    );
+    // Previews loaded: many distinct grey levels in the sample grid (text alone has few).
+    let greys: std::collections::BTreeSet<u8> = shot
+        .enumerate_pixels()
+        .filter(|(x, _, p)| *x > 450 && p.0[0] == p.0[1] && p.0[1] == p.0[2])
+        .map(|(_, _, p)| p.0[0])
+        .collect();
+    assert!(
+        greys.len() > 150,
+        "previews not rendered ({} grey levels)",
+        greys.len()
+    );
+}
