@@ -182,7 +182,8 @@ pub fn pipeline(
     let (l5, dem5, sp) = (Layout::of(&m), dem.clone(), m.split.clone());
     let split = Stage {
         name: "split",
-        code_version: "1",
+        // 2: summary states the tile size and guard band (the card and the server's tile map read them).
+        code_version: "2",
         inputs: vec![layout.samples.clone(), dem_input.clone()],
         params: serde_json::json!({ "split": serde_json::to_value(&m.split)?, "seed": seed }),
         outputs: vec![layout.assignment.clone(), layout.split_summary.clone()],
@@ -202,7 +203,8 @@ pub fn pipeline(
     let check_dir = layout.dataset.clone();
     let publish = Stage {
         name: "publish",
-        code_version: "1",
+        // 2: card and Croissant written by dataset::publication.
+        code_version: "2",
         inputs: vec![
             layout.samples.clone(),
             layout.assignment.clone(),
