@@ -10,10 +10,9 @@ use std::process::Command;
 use std::sync::{Arc, OnceLock};
 
 use dataset::client::HttpClient;
-use dataset::manifest::{DatasetManifest, ShardEntry};
 use dataset::planner::plan_epoch;
-use dataset::schema::{Sample, CROP_PX, DEM_PX, SCHEMA_VERSION};
-use dataset::shard::{read_shard, shard_name, ShardWriter};
+use dataset::schema::{Sample, CROP_PX, SCHEMA_VERSION};
+use dataset::shard::read_shard;
 use train::data::{EpochStream, HttpSource, LocalSource, SampleSource, StreamConfig};
 
 const TILE_M: f64 = 2560.0;
@@ -39,12 +38,6 @@ fn sample(split_index: usize, split: &str, i: usize) -> Sample {
         center_lon_deg: -11.5 + x / 30_000.0,
         center_lat_deg: -43.3 + (y + 1_310_000.0) / 30_000.0,
         footprint_lonlat_deg: [i as f64, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.5],
-        dem_m: (0..DEM_PX * DEM_PX)
-            .map(|k| {
-                ((k % DEM_PX) as f32 * 0.11 + i as f32).sin() * 20.0 - 1200.0
-                    + (k / DEM_PX) as f32 * 0.3
-            })
-            .collect(),
         image: (0..n)
             .map(|k| ((k * 31 + i * 17) % 1000) as f32 / 20_000.0)
             .collect(),
@@ -52,18 +45,11 @@ fn sample(split_index: usize, split: &str, i: usize) -> Sample {
             .map(|k| u8::from(!(k + i).is_multiple_of(11)))
             .collect(),
         sun_lit: (0..n).map(|k| ((k + i) % 5) as f32 / 4.0).collect(),
-        sun_dir_enu: [0.6, 0.0, 0.8],
         camera_pos_enu_m: [i as f64, -20.0, 50_000.0],
         enu_origin_height_m: -1200.0 + i as f64 * 0.5,
-        map_to_en: [0.99, 0.01, -0.01, 1.0],
-        camera_att: [1.0, 0.0, 0.0, 0.0],
-        fov_deg: 2.85,
-        gsd_m: 5.0,
         incidence_deg: 40.0 + (i % 30) as f64,
-        emission_deg: 1.5,
         phase_deg: 41.0 + (i % 30) as f64,
-        acq_time: "2010-01-01T00:00:00.000Z".into(),
-        provenance: "server-test".into(),
+        ..dataset::testing::synthetic_sample(i)
     }
 }
 
@@ -86,43 +72,23 @@ impl Fixture {
 /// Publish the fixture dataset under `root/dataset` (plus a secret file next to it, outside the served dir).
 fn publish(root: &Path) -> (PathBuf, BTreeMap<String, Vec<Sample>>) {
     let dir = root.join("dataset");
-    std::fs::create_dir_all(&dir).unwrap();
     std::fs::write(root.join("secret.txt"), "TOP-SECRET-OUTSIDE-DIR").unwrap();
-    let (mut shards, mut all, mut counts) =
-        (Vec::<ShardEntry>::new(), BTreeMap::new(), BTreeMap::new());
+    let mut layout = Vec::new();
+    let mut all = BTreeMap::new();
     for (s, (split, sizes)) in LAYOUT.iter().enumerate() {
         let mut next = 0;
-        let mut split_samples = Vec::new();
-        for (k, &size) in sizes.iter().enumerate() {
-            let rows: Vec<Sample> = (next..next + size).map(|i| sample(s, split, i)).collect();
-            next += size;
-            let mut w = ShardWriter::create(&dir.join(shard_name(split, k, sizes.len()))).unwrap();
-            w.write(&rows).unwrap();
-            shards.push(w.finish().unwrap());
-            split_samples.extend(rows);
-        }
-        counts.insert(split.to_string(), next as u64);
-        all.insert(split.to_string(), split_samples);
+        let shards: Vec<Vec<Sample>> = sizes
+            .iter()
+            .map(|&size| {
+                next += size;
+                (next - size..next).map(|i| sample(s, split, i)).collect()
+            })
+            .collect();
+        all.insert(split.to_string(), shards.concat());
+        layout.push((*split, shards));
     }
-    shards.sort_by(|a, b| a.path.cmp(&b.path));
-    let manifest = DatasetManifest {
-        schema_version: SCHEMA_VERSION.into(),
-        name: "server-fixture".into(),
-        license: "CC-BY-4.0".into(),
-        seed: 9,
-        crs: "test".into(),
-        split_counts: counts,
-        shards,
-        dem_std_m: 20.0,
-        pipeline_lock_blake3: String::new(),
-    };
-    let summary = serde_json::json!({
-        "split": { "dropped_straddling_splits": 0, "tile_size_m": TILE_M, "guard_band_m": 0.0 },
-        "rejections_by_ortho": {},
-    });
-    dataset::manifest::write_json_atomic(&dir.join("summary.json"), &summary).unwrap();
-    dataset::manifest::write_json_atomic(&dir.join("manifest.json"), &manifest).unwrap();
-    dataset::publication::write_descriptions(&dir, &manifest).unwrap();
+    let split_summary = serde_json::json!({ "dropped_straddling_splits": 0, "tile_size_m": TILE_M, "guard_band_m": 0.0 });
+    dataset::testing::write_dataset(&dir, "server-fixture", &layout, split_summary).unwrap();
     (dir, all)
 }
 

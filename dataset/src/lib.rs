@@ -20,6 +20,7 @@ pub mod rng;
 pub mod schema;
 pub mod server;
 pub mod shard;
+pub mod testing;
 
 /// Initialise structured logging for the binaries (`RUST_LOG` overrides the default `info`), and route GDAL's own
 /// messages into it: by default GDAL prints `ERROR 4: …` lines to stderr next to our one-line errors, which

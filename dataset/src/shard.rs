@@ -436,42 +436,9 @@ pub fn shard_name(split: &str, index: usize, count: usize) -> String {
 }
 
 #[cfg(test)]
-pub(crate) mod tests {
+mod tests {
     use super::*;
-    use crate::schema::{CROP_PX, DEM_PX};
-
-    pub(crate) fn synthetic_sample(i: usize) -> Sample {
-        let n = CROP_PX * CROP_PX;
-        Sample {
-            sample_id: format!("ortho_{i}:{}:{}", 100 + i, 200 + i),
-            split: "train".into(),
-            tile_id: "t_3_4".into(),
-            ortho_id: format!("ortho_{i}"),
-            center_x_m: 1000.0 + i as f64,
-            center_y_m: -1_300_000.0,
-            center_lon_deg: -11.2,
-            center_lat_deg: -43.3,
-            footprint_lonlat_deg: [0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0],
-            dem_m: (0..DEM_PX * DEM_PX)
-                .map(|k| (k as f32 * 0.01 + i as f32).sin() * 30.0 - 1500.0)
-                .collect(),
-            image: (0..n).map(|k| (k % 97) as f32 / 97.0).collect(),
-            valid: (0..n).map(|k| (k % 13 != 0) as u8).collect(),
-            sun_lit: (0..n).map(|k| ((k % 7) as f32 / 6.0).min(1.0)).collect(),
-            sun_dir_enu: [0.5, 0.0, 0.866],
-            camera_pos_enu_m: [10.0, -20.0, 50_000.0],
-            enu_origin_height_m: -1200.0,
-            map_to_en: [0.98, 0.01, -0.01, 1.0],
-            camera_att: [1.0, 0.0, 0.0, 0.0],
-            fov_deg: 2.85,
-            gsd_m: 5.0,
-            incidence_deg: 60.0,
-            emission_deg: 1.0,
-            phase_deg: 59.0,
-            acq_time: "2011-05-01T12:00:00Z".into(),
-            provenance: "test".into(),
-        }
-    }
+    use crate::testing::synthetic_sample;
 
     #[test]
     fn shard_roundtrip_with_row_groups_and_checksum() {

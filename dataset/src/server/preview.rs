@@ -118,7 +118,7 @@ mod tests {
             valid: (0..n).map(|k| u8::from(k >= CROP_PX)).collect(),
             sun_lit: vec![0.5; n],
             gsd_m: 5.0,
-            ..crate::shard::tests::synthetic_sample(0)
+            ..crate::testing::synthetic_sample(0)
         }
     }
 

@@ -1,0 +1,84 @@
+//! Fixtures for tests and benchmarks of this and the other crates: a varied synthetic sample and a published
+//! dataset directory written exactly as the publish stage lays it out (shards, manifest, summary, card, Croissant).
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use crate::manifest::{write_json_atomic, DatasetManifest};
+use crate::schema::{Sample, CROP_PX, DEM_PX, SCHEMA_VERSION};
+use crate::shard::{shard_name, ShardWriter};
+
+/// Sample `i`: every field set, rasters varying with `i` (split "train", tile "t_3_4").
+pub fn synthetic_sample(i: usize) -> Sample {
+    let n = CROP_PX * CROP_PX;
+    Sample {
+        sample_id: format!("ortho_{i}:{}:{}", 100 + i, 200 + i),
+        split: "train".into(),
+        tile_id: "t_3_4".into(),
+        ortho_id: format!("ortho_{i}"),
+        center_x_m: 1000.0 + i as f64,
+        center_y_m: -1_300_000.0,
+        center_lon_deg: -11.2,
+        center_lat_deg: -43.3,
+        footprint_lonlat_deg: [0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0],
+        dem_m: (0..DEM_PX * DEM_PX)
+            .map(|k| (k as f32 * 0.01 + i as f32).sin() * 30.0 - 1500.0)
+            .collect(),
+        image: (0..n).map(|k| (k % 97) as f32 / 97.0).collect(),
+        valid: (0..n).map(|k| (k % 13 != 0) as u8).collect(),
+        sun_lit: (0..n).map(|k| ((k % 7) as f32 / 6.0).min(1.0)).collect(),
+        sun_dir_enu: [0.5, 0.0, 0.866],
+        camera_pos_enu_m: [10.0, -20.0, 50_000.0],
+        enu_origin_height_m: -1200.0,
+        map_to_en: [0.98, 0.01, -0.01, 1.0],
+        camera_att: [1.0, 0.0, 0.0, 0.0],
+        fov_deg: 2.85,
+        gsd_m: 5.0,
+        incidence_deg: 60.0,
+        emission_deg: 1.0,
+        phase_deg: 59.0,
+        acq_time: "2011-05-01T12:00:00Z".into(),
+        provenance: "test".into(),
+    }
+}
+
+/// Publish `splits` (split name → shards → rows) into `dir` with the given summary's split section (tile size etc.);
+/// returns the manifest. Rows keep their own `split` field: set it to match.
+pub fn write_dataset(
+    dir: &Path,
+    name: &str,
+    splits: &[(&str, Vec<Vec<Sample>>)],
+    split_summary: serde_json::Value,
+) -> anyhow::Result<DatasetManifest> {
+    std::fs::create_dir_all(dir)?;
+    let (mut shards, mut counts) = (Vec::new(), BTreeMap::new());
+    for (split, split_shards) in splits {
+        for (k, rows) in split_shards.iter().enumerate() {
+            let mut writer =
+                ShardWriter::create(&dir.join(shard_name(split, k, split_shards.len())))?;
+            writer.write(rows)?;
+            shards.push(writer.finish()?);
+        }
+        counts.insert(
+            split.to_string(),
+            split_shards.iter().map(|s| s.len() as u64).sum(),
+        );
+    }
+    shards.sort_by(|a, b| a.path.cmp(&b.path));
+    let manifest = DatasetManifest {
+        schema_version: SCHEMA_VERSION.into(),
+        name: name.into(),
+        license: "CC-BY-4.0".into(),
+        seed: 9,
+        crs: "fixture".into(),
+        split_counts: counts,
+        shards,
+        dem_std_m: 20.0,
+        pipeline_lock_blake3: String::new(),
+    };
+    let summary = serde_json::json!({ "split": split_summary, "rejections_by_ortho": {} });
+    write_json_atomic(&dir.join("summary.json"), &summary)?;
+    crate::publication::write_descriptions(dir, &manifest)?;
+    write_json_atomic(&dir.join("manifest.json"), &manifest)?;
+    Ok(manifest)
+}
