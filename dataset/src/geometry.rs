@@ -77,11 +77,19 @@ impl CropGrid {
 
     /// Ground (east, north) at the origin height of apron-grid cell centre (col, row) in an `n`-cell grid.
     pub fn ground_offset(&self, col: usize, row: usize, n: usize) -> (f64, f64) {
-        let half = n as f64 / 2.0;
-        let dx = (col as f64 + 0.5 - half) * self.gsd_m;
-        let dy = -(row as f64 + 0.5 - half) * self.gsd_m;
+        let (dx, dy) = self.map_offset(col, row, n);
         let j = &self.map_to_en;
         (j[0] * dx + j[1] * dy, j[2] * dx + j[3] * dy)
+    }
+
+    /// Map offset (dx, dy) in metres of cell (col, row) of an `n × n` crop from the crop centre (pixel centres;
+    /// rows run north to south).
+    pub fn map_offset(&self, col: usize, row: usize, n: usize) -> (f64, f64) {
+        let half = n as f64 / 2.0;
+        (
+            (col as f64 + 0.5 - half) * self.gsd_m,
+            -(row as f64 + 0.5 - half) * self.gsd_m,
+        )
     }
 
     /// ENU point of cell (col, row) whose height is `relative_height_m` above the origin's.

@@ -226,8 +226,24 @@ pub fn open_lunar(path: &Path) -> Result<(Dataset, RasterInfo), RasterError> {
 
 /// Read band 1 of a lunar GeoTIFF; nodata values become NaN.
 pub fn read_raster(path: &Path) -> Result<Raster, RasterError> {
+    Ok(read_bands(path)?.swap_remove(0))
+}
+
+/// Read every band of a lunar GeoTIFF (band descriptions kept); nodata values become NaN.
+pub fn read_bands(path: &Path) -> Result<Vec<Raster>, RasterError> {
     let (ds, info) = open_lunar(path)?;
-    let band = ds.rasterband(1).map_err(gdal_err(path))?;
+    (1..=ds.raster_count())
+        .map(|b| read_band(&ds, &info, path, b))
+        .collect()
+}
+
+fn read_band(
+    ds: &Dataset,
+    info: &RasterInfo,
+    path: &Path,
+    index: usize,
+) -> Result<Raster, RasterError> {
+    let band = ds.rasterband(index).map_err(gdal_err(path))?;
     let buf = band
         .read_as::<f32>(
             (0, 0),
@@ -238,7 +254,7 @@ pub fn read_raster(path: &Path) -> Result<Raster, RasterError> {
         .map_err(gdal_err(path))?;
     let description = band.description().unwrap_or_default();
     let (_, mut data) = buf.into_shape_and_vec();
-    let nodata = info.nodata.map(|v| v as f32);
+    let nodata = band.no_data_value().map(|v| v as f32);
     if let Some(nd) = nodata {
         for v in &mut data {
             if *v == nd {
@@ -250,7 +266,7 @@ pub fn read_raster(path: &Path) -> Result<Raster, RasterError> {
         width: info.width,
         height: info.height,
         transform: info.transform,
-        crs: info.crs,
+        crs: info.crs.clone(),
         data,
         nodata: nodata.unwrap_or(f32::NAN),
         description,

@@ -6,6 +6,8 @@ pub mod augment;
 pub mod baseline;
 pub mod bench;
 pub mod data;
+pub mod evaluation;
+pub mod inference;
 pub mod metrics;
 pub mod model;
 pub mod render;

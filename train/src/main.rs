@@ -134,6 +134,59 @@ enum Command {
         #[arg(long)]
         max_samples: Option<usize>,
     },
+    /// Evaluate a run on held-out tiles against the Hapke baselines, Lunar-Lambert and (with --world) the oracle;
+    /// writes metrics.json, metrics.md and PNG panels (GT | each method | |learned - GT|).
+    Eval {
+        /// Run directory written by `fit` (config.json + best/ or last/).
+        #[arg(long)]
+        run: PathBuf,
+        /// Dataset directory or server URL.
+        #[arg(long)]
+        data: String,
+        #[arg(long, default_value = "test")]
+        split: String,
+        /// Synthetic world directory: adds the oracle (its true Hapke maps). Only evaluation reads truth/.
+        #[arg(long)]
+        world: Option<PathBuf>,
+        /// Output directory (default RUN/eval-SPLIT).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Images to evaluate (default: the whole split).
+        #[arg(long)]
+        max_samples: Option<usize>,
+        #[arg(long, default_value_t = 8)]
+        batch: usize,
+        /// Train crops used to fit the honest Hapke scale and Lunar-Lambert albedo.
+        #[arg(long, default_value_t = 256)]
+        calibration_samples: usize,
+        /// PNG panels for the first N images.
+        #[arg(long, default_value_t = 8)]
+        panels: usize,
+        #[arg(long, value_enum, default_value = "flex")]
+        backend: BackendKind,
+    },
+    /// BRDF parameter maps for a whole DEM: overlapping crops blended seamlessly, written as a GeoTIFF on the
+    /// DEM's exact grid (same CRS and geotransform; one band per parameter, LeakyReLU applied; NaN nodata).
+    Infer {
+        #[arg(long)]
+        run: PathBuf,
+        /// DEM GeoTIFF with a lunar CRS (any size; 5 m/px like the training crops).
+        #[arg(long)]
+        dem: PathBuf,
+        /// Output GeoTIFF.
+        #[arg(long)]
+        out: PathBuf,
+        /// Overlap between neighbouring 128-px crops, pixels (< 64).
+        #[arg(long, default_value_t = train::inference::DEFAULT_OVERLAP)]
+        overlap: usize,
+        #[arg(long, default_value_t = 8)]
+        batch: usize,
+        /// Override the input normalisation (default: the run's normalisation.json).
+        #[arg(long)]
+        dem_std_m: Option<f64>,
+        #[arg(long, value_enum, default_value = "flex")]
+        backend: BackendKind,
+    },
     /// Samples/s of the train step (U-Net + renderer layer, forward + backward + Adam) and of the layer alone.
     Bench {
         #[arg(long, default_value_t = 8)]
@@ -201,6 +254,106 @@ fn main() {
 
 fn run(cli: Cli) -> Result<()> {
     match cli.command {
+        Command::Eval {
+            run,
+            data,
+            split,
+            world,
+            out,
+            max_samples,
+            batch,
+            calibration_samples,
+            panels,
+            backend,
+        } => {
+            let source = open_source(&data)?;
+            let out = out.unwrap_or_else(|| run.join(format!("eval-{split}")));
+            let panel_dir = out.join("panels");
+            std::fs::create_dir_all(&panel_dir)?;
+            let options = train::evaluation::EvalOptions {
+                split,
+                max_samples,
+                batch_size: batch.max(1),
+                calibration_samples,
+                panels,
+            };
+            let truth = world
+                .as_deref()
+                .map(train::evaluation::TruthMaps::open)
+                .transpose()?;
+            let calibration = train::evaluation::calibrate(source.as_ref(), calibration_samples)?;
+            let report = with_backend!(backend, B => {
+                type Inner = <B as burn::tensor::backend::AutodiffBackend>::InnerBackend;
+                let device = Default::default();
+                let (config, net) = train::training::load_trained::<Inner>(&run, &device)?;
+                train::evaluation::evaluate::<Inner>(
+                    &net, &config, source.as_ref(), &options, calibration, truth.as_ref(), &device,
+                    |i, sample, renderings| {
+                        if i < options.panels {
+                            let name = format!("{i:03}_{}.png", sample.sample_id.replace(':', "_"));
+                            train::evaluation::panel_png(sample, renderings, &panel_dir.join(name))?;
+                        }
+                        Ok(())
+                    },
+                )
+            })?;
+            train::evaluation::write_report(&report, &out)?;
+            print!("{}", train::evaluation::markdown(&report));
+            println!(
+                "\nwrote {}/metrics.json, metrics.md and panels/",
+                out.display()
+            );
+        }
+        Command::Infer {
+            run,
+            dem,
+            out,
+            overlap,
+            batch,
+            dem_std_m,
+            backend,
+        } => {
+            let dem_std_m = match dem_std_m {
+                Some(v) => v,
+                None => {
+                    train::training::load_normalisation(&run)
+                        .map_err(|e| anyhow::anyhow!("{e:#}; or pass --dem-std-m"))?
+                        .dem_std_m
+                }
+            };
+            let raster = dataset::raster::read_raster(&dem)?;
+            let options = train::inference::InferOptions {
+                overlap,
+                batch_size: batch,
+                dem_std_m,
+            };
+            let progress = indicatif::ProgressBar::new(0).with_style(
+                indicatif::ProgressStyle::with_template(
+                    "infer {bar:40} {pos}/{len} batches {elapsed}",
+                )
+                .expect("valid template"),
+            );
+            let maps = with_backend!(backend, B => {
+                type Inner = <B as burn::tensor::backend::AutodiffBackend>::InnerBackend;
+                let device = Default::default();
+                let (config, net) = train::training::load_trained::<Inner>(&run, &device)?;
+                train::inference::infer_params::<Inner>(&net, config.model, &raster, &options, &device, |done, total| {
+                    progress.set_length(total as u64);
+                    progress.set_position(done as u64);
+                })
+            })?;
+            progress.finish_and_clear();
+            train::inference::write_params_geotiff(&maps, &raster, overlap, &out)?;
+            println!(
+                "{}: {} x {} px, {} bands ({}), {} crops at overlap {overlap}",
+                out.display(),
+                maps.width,
+                maps.height,
+                maps.bands.len(),
+                maps.model.name(),
+                maps.crops
+            );
+        }
         Command::Models => {
             for model in BrdfModel::ALL {
                 println!(

@@ -25,6 +25,9 @@ pub struct UNetConfig {
     pub base_width: usize,
     #[config(default = true)]
     pub dropout: bool,
+    /// Start the 1×1 head at zero (see `init`); off gives random outputs, which tests of inference tiling need.
+    #[config(default = true)]
+    pub zero_head: bool,
 }
 
 #[derive(Module, Debug)]
@@ -102,9 +105,13 @@ impl UNetConfig {
             up_blocks,
             // Zero head: the first renderings are black instead of O(1) I/F against targets of ~0.03, which the
             // default init made the first epochs spend on shrinking the output scale (measured in the README).
-            head: Conv2dConfig::new([w, self.out_channels], [1, 1])
-                .with_initializer(Initializer::Zeros)
-                .init(device),
+            head: if self.zero_head {
+                Conv2dConfig::new([w, self.out_channels], [1, 1])
+                    .with_initializer(Initializer::Zeros)
+                    .init(device)
+            } else {
+                Conv2dConfig::new([w, self.out_channels], [1, 1]).init(device)
+            },
             pool: MaxPool2dConfig::new([2, 2]).init(),
         }
     }

@@ -239,6 +239,14 @@ pub fn fit<B: AutodiffBackend>(
         let _ = std::fs::remove_file(out.join("metrics.jsonl"));
         let _ = std::fs::remove_dir_all(out.join("best"));
         write_json(&config_path, config)?;
+        // What inference on a new DEM needs from the training data: the network's input normalisation.
+        write_json(
+            &out.join("normalisation.json"),
+            &Normalisation {
+                dem_std_m: source.manifest().dem_std_m,
+                dataset: source.manifest().name.clone(),
+            },
+        )?;
         B::seed(device, keyed_u64(seed, "init", 0));
         let net = net_config.init::<B>(device);
         let _ = net.num_params(); // materialise the lazily initialised weights now, in a fixed order
@@ -453,7 +461,49 @@ fn read_history(path: &Path) -> Result<Vec<EpochMetrics>> {
         .collect()
 }
 
+/// The training data's input normalisation, saved with a run (`normalisation.json`).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Normalisation {
+    /// Train-split DEM std the network's input was divided by.
+    pub dem_std_m: f64,
+    pub dataset: String,
+}
+
+/// A run's `normalisation.json`.
+pub fn load_normalisation(run: &Path) -> Result<Normalisation> {
+    read_json(&run.join("normalisation.json"))
+}
+
 /// Paths of a run directory's checkpoints.
 pub fn best_model_path(run: &Path) -> PathBuf {
     run.join("best").join("model")
+}
+
+/// A finished (or interrupted) run's config and network in inference mode: the best-val checkpoint, or the last
+/// one when no validation has run yet.
+pub fn load_trained<B: Backend>(run: &Path, device: &B::Device) -> Result<(FitConfig, UNet<B>)> {
+    let config_path = run.join("config.json");
+    if !config_path.exists() {
+        bail!(
+            "{}: no config.json: point --run at a directory written by `g2r-train fit --out`",
+            run.display()
+        );
+    }
+    let config: FitConfig = read_json(&config_path)?;
+    let checkpoint = [best_model_path(run), run.join("last").join("model")]
+        .into_iter()
+        .find(|p| p.with_extension("mpk").exists())
+        .with_context(|| {
+            format!(
+                "{}: no best/model.mpk or last/model.mpk: train first (g2r-train fit)",
+                run.display()
+            )
+        })?;
+    let net = UNetConfig::new(config.model.param_count())
+        .with_base_width(config.base_width)
+        .with_dropout(config.dropout)
+        .init::<B>(device)
+        .load_file(checkpoint.clone(), &Rec::new(), device)
+        .with_context(|| format!("{}: cannot load the checkpoint", checkpoint.display()))?;
+    Ok((config, net))
 }

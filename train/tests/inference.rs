@@ -1,0 +1,189 @@
+//! Seamless large-DEM inference: no visible crop seams at the default overlap (but visible without overlap, so the
+//! score can fail), and output pixels exactly on the DEM's grid, checked through GDAL by map coordinates.
+
+use burn::backend::Flex;
+use burn::prelude::*;
+use dataset::brdf::BrdfModel;
+use dataset::crs::LunarCrs;
+use dataset::raster::{read_bands, write_raster, GeoTransform, Raster};
+use train::inference::{
+    infer_params, render_maps, seam_score, write_params_geotiff, InferOptions, ParamMaps,
+    DEFAULT_OVERLAP,
+};
+use train::model::{UNet, UNetConfig};
+
+type B = Flex;
+
+/// A smooth cratered DEM, 5 m/px, with a nodata hole; `origin_x` places column 0.
+fn dem(width: usize, height: usize, col0: usize) -> Raster {
+    let transform = GeoTransform::north_up(-800.0 + col0 as f64 * 5.0, -1_309_000.0, 5.0);
+    let mut r = Raster::new(
+        width,
+        height,
+        transform,
+        LunarCrs::equirectangular(-43.31, -11.36),
+        0.0,
+    );
+    for row in 0..height {
+        for c in 0..width {
+            let (x, y) = ((c + col0) as f64 * 5.0, row as f64 * 5.0);
+            let bowl = |cx: f64, cy: f64, radius: f64, depth: f64| {
+                let d = ((x - cx).powi(2) + (y - cy).powi(2)).sqrt() / radius;
+                if d < 1.0 {
+                    -depth * (1.0 - d * d)
+                } else {
+                    0.0
+                }
+            };
+            r.data[row * width + c] = (-1200.0
+                + 15.0 * (x / 230.0).sin() * (y / 170.0).cos()
+                + 4.0 * (x / 37.0 + y / 53.0).sin()
+                + bowl(900.0, 700.0, 260.0, 40.0)
+                + bowl(1650.0, 1100.0, 120.0, 18.0)) as f32;
+        }
+    }
+    // A hole the output must carry as nodata.
+    for row in 200..206 {
+        for c in 300usize.saturating_sub(col0)..(306usize.saturating_sub(col0)) {
+            r.data[row * width + c] = f32::NAN;
+        }
+    }
+    r
+}
+
+/// A width-4 U-Net with a random head (a zero head would output constants and hide any seam).
+fn random_net() -> UNet<B> {
+    // The backend RNG is process-wide: seeding and initialising under one lock keeps parallel tests apart.
+    static INIT: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    let _guard = INIT.lock().unwrap_or_else(|e| e.into_inner());
+    let device = Default::default();
+    B::seed(&device, 7);
+    let net = UNetConfig::new(BrdfModel::M2.param_count())
+        .with_base_width(4)
+        .with_zero_head(false)
+        .init::<B>(&device);
+    let _ = net.num_params(); // Burn initialises lazily: materialise every weight under the lock
+    net
+}
+
+fn infer(net: &UNet<B>, dem: &Raster, overlap: usize) -> ParamMaps {
+    let options = InferOptions {
+        overlap,
+        batch_size: 4,
+        dem_std_m: 20.0,
+    };
+    infer_params(
+        net,
+        BrdfModel::M2,
+        dem,
+        &options,
+        &Default::default(),
+        |_, _| {},
+    )
+    .unwrap()
+}
+
+#[test]
+fn default_overlap_hides_crop_seams_that_hard_tiles_show() {
+    let net = random_net();
+    let dem = dem(416, 320, 0);
+    let sun = [0.55, 0.25, 0.8];
+    let hard = infer(&net, &dem, 0);
+    let blended = infer(&net, &dem, DEFAULT_OVERLAP);
+    let hard_score = seam_score(&render_maps(&hard, &dem, sun), 416, 320, 0);
+    let blended_score = seam_score(&render_maps(&blended, &dem, sun), 416, 320, DEFAULT_OVERLAP);
+    eprintln!(
+        "seam score: hard tiles {hard_score:.3}, overlap {DEFAULT_OVERLAP}: {blended_score:.3}"
+    );
+    assert!(
+        hard_score > 1.05,
+        "the test needs a network whose hard tiles show seams: {hard_score}"
+    );
+    assert!(
+        blended_score <= 1.05,
+        "seams visible at the default overlap: {blended_score}"
+    );
+
+    // Nodata follows the DEM; everything else is finite.
+    for band in &blended.bands {
+        assert!(band[200 * 416 + 302].is_nan());
+        assert_eq!(band.iter().filter(|v| v.is_nan()).count(), 36);
+    }
+}
+
+#[test]
+fn parameter_geotiff_sits_on_the_dem_grid_to_the_pixel() {
+    let net = random_net();
+    let dir = tempfile::tempdir().unwrap();
+    // The full DEM and the same terrain starting 96 columns (one stride at the default overlap) further east:
+    // both tilings then cut identical crops, so identical map points must get identical parameters.
+    let (full, east) = (dem(416, 320, 0), dem(320, 320, 96));
+    let (full_tif, east_tif) = (dir.path().join("full.tif"), dir.path().join("east.tif"));
+    write_raster(&dir.path().join("dem.tif"), &full, &[]).unwrap();
+    write_params_geotiff(
+        &infer(&net, &full, DEFAULT_OVERLAP),
+        &full,
+        DEFAULT_OVERLAP,
+        &full_tif,
+    )
+    .unwrap();
+    write_params_geotiff(
+        &infer(&net, &east, DEFAULT_OVERLAP),
+        &east,
+        DEFAULT_OVERLAP,
+        &east_tif,
+    )
+    .unwrap();
+
+    let (a, b) = (
+        read_bands(&full_tif).unwrap(),
+        read_bands(&east_tif).unwrap(),
+    );
+    let dem_back = read_bands(&dir.path().join("dem.tif")).unwrap().remove(0);
+    assert_eq!(a.len(), 3);
+    assert_eq!(a[0].transform, dem_back.transform, "output grid = DEM grid");
+    assert_eq!((a[0].width, a[0].height), (416, 320));
+    assert_eq!(a[0].crs, dem_back.crs);
+    assert!(
+        a[2].description.contains("coefficient of 1") && a[2].description.contains("LeakyReLU")
+    );
+    let (mut compared, mut worst_aligned, mut shifted_sq) = (0, 0f32, 0f64);
+    for (band_a, band_b) in a.iter().zip(&b) {
+        for row in 0..320 {
+            // Columns only crops inside both DEMs reach: the east DEM's first crop (starting in its reflect padding,
+            // full column 64) differs from the full DEM's crop there and reaches full column 191.
+            for c in 192..416 {
+                let (x, y) = band_a.transform.pixel_center(c as f64, row as f64);
+                let (cb, rb) = band_b.transform.map_to_pixel(x, y);
+                assert_eq!(
+                    (cb.fract(), rb.fract()),
+                    (0.0, 0.0),
+                    "pixel centres must coincide"
+                );
+                let (va, vb) = (band_a.get(c, row), band_b.get(cb as usize, rb as usize));
+                // The same map point one pixel east in the other raster: what a georeferencing shift would compare.
+                let vs = band_b.get((cb as usize + 1).min(319), rb as usize);
+                if va.is_nan() {
+                    assert!(vb.is_nan());
+                    continue;
+                }
+                worst_aligned = worst_aligned.max((va - vb).abs());
+                if vs.is_finite() {
+                    shifted_sq += ((va - vs) as f64).powi(2);
+                }
+                compared += 1;
+            }
+        }
+    }
+    assert!(compared > 3 * 220 * 300);
+    let shifted_rms = (shifted_sq / compared as f64).sqrt();
+    eprintln!("aligned: max |diff| {worst_aligned:e}; one pixel off: rms diff {shifted_rms:e}");
+    assert!(
+        worst_aligned <= 1e-6,
+        "same map point, different parameters: {worst_aligned}"
+    );
+    assert!(
+        shifted_rms > 20.0 * worst_aligned.max(1e-9) as f64,
+        "a one-pixel shift must be visible above the aligned difference ({shifted_rms} vs {worst_aligned})"
+    );
+}
