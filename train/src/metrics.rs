@@ -190,4 +190,36 @@ mod tests {
         let got = ssim(&x, &y, &[true; 49], 7, 12.0).unwrap();
         assert!((got - expected).abs() < 1e-12, "{got} vs {expected}");
     }
+
+    #[test]
+    fn ssim_matches_scikit_image_on_fixed_arrays() {
+        // Reference numbers from scikit-image 0.26.0 (computed once, not at test time):
+        //   k = np.arange(400); x = (np.sin(0.37*k)*0.5 + (k%7)*0.01).reshape(20, 20)
+        //   y = x + (0.1*np.cos(1.3*k)).reshape(20, 20); z = (0.3*np.cos(0.11*k) + 0.02*(k%5)).reshape(20, 20)
+        //   structural_similarity(x, y, win_size=7, data_range=y.max()-y.min())  -> 0.9798124882640532
+        //   structural_similarity(z, y, win_size=7, data_range=y.max()-y.min())  -> 0.02854049131098254
+        let k = (0..400).map(|k| k as f64);
+        let x: Vec<f64> = k
+            .clone()
+            .map(|k| (0.37 * k).sin() * 0.5 + (k % 7.0) * 0.01)
+            .collect();
+        let y: Vec<f64> = x
+            .iter()
+            .zip(k.clone())
+            .map(|(x, k)| x + 0.1 * (1.3 * k).cos())
+            .collect();
+        let z: Vec<f64> = k
+            .map(|k| 0.3 * (0.11 * k).cos() + 0.02 * (k % 5.0))
+            .collect();
+        let range = y.iter().cloned().fold(f64::NEG_INFINITY, f64::max)
+            - y.iter().cloned().fold(f64::INFINITY, f64::min);
+        let valid = [true; 400];
+        let close = ssim(&x, &y, &valid, 20, range).unwrap();
+        let far = ssim(&z, &y, &valid, 20, range).unwrap();
+        assert!((close - 0.9798124882640532).abs() < 1e-12, "{close}");
+        assert!((far - 0.02854049131098254).abs() < 1e-12, "{far}");
+        // image_metrics uses the ground truth's own range.
+        let m = image_metrics(&x, &y, &valid, 20).unwrap();
+        assert_eq!(m.ssim, Some(close));
+    }
 }
