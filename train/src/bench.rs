@@ -148,6 +148,19 @@ pub fn test_params(model: BrdfModel, n: usize, seed: u64) -> Vec<f64> {
         .collect()
 }
 
+/// Publish `train` and `val` samples as a dataset directory (one shard each; DEM std 20 m) for tests.
+pub fn write_synthetic_dataset(dir: &std::path::Path, train: Vec<Sample>, val: Vec<Sample>) {
+    let splits: Vec<(&str, Vec<Vec<Sample>>)> = [("train", train), ("val", val)]
+        .into_iter()
+        .map(|(split, mut samples)| {
+            samples.iter_mut().for_each(|s| s.split = split.into());
+            (split, vec![samples])
+        })
+        .collect();
+    dataset::testing::write_dataset(dir, "synthetic", &splits, serde_json::Value::Null)
+        .expect("writing a synthetic dataset");
+}
+
 /// A host batch of [`synthetic_samples`] (DEM std 20 m).
 pub fn synthetic_batch(n: usize, seed: u64) -> HostBatch {
     HostBatch::from_samples(&synthetic_samples(n, seed), 20.0)

@@ -9,9 +9,6 @@ use burn::backend::{Autodiff, Flex};
 use burn::module::Module;
 use burn::record::{FullPrecisionSettings, NamedMpkFileRecorder};
 use dataset::brdf::BrdfModel;
-use dataset::manifest::DatasetManifest;
-use dataset::schema::{Sample, SCHEMA_VERSION};
-use dataset::shard::{shard_name, ShardWriter};
 use train::bench::synthetic_samples;
 use train::data::{HostBatch, LocalSource, SampleSource, StreamConfig};
 use train::model::UNetConfig;
@@ -21,30 +18,6 @@ type Ad = Autodiff<Flex>;
 
 /// Flex's RNG (weight init, dropout) is process-global: tests that train must not interleave.
 static SERIAL: std::sync::Mutex<()> = std::sync::Mutex::new(());
-
-fn write_dataset(dir: &Path, train: Vec<Sample>, val: Vec<Sample>) {
-    let mut shards = Vec::new();
-    let mut counts = std::collections::BTreeMap::new();
-    for (split, mut samples) in [("train", train), ("val", val)] {
-        samples.iter_mut().for_each(|s| s.split = split.into());
-        let mut writer = ShardWriter::create(&dir.join(shard_name(split, 0, 1))).unwrap();
-        writer.write(&samples).unwrap();
-        shards.push(writer.finish().unwrap());
-        counts.insert(split.to_string(), samples.len() as u64);
-    }
-    let manifest = DatasetManifest {
-        schema_version: SCHEMA_VERSION.into(),
-        name: "synthetic".into(),
-        license: "CC-BY-4.0".into(),
-        seed: 1,
-        crs: "synthetic".into(),
-        split_counts: counts,
-        shards,
-        dem_std_m: 20.0,
-        pipeline_lock_blake3: String::new(),
-    };
-    dataset::manifest::write_json_atomic(&dir.join("manifest.json"), &manifest).unwrap();
-}
 
 fn config(
     model: BrdfModel,
@@ -74,7 +47,11 @@ fn config(
 fn overfitting_a_handful_of_samples_drops_the_loss_tenfold() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let tmp = tempfile::tempdir().unwrap();
-    write_dataset(tmp.path(), synthetic_samples(4, 1), synthetic_samples(4, 2));
+    train::bench::write_synthetic_dataset(
+        tmp.path(),
+        synthetic_samples(4, 1),
+        synthetic_samples(4, 2),
+    );
     let source: Arc<dyn SampleSource> = Arc::new(LocalSource::open(tmp.path()).unwrap());
     let mut cfg = config(BrdfModel::M2, 40, 1e-2, 4, false);
     cfg.stream.augment = false;
@@ -136,7 +113,7 @@ fn stopping_and_resuming_gives_the_same_network_as_an_uninterrupted_run() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let tmp = tempfile::tempdir().unwrap();
     // 300 train rows = 2 row groups (256 + 44), so the window shuffle spans groups; 12 per epoch.
-    write_dataset(
+    train::bench::write_synthetic_dataset(
         tmp.path(),
         synthetic_samples(300, 5),
         synthetic_samples(4, 6),

@@ -1,0 +1,130 @@
+//! `eval` agrees with the pieces it is made of: the learned row equals training validation on the same split,
+//! the paper-normalised Hapke row equals the baseline computed directly, the honest scale is the least-squares
+//! one, and the report files (JSON, Markdown, PNG panels) are written.
+
+use burn::backend::Flex;
+use burn::module::Module;
+use burn::prelude::Backend;
+use dataset::brdf::BrdfModel;
+use dataset::hapke::HapkeParams;
+use dataset::schema::CROP_PX;
+use train::baseline::{hapke_render, normalise_like_paper};
+use train::bench::{synthetic_samples, write_synthetic_dataset};
+use train::data::{LocalSource, StreamConfig};
+use train::evaluation::{calibrate, evaluate, panel_png, write_report, EvalOptions};
+use train::metrics::image_metrics;
+use train::model::UNetConfig;
+use train::training::{validate, FitConfig};
+
+#[test]
+fn eval_rows_equal_validation_and_direct_baselines() {
+    let dir = tempfile::tempdir().unwrap();
+    let val = synthetic_samples(5, 2);
+    write_synthetic_dataset(dir.path(), synthetic_samples(6, 1), val.clone());
+    let source = LocalSource::open(dir.path()).unwrap();
+    let device = Default::default();
+    Flex::seed(&device, 3);
+    let net = UNetConfig::new(BrdfModel::M2.param_count())
+        .with_base_width(4)
+        .with_zero_head(false)
+        .init::<Flex>(&device);
+    let _ = net.num_params();
+    let config = FitConfig {
+        model: BrdfModel::M2,
+        epochs: 1,
+        learning_rate: 1e-3,
+        base_width: 4,
+        dropout: true,
+        stream: StreamConfig {
+            seed: 1,
+            batch_size: 2,
+            window_groups: 1,
+            augment: false,
+            max_samples: None,
+        },
+        max_val_samples: None,
+    };
+    let options = EvalOptions {
+        split: "val".into(),
+        max_samples: None,
+        batch_size: 2,
+        calibration_samples: 6,
+        panels: 2,
+    };
+    let calibration = calibrate(&source, 6).unwrap();
+    // The honest scale is Σxt / Σx² over the train crops' valid pixels.
+    let (mut xt, mut xx) = (0.0, 0.0);
+    for s in synthetic_samples(6, 1) {
+        for ((x, &t), &v) in hapke_render(&s, &HapkeParams::lunar_typical())
+            .iter()
+            .zip(&s.image)
+            .zip(&s.valid)
+        {
+            if v != 0 {
+                xt += x * t as f64;
+                xx += x * x;
+            }
+        }
+    }
+    assert!((calibration.hapke_scale - xt / xx).abs() <= 1e-12 * (xt / xx).abs());
+
+    let panels = dir.path().join("panels");
+    std::fs::create_dir_all(&panels).unwrap();
+    let report = evaluate(
+        &net,
+        &config,
+        &source,
+        &options,
+        calibration,
+        None,
+        &device,
+        |i, sample, renderings| {
+            if i < options.panels {
+                panel_png(sample, renderings, &panels.join(format!("{i}.png")))?;
+            }
+            Ok(())
+        },
+    )
+    .unwrap();
+    assert_eq!(report.images, 5);
+    let names: Vec<&str> = report.methods.iter().map(|m| m.name.as_str()).collect();
+    assert_eq!(
+        names,
+        ["learned", "hapke_paper", "hapke_scaled", "lunar_lambert"]
+    );
+
+    let validation = validate(&net, BrdfModel::M2, &source, None, 2, &device).unwrap();
+    assert_eq!(
+        report.methods[0].aggregate, validation,
+        "learned row = validation"
+    );
+
+    let s = &val[0];
+    let truth: Vec<f64> = s.image.iter().map(|&v| v as f64).collect();
+    let valid: Vec<bool> = s.valid.iter().map(|&v| v != 0).collect();
+    let paper = normalise_like_paper(
+        &hapke_render(s, &HapkeParams::lunar_typical()),
+        &truth,
+        &valid,
+    );
+    let direct = image_metrics(&paper, &truth, &valid, CROP_PX).unwrap();
+    assert_eq!(report.per_image[0].metrics["hapke_paper"], direct);
+    assert!(report.hapke_to_oracle_gap_closed.is_none());
+    let ratio = report.methods[0].aggregate.sse / report.methods[1].aggregate.sse;
+    assert!((report.learned_over_hapke_paper_sse - ratio).abs() < 1e-12);
+
+    let out = dir.path().join("eval");
+    write_report(&report, &out).unwrap();
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap()).unwrap();
+    assert_eq!(json["per_image"].as_array().unwrap().len(), 5);
+    let md = std::fs::read_to_string(out.join("metrics.md")).unwrap();
+    assert!(
+        md.contains("| learned |") && md.contains("No oracle"),
+        "{md}"
+    );
+    let panel = image::open(panels.join("0.png")).unwrap();
+    // GT, four methods, |learned − GT|: six 128-px tiles with 4-px gaps.
+    assert_eq!((panel.width(), panel.height()), (6 * 132 - 4, 128));
+    assert!(!panels.join("2.png").exists());
+}
