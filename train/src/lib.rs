@@ -7,6 +7,7 @@ pub mod baseline;
 pub mod bench;
 pub mod data;
 pub mod evaluation;
+pub mod features;
 pub mod inference;
 pub mod metrics;
 pub mod model;

@@ -93,6 +93,8 @@ fn eval_rows_equal_validation_and_direct_baselines() {
         ["learned", "hapke_paper", "hapke_scaled", "lunar_lambert"]
     );
 
+    let matched: Vec<&str> = report.feature_matching.keys().map(String::as_str).collect();
+    assert_eq!(matched, ["hapke_paper", "hapke_scaled", "learned", "lunar_lambert"]);
     let validation = validate(&net, BrdfModel::M2, &source, None, 2, &device).unwrap();
     assert_eq!(
         report.methods[0].aggregate, validation,
