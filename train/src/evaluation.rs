@@ -14,6 +14,7 @@ use std::path::Path;
 
 use anyhow::{bail, Context, Result};
 use burn::prelude::*;
+use dataset::brdf::BrdfModel;
 use dataset::hapke::{hapke_i_over_f, lunar_lambert_i_over_f, HFunction, HapkeParams};
 use dataset::raster::{read_bands, Raster};
 use dataset::schema::{Sample, CROP_PX};
@@ -26,8 +27,13 @@ use crate::model::UNet;
 use crate::training::{predict_images, FitConfig};
 
 /// The methods, in report order.
-pub const METHODS: [(&str, &str); 5] = [
+pub const METHODS: [(&str, &str); 6] = [
     ("learned", "U-Net → SVBRDF parameters → renderer layer"),
+    (
+        "model_uniform",
+        "the run's BRDF model with one parameter set for the whole Moon, least squares on train crops (what the \
+         spatial variation has to beat)",
+    ),
     (
         "hapke_paper",
         "uniform Hapke, affine-normalised per image to the GT's mean and range (peeks at the GT, as the paper did)",
@@ -152,21 +158,98 @@ impl ScaleFit {
 }
 
 /// Honest single scales fitted on train crops.
-#[derive(Debug, Clone, Copy, serde::Serialize)]
+#[derive(Debug, Clone, serde::Serialize)]
 pub struct Calibration {
     pub samples: usize,
     pub hapke_scale: f64,
     pub lunar_lambert_albedo: f64,
+    pub model: BrdfModel,
+    /// One coefficient per term of `model` (no activation), least squares over the same crops.
+    pub model_uniform: Vec<f64>,
 }
 
-pub fn calibrate(source: &dyn SampleSource, samples: usize) -> Result<Calibration> {
+/// Per-pixel design rows of `model` for a crop: lit × term_k where the pixel faces sun and camera, else 0.
+fn model_terms(sample: &Sample, model: BrdfModel) -> Vec<[f64; 4]> {
+    sample
+        .pixel_geometry()
+        .iter()
+        .zip(&sample.sun_lit)
+        .map(|(g, &lit)| {
+            if g.cosines.cos_i <= 0.0 || g.cosines.cos_e <= 0.0 {
+                [0.0; 4]
+            } else {
+                model
+                    .terms(&g.cosines, &g.half_diff)
+                    .map(|t| t * lit as f64)
+            }
+        })
+        .collect()
+}
+
+/// A crop rendered with one coefficient set for `model` (see [`Calibration::model_uniform`]).
+pub fn model_uniform_render(sample: &Sample, model: BrdfModel, coefficients: &[f64]) -> Vec<f64> {
+    model_terms(sample, model)
+        .iter()
+        .map(|t| t.iter().zip(coefficients).map(|(t, c)| t * c).sum())
+        .collect()
+}
+
+/// Solve the small symmetric system `a x = b` (Gaussian elimination with partial pivoting); singular directions
+/// (a term that is zero on every pixel) get 0.
+fn solve(mut a: Vec<Vec<f64>>, mut b: Vec<f64>) -> Vec<f64> {
+    let n = b.len();
+    for col in 0..n {
+        let pivot = (col..n)
+            .max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))
+            .expect("non-empty");
+        a.swap(col, pivot);
+        b.swap(col, pivot);
+        if a[col][col].abs() < 1e-300 {
+            continue;
+        }
+        for row in col + 1..n {
+            let f = a[row][col] / a[col][col];
+            for k in col..n {
+                a[row][k] -= f * a[col][k];
+            }
+            b[row] -= f * b[col];
+        }
+    }
+    let mut x = vec![0.0; n];
+    for row in (0..n).rev() {
+        if a[row][row].abs() < 1e-300 {
+            continue;
+        }
+        let rest: f64 = (row + 1..n).map(|k| a[row][k] * x[k]).sum();
+        x[row] = (b[row] - rest) / a[row][row];
+    }
+    x
+}
+
+pub fn calibrate(
+    source: &dyn SampleSource,
+    samples: usize,
+    model: BrdfModel,
+) -> Result<Calibration> {
     let params = HapkeParams::lunar_typical();
     let (mut hapke, mut ll, mut seen) = (ScaleFit::default(), ScaleFit::default(), 0);
+    let p = model.param_count();
+    let (mut ata, mut atb) = (vec![vec![0.0; p]; p], vec![0.0; p]);
     for_each_sample_group(source, "train", Some(samples), |group| {
         for s in group {
             let (truth, valid) = truth_and_valid(s);
             hapke.add(&hapke_render(s, &params), &truth, &valid);
             ll.add(&lunar_lambert_render(s), &truth, &valid);
+            for ((row, &t), &ok) in model_terms(s, model).iter().zip(&truth).zip(&valid) {
+                if ok {
+                    for i in 0..p {
+                        atb[i] += row[i] * t;
+                        for j in 0..p {
+                            ata[i][j] += row[i] * row[j];
+                        }
+                    }
+                }
+            }
             seen += 1;
         }
     })?;
@@ -174,6 +257,8 @@ pub fn calibrate(source: &dyn SampleSource, samples: usize) -> Result<Calibratio
         samples: seen,
         hapke_scale: hapke.scale(),
         lunar_lambert_albedo: ll.scale(),
+        model,
+        model_uniform: solve(ata, atb),
     })
 }
 
@@ -228,6 +313,10 @@ fn method_renderings(
     let hapke = hapke_render(sample, &HapkeParams::lunar_typical());
     let mut out = vec![
         ("learned", learned.to_vec()),
+        (
+            "model_uniform",
+            model_uniform_render(sample, calibration.model, &calibration.model_uniform),
+        ),
         ("hapke_paper", normalise_like_paper(&hapke, &truth, &valid)),
         (
             "hapke_scaled",
@@ -344,7 +433,7 @@ pub fn evaluate<B: Backend>(
         split: options.split.clone(),
         run_model: config.model.name().to_string(),
         images: per_image.len(),
-        calibration,
+        calibration: calibration.clone(),
         methods: methods.clone(),
         learned_over_hapke_paper_sse: learned / paper,
         learned_over_hapke_scaled_sse: learned / scaled,
@@ -409,6 +498,11 @@ pub fn markdown(report: &EvalReport) -> String {
             ));
         }
     }
+    text.push_str(&format!(
+        "\nUniform {} coefficients (least squares on the same crops): {:?}.\n",
+        report.calibration.model.name(),
+        report.calibration.model_uniform
+    ));
     text.push_str(&format!(
         "\nHonest scales fitted on {} train crops: Hapke × {:.4}, Lunar-Lambert albedo {:.4}. SSIM: 7×7 uniform \
          window, K1 0.01, K2 0.03, data range = each image's GT range, fully valid windows only.\n",

@@ -281,11 +281,12 @@ fn run(cli: Cli) -> Result<()> {
                 .as_deref()
                 .map(train::evaluation::TruthMaps::open)
                 .transpose()?;
-            let calibration = train::evaluation::calibrate(source.as_ref(), calibration_samples)?;
             let report = with_backend!(backend, B => {
                 type Inner = <B as burn::tensor::backend::AutodiffBackend>::InnerBackend;
                 let device = Default::default();
                 let (config, net) = train::training::load_trained::<Inner>(&run, &device)?;
+                let calibration =
+                    train::evaluation::calibrate(source.as_ref(), calibration_samples, config.model)?;
                 train::evaluation::evaluate::<Inner>(
                     &net, &config, source.as_ref(), &options, calibration, truth.as_ref(), &device,
                     |i, sample, renderings| {

@@ -51,7 +51,7 @@ fn eval_rows_equal_validation_and_direct_baselines() {
         calibration_samples: 6,
         panels: 2,
     };
-    let calibration = calibrate(&source, 6).unwrap();
+    let calibration = calibrate(&source, 6, BrdfModel::M2).unwrap();
     // The honest scale is Σxt / Σx² over the train crops' valid pixels.
     let (mut xt, mut xx) = (0.0, 0.0);
     for s in synthetic_samples(6, 1) {
@@ -90,11 +90,34 @@ fn eval_rows_equal_validation_and_direct_baselines() {
     let names: Vec<&str> = report.methods.iter().map(|m| m.name.as_str()).collect();
     assert_eq!(
         names,
-        ["learned", "hapke_paper", "hapke_scaled", "lunar_lambert"]
+        [
+            "learned",
+            "model_uniform",
+            "hapke_paper",
+            "hapke_scaled",
+            "lunar_lambert"
+        ]
     );
 
     let matched: Vec<&str> = report.feature_matching.keys().map(String::as_str).collect();
-    assert_eq!(matched, ["hapke_paper", "hapke_scaled", "learned", "lunar_lambert"]);
+    let expected = [
+        "hapke_paper",
+        "hapke_scaled",
+        "learned",
+        "lunar_lambert",
+        "model_uniform",
+    ];
+    assert_eq!(matched, expected);
+    assert_eq!(
+        matched,
+        [
+            "hapke_paper",
+            "hapke_scaled",
+            "learned",
+            "lunar_lambert",
+            "model_uniform"
+        ]
+    );
     let validation = validate(&net, BrdfModel::M2, &source, None, 2, &device).unwrap();
     assert_eq!(
         report.methods[0].aggregate, validation,
@@ -112,7 +135,7 @@ fn eval_rows_equal_validation_and_direct_baselines() {
     let direct = image_metrics(&paper, &truth, &valid, CROP_PX).unwrap();
     assert_eq!(report.per_image[0].metrics["hapke_paper"], direct);
     assert!(report.hapke_to_oracle_gap_closed.is_none());
-    let ratio = report.methods[0].aggregate.sse / report.methods[1].aggregate.sse;
+    let ratio = report.methods[0].aggregate.sse / report.methods[2].aggregate.sse;
     assert!((report.learned_over_hapke_paper_sse - ratio).abs() < 1e-12);
 
     let out = dir.path().join("eval");
@@ -126,7 +149,25 @@ fn eval_rows_equal_validation_and_direct_baselines() {
         "{md}"
     );
     let panel = image::open(panels.join("0.png")).unwrap();
-    // GT, four methods, |learned − GT|: six 128-px tiles with 4-px gaps.
-    assert_eq!((panel.width(), panel.height()), (6 * 132 - 4, 128));
+    // GT, five methods, |learned − GT|: seven 128-px tiles with 4-px gaps.
+    assert_eq!((panel.width(), panel.height()), (7 * 132 - 4, 128));
     assert!(!panels.join("2.png").exists());
+}
+
+#[test]
+fn uniform_model_fit_recovers_the_coefficients_that_rendered_the_images() {
+    let dir = tempfile::tempdir().unwrap();
+    let truth = [0.021, 0.008, 0.004];
+    let mut train = synthetic_samples(4, 5);
+    for s in &mut train {
+        let rendered = train::evaluation::model_uniform_render(s, BrdfModel::M2, &truth);
+        s.image = rendered.iter().map(|&v| v as f32).collect();
+    }
+    write_synthetic_dataset(dir.path(), train, synthetic_samples(2, 6));
+    let source = LocalSource::open(dir.path()).unwrap();
+    let fitted = calibrate(&source, 4, BrdfModel::M2).unwrap().model_uniform;
+    for (f, t) in fitted.iter().zip(truth) {
+        // Images are stored as f32: agreement to f32 precision of I/F ≈ 0.03.
+        assert!((f - t).abs() < 1e-6, "{fitted:?} vs {truth:?}");
+    }
 }
