@@ -15,6 +15,7 @@ use std::path::Path;
 use anyhow::{bail, Context, Result};
 use burn::prelude::*;
 use dataset::brdf::BrdfModel;
+use dataset::geometry::PixelGeometry;
 use dataset::hapke::{hapke_i_over_f, lunar_lambert_i_over_f, HFunction, HapkeParams};
 use dataset::raster::{read_bands, Raster};
 use dataset::schema::{Sample, CROP_PX};
@@ -168,12 +169,11 @@ pub struct Calibration {
     pub model_uniform: Vec<f64>,
 }
 
-/// Per-pixel design rows of `model` for a crop: lit × term_k where the pixel faces sun and camera, else 0.
-fn model_terms(sample: &Sample, model: BrdfModel) -> Vec<[f64; 4]> {
-    sample
-        .pixel_geometry()
+/// Per-pixel design rows of `model`: lit × term_k where the pixel faces sun and camera, else 0.
+fn model_terms(geometry: &[PixelGeometry], sun_lit: &[f32], model: BrdfModel) -> Vec<[f64; 4]> {
+    geometry
         .iter()
-        .zip(&sample.sun_lit)
+        .zip(sun_lit)
         .map(|(g, &lit)| {
             if g.cosines.cos_i <= 0.0 || g.cosines.cos_e <= 0.0 {
                 [0.0; 4]
@@ -186,12 +186,27 @@ fn model_terms(sample: &Sample, model: BrdfModel) -> Vec<[f64; 4]> {
         .collect()
 }
 
-/// A crop rendered with one coefficient set for `model` (see [`Calibration::model_uniform`]).
-pub fn model_uniform_render(sample: &Sample, model: BrdfModel, coefficients: &[f64]) -> Vec<f64> {
-    model_terms(sample, model)
+/// I/F from precomputed geometry with one coefficient set for `model` (see [`Calibration::model_uniform`]).
+pub fn model_uniform_from_geometry(
+    geometry: &[PixelGeometry],
+    sun_lit: &[f32],
+    model: BrdfModel,
+    coefficients: &[f64],
+) -> Vec<f64> {
+    model_terms(geometry, sun_lit, model)
         .iter()
         .map(|t| t.iter().zip(coefficients).map(|(t, c)| t * c).sum())
         .collect()
+}
+
+/// A crop rendered with one coefficient set for `model`.
+pub fn model_uniform_render(sample: &Sample, model: BrdfModel, coefficients: &[f64]) -> Vec<f64> {
+    model_uniform_from_geometry(
+        &sample.pixel_geometry(),
+        &sample.sun_lit,
+        model,
+        coefficients,
+    )
 }
 
 /// Solve the small symmetric system `a x = b` (Gaussian elimination with partial pivoting); singular directions
@@ -241,7 +256,8 @@ pub fn calibrate(
             let (truth, valid) = truth_and_valid(s);
             hapke.add(&hapke_render(s, &params), &truth, &valid);
             ll.add(&lunar_lambert_render(s), &truth, &valid);
-            for ((row, &t), &ok) in model_terms(s, model).iter().zip(&truth).zip(&valid) {
+            let rows = model_terms(&s.pixel_geometry(), &s.sun_lit, model);
+            for ((row, &t), &ok) in rows.iter().zip(&truth).zip(&valid) {
                 if ok {
                     for i in 0..p {
                         atb[i] += row[i] * t;

@@ -12,4 +12,5 @@ pub mod inference;
 pub mod metrics;
 pub mod model;
 pub mod render;
+pub mod report;
 pub mod training;

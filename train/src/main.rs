@@ -187,6 +187,32 @@ enum Command {
         #[arg(long, value_enum, default_value = "flex")]
         backend: BackendKind,
     },
+    /// Speed against error, measured in one run: BRDF models (M1-M6 uniform fits, Hapke, Lunar-Lambert: pixel
+    /// MSE vs ns/pixel) and, with --run and --dem, inference overlap (seconds vs seam score). Writes report.md/json.
+    Report {
+        /// Dataset directory or server URL.
+        #[arg(long)]
+        data: String,
+        #[arg(long)]
+        out: PathBuf,
+        #[arg(long, default_value = "test")]
+        split: String,
+        #[arg(long)]
+        max_samples: Option<usize>,
+        #[arg(long, default_value_t = 256)]
+        calibration_samples: usize,
+        /// A trained run, for the inference-overlap section.
+        #[arg(long, requires = "dem")]
+        run: Option<PathBuf>,
+        /// DEM GeoTIFF for the inference-overlap section.
+        #[arg(long, requires = "run")]
+        dem: Option<PathBuf>,
+        /// Overlaps to time, pixels.
+        #[arg(long, value_delimiter = ',', default_value = "0,16,32,48")]
+        overlaps: Vec<usize>,
+        #[arg(long, value_enum, default_value = "flex")]
+        backend: BackendKind,
+    },
     /// Samples/s of the train step (U-Net + renderer layer, forward + backward + Adam) and of the layer alone.
     Bench {
         #[arg(long, default_value_t = 8)]
@@ -354,6 +380,50 @@ fn run(cli: Cli) -> Result<()> {
                 maps.model.name(),
                 maps.crops
             );
+        }
+        Command::Report {
+            data,
+            out,
+            split,
+            max_samples,
+            calibration_samples,
+            run,
+            dem,
+            overlaps,
+            backend,
+        } => {
+            let source = open_source(&data)?;
+            let (brdf_models, images, pixels, geometry_ns_per_pixel) =
+                train::report::brdf_model_rows(
+                    source.as_ref(),
+                    &split,
+                    max_samples,
+                    calibration_samples,
+                )?;
+            let inference_overlap = match (run, dem) {
+                (Some(run), Some(dem)) => {
+                    let raster = dataset::raster::read_raster(&dem)?;
+                    let dem_std_m = source.manifest().dem_std_m;
+                    with_backend!(backend, B => {
+                        type Inner = <B as burn::tensor::backend::AutodiffBackend>::InnerBackend;
+                        let device = Default::default();
+                        let (config, net) = train::training::load_trained::<Inner>(&run, &device)?;
+                        train::report::overlap_rows::<Inner>(&net, config.model, &raster, dem_std_m, &overlaps, &device)
+                    })?
+                }
+                _ => Vec::new(),
+            };
+            let report = train::report::Report {
+                split,
+                images,
+                pixels,
+                calibration_samples,
+                geometry_ns_per_pixel,
+                brdf_models,
+                inference_overlap,
+            };
+            train::report::write(&report, &out)?;
+            print!("{}", train::report::markdown(&report));
         }
         Command::Models => {
             for model in BrdfModel::ALL {

@@ -1,0 +1,231 @@
+//! `g2r-train report`: time against error, all measured in one run on this machine ("model only what a scene
+//! needs": what each shortcut saves and what it costs).
+//!
+//! - **BRDF model**: each of M1–M6 with one least-squares coefficient set, uniform Hapke × one scale and
+//!   Lunar-Lambert with one albedo, all fitted on train crops, rendered on the evaluation crops: pixel MSE against
+//!   the per-pixel evaluation time of the reflectance model (geometry is shared and timed once).
+//! - **Inference overlap** (with `--run` and `--dem`): wall time and seam score of `infer` at several overlaps.
+
+use std::path::Path;
+use std::time::Instant;
+
+use anyhow::Result;
+use burn::prelude::*;
+use dataset::brdf::BrdfModel;
+use dataset::geometry::PixelGeometry;
+use dataset::hapke::{hapke_i_over_f, lunar_lambert_i_over_f, HFunction, HapkeParams};
+use dataset::raster::Raster;
+use dataset::schema::Sample;
+
+use crate::data::{for_each_sample_group, SampleSource};
+use crate::evaluation::{calibrate, model_uniform_from_geometry};
+use crate::inference::{infer_params, render_maps, seam_score, InferOptions};
+use crate::model::UNet;
+
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct ModelRow {
+    pub name: String,
+    pub parameters_per_pixel: usize,
+    pub pixel_mse: f64,
+    /// Reflectance evaluation only, nanoseconds per pixel (geometry excluded: shared by all rows).
+    pub ns_per_pixel: f64,
+}
+
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct OverlapRow {
+    pub overlap_px: usize,
+    pub crops: usize,
+    pub seconds: f64,
+    pub seam_score: f64,
+}
+
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct Report {
+    pub split: String,
+    pub images: usize,
+    pub pixels: usize,
+    pub calibration_samples: usize,
+    /// Shared per-pixel geometry (normals, cosines, half/difference angles), nanoseconds per pixel.
+    pub geometry_ns_per_pixel: f64,
+    pub brdf_models: Vec<ModelRow>,
+    pub inference_overlap: Vec<OverlapRow>,
+}
+
+/// A reflectance model as the report times it: one f64 per pixel from geometry and lit fraction.
+struct Candidate {
+    name: String,
+    parameters: usize,
+    render: Box<dyn Fn(&Sample, &[PixelGeometry]) -> Vec<f64>>,
+}
+
+fn candidates(source: &dyn SampleSource, calibration_samples: usize) -> Result<Vec<Candidate>> {
+    let (mut out, mut scales) = (Vec::new(), (0.0, 0.0));
+    for model in BrdfModel::ALL {
+        let fit = calibrate(source, calibration_samples, model)?;
+        scales = (fit.hapke_scale, fit.lunar_lambert_albedo);
+        let coefficients = fit.model_uniform.clone();
+        out.push(Candidate {
+            name: format!("{} uniform", model.name()),
+            parameters: model.param_count(),
+            render: Box::new(move |s, geometry| {
+                model_uniform_from_geometry(geometry, &s.sun_lit, model, &coefficients)
+            }),
+        });
+    }
+    let params = HapkeParams::lunar_typical();
+    let (scale, albedo) = scales;
+    out.push(Candidate {
+        name: "Hapke (uniform, scaled)".into(),
+        parameters: 6,
+        render: Box::new(move |s, geometry| {
+            geometry
+                .iter()
+                .zip(&s.sun_lit)
+                .map(|(g, &lit)| {
+                    let c = &g.cosines;
+                    scale
+                        * lit as f64
+                        * hapke_i_over_f(&params, c.cos_i, c.cos_e, c.cos_g, HFunction::Hapke2002)
+                })
+                .collect()
+        }),
+    });
+    out.push(Candidate {
+        name: "Lunar-Lambert".into(),
+        parameters: 1,
+        render: Box::new(move |s, geometry| {
+            geometry
+                .iter()
+                .zip(&s.sun_lit)
+                .map(|(g, &lit)| {
+                    let c = &g.cosines;
+                    lit as f64 * lunar_lambert_i_over_f(albedo, c.cos_i, c.cos_e, c.cos_g)
+                })
+                .collect()
+        }),
+    });
+    Ok(out)
+}
+
+/// BRDF-model rows over (up to `max_samples`) crops of `split`.
+pub fn brdf_model_rows(
+    source: &dyn SampleSource,
+    split: &str,
+    max_samples: Option<usize>,
+    calibration_samples: usize,
+) -> Result<(Vec<ModelRow>, usize, usize, f64)> {
+    let candidates = candidates(source, calibration_samples)?;
+    let (mut sse, mut seconds) = (vec![0.0; candidates.len()], vec![0.0; candidates.len()]);
+    let (mut pixels, mut valid_pixels, mut images, mut geometry_s) = (0usize, 0usize, 0usize, 0.0);
+    for_each_sample_group(source, split, max_samples, |samples| {
+        for s in samples {
+            let t0 = Instant::now();
+            let geometry = s.pixel_geometry();
+            geometry_s += t0.elapsed().as_secs_f64();
+            images += 1;
+            pixels += geometry.len();
+            for (k, candidate) in candidates.iter().enumerate() {
+                let t0 = Instant::now();
+                let rendered = (candidate.render)(s, &geometry);
+                seconds[k] += t0.elapsed().as_secs_f64();
+                for ((r, &t), &v) in rendered.iter().zip(&s.image).zip(&s.valid) {
+                    if v != 0 {
+                        sse[k] += (r - t as f64).powi(2);
+                    }
+                }
+            }
+            valid_pixels += s.valid.iter().filter(|&&v| v != 0).count();
+        }
+    })?;
+    let rows = candidates
+        .iter()
+        .enumerate()
+        .map(|(k, c)| ModelRow {
+            name: c.name.clone(),
+            parameters_per_pixel: c.parameters,
+            pixel_mse: sse[k] / valid_pixels.max(1) as f64,
+            ns_per_pixel: seconds[k] * 1e9 / pixels.max(1) as f64,
+        })
+        .collect();
+    Ok((
+        rows,
+        images,
+        pixels,
+        geometry_s * 1e9 / pixels.max(1) as f64,
+    ))
+}
+
+/// Inference-overlap rows: the same network over the same DEM at each overlap.
+pub fn overlap_rows<B: Backend>(
+    net: &UNet<B>,
+    model: BrdfModel,
+    dem: &Raster,
+    dem_std_m: f64,
+    overlaps: &[usize],
+    device: &B::Device,
+) -> Result<Vec<OverlapRow>> {
+    overlaps
+        .iter()
+        .map(|&overlap| {
+            let options = InferOptions {
+                overlap,
+                batch_size: 8,
+                dem_std_m,
+            };
+            let t0 = Instant::now();
+            let maps = infer_params(net, model, dem, &options, device, |_, _| {})?;
+            let seconds = t0.elapsed().as_secs_f64();
+            // A sun 50° from zenith in the south-east: every crop has lit slopes of both orientations.
+            let sun = [0.55, -0.45, 0.70];
+            let image = render_maps(&maps, dem, sun);
+            Ok(OverlapRow {
+                overlap_px: overlap,
+                crops: maps.crops,
+                seconds,
+                seam_score: seam_score(&image, maps.width, maps.height, overlap),
+            })
+        })
+        .collect()
+}
+
+pub fn markdown(report: &Report) -> String {
+    let mut text = format!(
+        "# Speed against error (measured in one run)\n\n## BRDF model\n\n{} {} crops ({} pixels); models fitted on {} \
+         train crops. Shared geometry: {:.0} ns/pixel.\n\n| model | parameters | pixel MSE | ns/pixel (BRDF only) |\n|---|---|---|---|\n",
+        report.images, report.split, report.pixels, report.calibration_samples, report.geometry_ns_per_pixel
+    );
+    for r in &report.brdf_models {
+        text.push_str(&format!(
+            "| {} | {} | {:.4e} | {:.1} |\n",
+            r.name, r.parameters_per_pixel, r.pixel_mse, r.ns_per_pixel
+        ));
+    }
+    text.push_str("\n## Inference overlap\n\n");
+    if report.inference_overlap.is_empty() {
+        text.push_str("Not measured: pass --run RUN_DIR and --dem DEM.tif.\n");
+    } else {
+        text.push_str("| overlap px | crops | seconds | seam score (≤ 1.05 = invisible) |\n|---|---|---|---|\n");
+        for r in &report.inference_overlap {
+            text.push_str(&format!(
+                "| {} | {} | {:.2} | {:.3} |\n",
+                r.overlap_px, r.crops, r.seconds, r.seam_score
+            ));
+        }
+    }
+    text.push_str(
+        "\nNot yet measured here: renderer rays/pixel and shadow mode (the `render` command is not built yet) and \
+         the projection resampling kernel (a pipeline stage parameter).\n",
+    );
+    text
+}
+
+/// Write `report.json` and `report.md` into `out`.
+pub fn write(report: &Report, out: &Path) -> Result<()> {
+    std::fs::create_dir_all(out)?;
+    dataset::manifest::write_json_atomic(&out.join("report.json"), report)?;
+    let md = out.join("report.md");
+    let tmp = dataset::raster::tmp_path(&md);
+    std::fs::write(&tmp, markdown(report))?;
+    std::fs::rename(&tmp, &md)?;
+    Ok(())
+}
