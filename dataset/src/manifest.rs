@@ -143,9 +143,14 @@ impl DatasetManifest {
 
 /// Write JSON atomically (temp name, then rename), pretty-printed with a trailing newline.
 pub fn write_json_atomic<T: serde::Serialize>(path: &Path, value: &T) -> io::Result<()> {
-    let tmp = crate::raster::tmp_path(path);
     let mut text = serde_json::to_string_pretty(value).map_err(io::Error::other)?;
     text.push('\n');
+    write_text_atomic(path, &text)
+}
+
+/// Write text atomically: a temp name, then rename, so a reader never sees half a file.
+pub fn write_text_atomic(path: &Path, text: &str) -> io::Result<()> {
+    let tmp = crate::raster::tmp_path(path);
     std::fs::write(&tmp, text)?;
     std::fs::rename(&tmp, path)
 }

@@ -108,10 +108,7 @@ pub fn write_descriptions(dir: &Path, manifest: &DatasetManifest) -> anyhow::Res
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => serde_json::Value::Null,
         Err(e) => return Err(anyhow::anyhow!("{}: {e}", summary_path.display())),
     };
-    let card = dir.join("README.md");
-    let tmp = crate::raster::tmp_path(&card);
-    std::fs::write(&tmp, dataset_card(manifest, &summary))?;
-    std::fs::rename(&tmp, &card)?;
+    crate::manifest::write_text_atomic(&dir.join("README.md"), &dataset_card(manifest, &summary))?;
     write_json_atomic(&dir.join("croissant.json"), &croissant(manifest))?;
     Ok(())
 }

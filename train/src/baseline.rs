@@ -4,6 +4,7 @@
 //! valid pixels. That normalisation **peeks at the ground truth**: it is the paper's baseline, not a fair one.
 
 use anyhow::Result;
+use dataset::geometry::PixelGeometry;
 use dataset::hapke::{hapke_i_over_f, HFunction, HapkeParams};
 use dataset::schema::{Sample, CROP_PX};
 
@@ -12,15 +13,31 @@ use crate::metrics::{AggregateMetrics, MetricsAccumulator};
 
 /// I/F of the sample under uniform Hapke: lit fraction × Hapke (which carries the cos i factor itself).
 pub fn hapke_render(sample: &Sample, params: &HapkeParams) -> Vec<f64> {
-    sample
-        .pixel_geometry()
+    hapke_from_geometry(&sample.pixel_geometry(), &sample.sun_lit, params)
+}
+
+/// [`hapke_render`] on precomputed geometry.
+pub fn hapke_from_geometry(
+    geometry: &[PixelGeometry],
+    sun_lit: &[f32],
+    params: &HapkeParams,
+) -> Vec<f64> {
+    geometry
         .iter()
-        .zip(&sample.sun_lit)
+        .zip(sun_lit)
         .map(|(g, &lit)| {
             let c = &g.cosines;
             lit as f64 * hapke_i_over_f(params, c.cos_i, c.cos_e, c.cos_g, HFunction::Hapke2002)
         })
         .collect()
+}
+
+/// A sample's ground truth as f64 and its valid mask as bools (what every metric takes).
+pub fn truth_and_valid(s: &Sample) -> (Vec<f64>, Vec<bool>) {
+    (
+        s.image.iter().map(|&v| v as f64).collect(),
+        s.valid.iter().map(|&v| v != 0).collect(),
+    )
 }
 
 /// The paper's per-image normalisation: `(x − mean_x) · range_t / range_x + mean_t` over valid pixels.
@@ -58,8 +75,7 @@ pub fn normalised_hapke_metrics(
     let mut metrics = MetricsAccumulator::default();
     for_each_sample_group(source, split, max, |samples| {
         for sample in samples {
-            let truth: Vec<f64> = sample.image.iter().map(|&v| v as f64).collect();
-            let valid: Vec<bool> = sample.valid.iter().map(|&v| v != 0).collect();
+            let (truth, valid) = truth_and_valid(sample);
             let rendered = normalise_like_paper(&hapke_render(sample, &params), &truth, &valid);
             metrics.add(&rendered, &truth, &valid, CROP_PX);
         }

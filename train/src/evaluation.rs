@@ -20,7 +20,7 @@ use dataset::hapke::{hapke_i_over_f, lunar_lambert_i_over_f, HFunction, HapkePar
 use dataset::raster::{read_bands, Raster};
 use dataset::schema::{Sample, CROP_PX};
 
-use crate::baseline::{hapke_render, normalise_like_paper};
+use crate::baseline::{hapke_render, normalise_like_paper, truth_and_valid};
 use crate::data::{for_each_sample_group, HostBatch, SampleSource};
 use crate::features::{FeatureMatcher, MatchStats, MatchSummary};
 use crate::metrics::{image_metrics, AggregateMetrics, ImageMetrics, MetricsAccumulator};
@@ -122,13 +122,21 @@ impl TruthMaps {
 
 /// Lunar-Lambert I/F with albedo 1 (lit fraction × LL): scale by the fitted albedo.
 pub fn lunar_lambert_render(sample: &Sample) -> Vec<f64> {
-    sample
-        .pixel_geometry()
+    lunar_lambert_from_geometry(&sample.pixel_geometry(), &sample.sun_lit, 1.0)
+}
+
+/// Lunar-Lambert I/F with `albedo` on precomputed geometry.
+pub fn lunar_lambert_from_geometry(
+    geometry: &[PixelGeometry],
+    sun_lit: &[f32],
+    albedo: f64,
+) -> Vec<f64> {
+    geometry
         .iter()
-        .zip(&sample.sun_lit)
+        .zip(sun_lit)
         .map(|(g, &lit)| {
             let c = &g.cosines;
-            lit as f64 * lunar_lambert_i_over_f(1.0, c.cos_i, c.cos_e, c.cos_g)
+            lit as f64 * lunar_lambert_i_over_f(albedo, c.cos_i, c.cos_e, c.cos_g)
         })
         .collect()
 }
@@ -277,13 +285,6 @@ pub fn calibrate(
         model,
         model_uniform: solve(ata, atb),
     })
-}
-
-fn truth_and_valid(s: &Sample) -> (Vec<f64>, Vec<bool>) {
-    (
-        s.image.iter().map(|&v| v as f64).collect(),
-        s.valid.iter().map(|&v| v != 0).collect(),
-    )
 }
 
 /// One image's metrics per method.
@@ -582,10 +583,7 @@ pub fn panel_png(
 pub fn write_report(report: &EvalReport, out: &Path) -> Result<()> {
     std::fs::create_dir_all(out)?;
     dataset::manifest::write_json_atomic(&out.join("metrics.json"), report)?;
-    let md = out.join("metrics.md");
-    let tmp = dataset::raster::tmp_path(&md);
-    std::fs::write(&tmp, markdown(report))?;
-    std::fs::rename(&tmp, &md)?;
+    dataset::manifest::write_text_atomic(&out.join("metrics.md"), &markdown(report))?;
     Ok(())
 }
 

@@ -13,12 +13,13 @@ use anyhow::Result;
 use burn::prelude::*;
 use dataset::brdf::BrdfModel;
 use dataset::geometry::PixelGeometry;
-use dataset::hapke::{hapke_i_over_f, lunar_lambert_i_over_f, HFunction, HapkeParams};
+use dataset::hapke::HapkeParams;
 use dataset::raster::Raster;
 use dataset::schema::Sample;
 
+use crate::baseline::hapke_from_geometry;
 use crate::data::{for_each_sample_group, SampleSource};
-use crate::evaluation::{calibrate, model_uniform_from_geometry};
+use crate::evaluation::{calibrate, lunar_lambert_from_geometry, model_uniform_from_geometry};
 use crate::inference::{infer_params, render_maps, seam_score, InferOptions};
 use crate::model::UNet;
 
@@ -51,11 +52,14 @@ pub struct Report {
     pub inference_overlap: Vec<OverlapRow>,
 }
 
+/// Crop + its precomputed geometry → I/F per pixel.
+type RenderFn = Box<dyn Fn(&Sample, &[PixelGeometry]) -> Vec<f64>>;
+
 /// A reflectance model as the report times it: one f64 per pixel from geometry and lit fraction.
 struct Candidate {
     name: String,
     parameters: usize,
-    render: Box<dyn Fn(&Sample, &[PixelGeometry]) -> Vec<f64>>,
+    render: RenderFn,
 }
 
 fn candidates(source: &dyn SampleSource, calibration_samples: usize) -> Result<Vec<Candidate>> {
@@ -78,30 +82,15 @@ fn candidates(source: &dyn SampleSource, calibration_samples: usize) -> Result<V
         name: "Hapke (uniform, scaled)".into(),
         parameters: 6,
         render: Box::new(move |s, geometry| {
-            geometry
-                .iter()
-                .zip(&s.sun_lit)
-                .map(|(g, &lit)| {
-                    let c = &g.cosines;
-                    scale
-                        * lit as f64
-                        * hapke_i_over_f(&params, c.cos_i, c.cos_e, c.cos_g, HFunction::Hapke2002)
-                })
-                .collect()
+            let unscaled = hapke_from_geometry(geometry, &s.sun_lit, &params);
+            unscaled.iter().map(|v| v * scale).collect()
         }),
     });
     out.push(Candidate {
         name: "Lunar-Lambert".into(),
         parameters: 1,
         render: Box::new(move |s, geometry| {
-            geometry
-                .iter()
-                .zip(&s.sun_lit)
-                .map(|(g, &lit)| {
-                    let c = &g.cosines;
-                    lit as f64 * lunar_lambert_i_over_f(albedo, c.cos_i, c.cos_e, c.cos_g)
-                })
-                .collect()
+            lunar_lambert_from_geometry(geometry, &s.sun_lit, albedo)
         }),
     });
     Ok(out)
@@ -223,9 +212,6 @@ pub fn markdown(report: &Report) -> String {
 pub fn write(report: &Report, out: &Path) -> Result<()> {
     std::fs::create_dir_all(out)?;
     dataset::manifest::write_json_atomic(&out.join("report.json"), report)?;
-    let md = out.join("report.md");
-    let tmp = dataset::raster::tmp_path(&md);
-    std::fs::write(&tmp, markdown(report))?;
-    std::fs::rename(&tmp, &md)?;
+    dataset::manifest::write_text_atomic(&out.join("report.md"), &markdown(report))?;
     Ok(())
 }
