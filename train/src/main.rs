@@ -213,6 +213,43 @@ enum Command {
         #[arg(long, value_enum, default_value = "flex")]
         backend: BackendKind,
     },
+    /// Novel views by ray marching the DEM (max-mipmap, cast shadows, N rays/pixel, optional Gaussian PSF) along
+    /// a trajectory; with --params renders the learned BRDF and uniform Hapke side by side on one scale.
+    /// Writes view_NNNN_{hapke,learned}.png (16-bit, I/F = value / 65535 x scale) and views.json.
+    Render {
+        /// DEM GeoTIFF (lunar CRS, no nodata holes).
+        #[arg(long)]
+        dem: PathBuf,
+        /// Parameter GeoTIFF from `infer` on the same DEM grid (omit for uniform Hapke only).
+        #[arg(long)]
+        params: Option<PathBuf>,
+        /// CSV with header `x,y,z,q0,qx,qy,qz` (body-fixed m, camera->body quaternion) or
+        /// `lon,lat,alt,yaw,pitch,roll` (deg, m above the sphere, deg; all angles 0 = nadir, north up).
+        #[arg(long)]
+        trajectory: PathBuf,
+        /// Sun position in body-fixed metres, X,Y,Z (only its direction matters).
+        #[arg(long, value_delimiter = ',', num_args = 3, allow_hyphen_values = true)]
+        sun: Vec<f64>,
+        #[arg(long)]
+        out: PathBuf,
+        #[arg(long, default_value_t = 256)]
+        width: usize,
+        #[arg(long, default_value_t = 256)]
+        height: usize,
+        /// Horizontal field of view, degrees.
+        #[arg(long, default_value_t = 45.0)]
+        fov: f64,
+        /// Jittered rays per pixel (1 = through pixel centres).
+        #[arg(long, default_value_t = 4)]
+        rays: usize,
+        #[arg(long)]
+        no_shadows: bool,
+        /// Gaussian PSF sigma, pixels (0 = none).
+        #[arg(long, default_value_t = 0.0)]
+        psf_sigma: f64,
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+    },
     /// Samples/s of the train step (U-Net + renderer layer, forward + backward + Adam) and of the layer alone.
     Bench {
         #[arg(long, default_value_t = 8)]
@@ -424,6 +461,37 @@ fn run(cli: Cli) -> Result<()> {
             };
             train::report::write(&report, &out)?;
             print!("{}", train::report::markdown(&report));
+        }
+        Command::Render {
+            dem,
+            params,
+            trajectory,
+            sun,
+            out,
+            width,
+            height,
+            fov,
+            rays,
+            no_shadows,
+            psf_sigma,
+            seed,
+        } => {
+            train::render_views::run(&train::render_views::RenderJob {
+                dem: &dem,
+                params: params.as_deref(),
+                trajectory: &trajectory,
+                sun_body: glam::DVec3::new(sun[0], sun[1], sun[2]),
+                out: &out,
+                options: train::raycast::ViewOptions {
+                    width,
+                    height,
+                    fov_deg: fov,
+                    rays_per_pixel: rays,
+                    shadows: !no_shadows,
+                    psf_sigma_px: psf_sigma,
+                    seed,
+                },
+            })?;
         }
         Command::Models => {
             for model in BrdfModel::ALL {

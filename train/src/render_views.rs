@@ -1,0 +1,147 @@
+//! `g2r-train render`: read the DEM, the optional parameter maps and the trajectory; render every view with
+//! [`crate::raycast`]; write 16-bit PNGs on one I/F scale shared by all views and methods, plus `views.json`.
+
+use std::path::Path;
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use dataset::hapke::HapkeParams;
+use glam::DVec3;
+
+use crate::raycast::{render_view, Heightfield, Reflectance, ViewOptions, ViewStats};
+use crate::trajectory::read_trajectory;
+
+pub struct RenderJob<'a> {
+    pub dem: &'a Path,
+    pub params: Option<&'a Path>,
+    pub trajectory: &'a Path,
+    pub sun_body: DVec3,
+    pub out: &'a Path,
+    pub options: ViewOptions,
+}
+
+#[derive(Debug, serde::Serialize)]
+struct ViewRecord {
+    view: usize,
+    method: String,
+    file: String,
+    seconds: f64,
+    stats: ViewStats,
+}
+
+/// Render every view of the job (see the module docs).
+pub fn run(job: &RenderJob) -> Result<()> {
+    if job.sun_body.length() == 0.0 || !job.sun_body.is_finite() {
+        bail!("--sun X,Y,Z must be a finite non-zero body-fixed position (e.g. 1.4e11,-5.2e10,-1.2e10)");
+    }
+    if job.options.width == 0
+        || job.options.height == 0
+        || !(0.1..179.0).contains(&job.options.fov_deg)
+    {
+        bail!("--width/--height must be positive and --fov within (0.1, 179) degrees");
+    }
+    let poses = read_trajectory(job.trajectory)?;
+    let mut dem = dataset::raster::read_raster(job.dem)?;
+    let filled = crate::raycast::fill_holes(&mut dem);
+    if filled > 0 {
+        tracing::warn!(
+            filled,
+            "{}: filled nodata pixels from their neighbours for rendering",
+            job.dem.display()
+        );
+    }
+    let field = Heightfield::new(&dem).with_context(|| format!("{}", job.dem.display()))?;
+    let mut methods = vec![("hapke", Reflectance::Hapke(HapkeParams::lunar_typical()))];
+    if let Some(path) = job.params {
+        let bands = dataset::raster::read_bands(path)?;
+        if bands[0].width != dem.width
+            || bands[0].height != dem.height
+            || bands[0].transform != dem.transform
+        {
+            bail!(
+                "{}: not on the DEM's grid; run `g2r-train infer --dem {}` to make parameter maps for this DEM",
+                path.display(),
+                job.dem.display()
+            );
+        }
+        let learned =
+            Reflectance::from_param_bands(bands).with_context(|| format!("{}", path.display()))?;
+        methods.push(("learned", learned));
+    }
+    std::fs::create_dir_all(job.out)?;
+    let progress = indicatif::ProgressBar::new((poses.len() * methods.len()) as u64).with_style(
+        indicatif::ProgressStyle::with_template("render {bar:40} {pos}/{len} views {elapsed}")
+            .expect("valid template"),
+    );
+    let mut images = Vec::new();
+    let mut records = Vec::new();
+    for (view, pose) in poses.iter().enumerate() {
+        for (name, reflectance) in &methods {
+            let t0 = Instant::now();
+            let (image, stats) = render_view(
+                &field,
+                reflectance,
+                pose,
+                job.sun_body,
+                &job.options,
+                view as u64,
+            );
+            records.push(ViewRecord {
+                view,
+                method: name.to_string(),
+                file: format!("view_{view:04}_{name}.png"),
+                seconds: t0.elapsed().as_secs_f64(),
+                stats,
+            });
+            images.push(image);
+            progress.inc(1);
+        }
+    }
+    progress.finish_and_clear();
+    // One display scale for every image: the 99.5th percentile of all lit pixels, so views compare directly.
+    let mut lit: Vec<f64> = images
+        .iter()
+        .flatten()
+        .copied()
+        .filter(|v| *v > 0.0)
+        .collect();
+    lit.sort_by(f64::total_cmp);
+    let scale = lit
+        .get((lit.len().saturating_sub(1)) * 995 / 1000)
+        .copied()
+        .unwrap_or(1.0)
+        .max(1e-12);
+    for (image, record) in images.iter().zip(&records) {
+        let png = image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::from_fn(
+            job.options.width as u32,
+            job.options.height as u32,
+            |x, y| {
+                let v = image[y as usize * job.options.width + x as usize] / scale;
+                image::Luma([(v.clamp(0.0, 1.0) * 65535.0).round() as u16])
+            },
+        );
+        let path = job.out.join(&record.file);
+        let tmp = dataset::raster::tmp_path(&path);
+        png.save_with_format(&tmp, image::ImageFormat::Png)
+            .with_context(|| format!("writing {}", path.display()))?;
+        std::fs::rename(&tmp, &path)?;
+    }
+    dataset::manifest::write_json_atomic(
+        &job.out.join("views.json"),
+        &serde_json::json!({
+            "i_over_f_scale": scale,
+            "encoding": "I/F = png_value / 65535 * i_over_f_scale",
+            "width": job.options.width, "height": job.options.height, "fov_deg": job.options.fov_deg,
+            "rays_per_pixel": job.options.rays_per_pixel, "shadows": job.options.shadows,
+            "psf_sigma_px": job.options.psf_sigma_px, "seed": job.options.seed,
+            "views": records,
+        }),
+    )?;
+    println!(
+        "{}: {} views × {} methods, I/F scale {scale:.4} (views.json)",
+        job.out.display(),
+        poses.len(),
+        methods.len()
+    );
+    Ok(())
+}
