@@ -228,7 +228,7 @@ enum Command {
         #[arg(long)]
         trajectory: PathBuf,
         /// Sun position in body-fixed metres, X,Y,Z (only its direction matters).
-        #[arg(long, value_delimiter = ',', num_args = 3, allow_hyphen_values = true)]
+        #[arg(long, value_delimiter = ',', allow_hyphen_values = true, required = true)]
         sun: Vec<f64>,
         #[arg(long)]
         out: PathBuf,
@@ -476,6 +476,9 @@ fn run(cli: Cli) -> Result<()> {
             psf_sigma,
             seed,
         } => {
+            if sun.len() != 3 {
+                bail!("--sun takes three comma-separated numbers X,Y,Z (body-fixed metres), got {}", sun.len());
+            }
             train::render_views::run(&train::render_views::RenderJob {
                 dem: &dem,
                 params: params.as_deref(),
