@@ -201,11 +201,11 @@ enum Command {
         max_samples: Option<usize>,
         #[arg(long, default_value_t = 256)]
         calibration_samples: usize,
-        /// A trained run, for the inference-overlap section.
+        /// A trained run, for the inference-overlap section (needs --dem).
         #[arg(long, requires = "dem")]
         run: Option<PathBuf>,
-        /// DEM GeoTIFF for the inference-overlap section.
-        #[arg(long, requires = "run")]
+        /// DEM GeoTIFF for the renderer section (and, with --run, the inference-overlap section).
+        #[arg(long)]
         dem: Option<PathBuf>,
         /// Overlaps to time, pixels.
         #[arg(long, value_delimiter = ',', default_value = "0,16,32,48")]
@@ -228,7 +228,12 @@ enum Command {
         #[arg(long)]
         trajectory: PathBuf,
         /// Sun position in body-fixed metres, X,Y,Z (only its direction matters).
-        #[arg(long, value_delimiter = ',', allow_hyphen_values = true, required = true)]
+        #[arg(
+            long,
+            value_delimiter = ',',
+            allow_hyphen_values = true,
+            required = true
+        )]
         sun: Vec<f64>,
         #[arg(long)]
         out: PathBuf,
@@ -437,15 +442,23 @@ fn run(cli: Cli) -> Result<()> {
                     max_samples,
                     calibration_samples,
                 )?;
-            let inference_overlap = match (run, dem) {
-                (Some(run), Some(dem)) => {
-                    let raster = dataset::raster::read_raster(&dem)?;
+            let raster = dem
+                .as_deref()
+                .map(dataset::raster::read_raster)
+                .transpose()?;
+            let renderer = raster
+                .as_ref()
+                .map(train::report::renderer_rows)
+                .transpose()?
+                .unwrap_or_default();
+            let inference_overlap = match (run, raster.as_ref()) {
+                (Some(run), Some(raster)) => {
                     let dem_std_m = source.manifest().dem_std_m;
                     with_backend!(backend, B => {
                         type Inner = <B as burn::tensor::backend::AutodiffBackend>::InnerBackend;
                         let device = Default::default();
                         let (config, net) = train::training::load_trained::<Inner>(&run, &device)?;
-                        train::report::overlap_rows::<Inner>(&net, config.model, &raster, dem_std_m, &overlaps, &device)
+                        train::report::overlap_rows::<Inner>(&net, config.model, raster, dem_std_m, &overlaps, &device)
                     })?
                 }
                 _ => Vec::new(),
@@ -458,6 +471,7 @@ fn run(cli: Cli) -> Result<()> {
                 geometry_ns_per_pixel,
                 brdf_models,
                 inference_overlap,
+                renderer,
             };
             train::report::write(&report, &out)?;
             print!("{}", train::report::markdown(&report));
@@ -477,7 +491,10 @@ fn run(cli: Cli) -> Result<()> {
             seed,
         } => {
             if sun.len() != 3 {
-                bail!("--sun takes three comma-separated numbers X,Y,Z (body-fixed metres), got {}", sun.len());
+                bail!(
+                    "--sun takes three comma-separated numbers X,Y,Z (body-fixed metres), got {}",
+                    sun.len()
+                );
             }
             train::render_views::run(&train::render_views::RenderJob {
                 dem: &dem,
