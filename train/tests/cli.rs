@@ -1,0 +1,151 @@
+//! `g2r-train` bad inputs: one line on stderr naming the file (or flag) and the fix, a non-zero exit, and no
+//! finished-looking output.
+
+use std::path::Path;
+use std::process::Command;
+
+fn train_cli(args: &[&str]) -> (bool, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_g2r-train"))
+        .args(args)
+        .output()
+        .unwrap();
+    (
+        out.status.success(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+fn error_line(stderr: &str) -> &str {
+    stderr
+        .lines()
+        .find(|l| l.starts_with("error"))
+        .unwrap_or("")
+}
+
+#[test]
+fn help_lists_every_command() {
+    let out = Command::new(env!("CARGO_BIN_EXE_g2r-train"))
+        .arg("--help")
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    for command in [
+        "fit",
+        "compare-models",
+        "baseline",
+        "eval",
+        "infer",
+        "report",
+        "render",
+        "bench",
+        "models",
+    ] {
+        assert!(
+            text.contains(command),
+            "{command} missing from --help:\n{text}"
+        );
+    }
+}
+
+#[test]
+fn bad_inputs_fail_with_one_line_naming_the_file_and_the_fix() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let path = |name: &str| d.join(name).to_string_lossy().into_owned();
+    std::fs::write(
+        d.join("bad.csv"),
+        "lon,lat,alt,yaw,pitch,roll\n0,95,1000,0,0,0\n",
+    )
+    .unwrap();
+    std::fs::write(d.join("not-a-dem.tif"), b"not a tiff").unwrap();
+    let cases: Vec<(Vec<String>, Vec<&str>)> = vec![
+        (
+            vec![
+                "eval".into(),
+                "--run".into(),
+                path("no-run"),
+                "--data".into(),
+                path("no-data"),
+            ],
+            vec!["no-data", "manifest.json"],
+        ),
+        (
+            vec![
+                "infer".into(),
+                "--run".into(),
+                path("no-run"),
+                "--dem".into(),
+                path("x.tif"),
+                "--out".into(),
+                path("p.tif"),
+            ],
+            vec!["normalisation.json", "--dem-std-m"],
+        ),
+        (
+            vec![
+                "infer".into(),
+                "--run".into(),
+                path("no-run"),
+                "--dem".into(),
+                path("not-a-dem.tif"),
+                "--out".into(),
+                path("p.tif"),
+                "--dem-std-m".into(),
+                "20".into(),
+            ],
+            vec!["not-a-dem.tif"],
+        ),
+        (
+            vec![
+                "render".into(),
+                "--dem".into(),
+                path("not-a-dem.tif"),
+                "--trajectory".into(),
+                path("bad.csv"),
+                "--sun=1e11,0,0".into(),
+                "--out".into(),
+                path("views"),
+            ],
+            vec!["bad.csv", "line 2", "latitude 95"],
+        ),
+        (
+            vec![
+                "render".into(),
+                "--dem".into(),
+                path("not-a-dem.tif"),
+                "--trajectory".into(),
+                path("bad.csv"),
+                "--sun=1e11,0".into(),
+                "--out".into(),
+                path("views"),
+            ],
+            vec!["--sun takes three"],
+        ),
+        (
+            vec![
+                "fit".into(),
+                "--data".into(),
+                "http://127.0.0.1:9".into(),
+                "--out".into(),
+                path("run"),
+            ],
+            vec!["http://127.0.0.1:9", "g2r-dataset serve"],
+        ),
+    ];
+    for (args, needles) in cases {
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        let (ok, stderr) = train_cli(&args);
+        assert!(!ok, "{args:?} succeeded");
+        let line = error_line(&stderr);
+        for needle in needles {
+            assert!(
+                line.contains(needle),
+                "{args:?}: `{needle}` not in `{line}`\n{stderr}"
+            );
+        }
+    }
+    // Nothing finished-looking was left behind.
+    for name in ["p.tif", "views", "run/best"] {
+        assert!(!Path::new(&path(name)).exists(), "{name} exists");
+    }
+}
