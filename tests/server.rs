@@ -665,3 +665,52 @@ fn viewer_renders_samples_and_the_tile_map_in_headless_chromium() {
         greys.len()
     );
 }
+
+#[test]
+fn a_split_without_rows_answers_empty_not_an_error() {
+    // Publish lists every split, with count 0 when the tiles gave it none: the server must answer, not panic.
+    let root = tempfile::tempdir().unwrap();
+    let dir = root.path().join("dataset");
+    let rows: Vec<Sample> = (0..3).map(|i| sample(0, "train", i)).collect();
+    let split_summary = serde_json::json!({ "tile_size_m": TILE_M });
+    dataset::testing::write_dataset(
+        &dir,
+        "one-split",
+        &[("train", vec![rows]), ("test", vec![])],
+        split_summary,
+    )
+    .unwrap();
+    let (send, receive) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        tokio::runtime::Runtime::new()
+            .unwrap()
+            .block_on(dataset::server::serve(
+                &dir,
+                "127.0.0.1:0".parse().unwrap(),
+                true,
+                |a| send.send(a).unwrap(),
+            ))
+            .unwrap();
+    });
+    let c = HttpClient::new(&format!("http://{}", receive.recv().unwrap())).unwrap();
+    let groups: serde_json::Value = c.get_json("/v1/row-groups?split=test").unwrap();
+    assert_eq!(groups["row_groups"].as_array().unwrap().len(), 0);
+    let page: serde_json::Value = c.get_json("/v1/rows?split=test").unwrap();
+    assert_eq!(page["total"], 0);
+    let stream = c
+        .get_ok(
+            "/v1/stream?split=test&seed=1&epoch=0",
+            &[("Accept", dataset::server::ARROW_STREAM)],
+        )
+        .unwrap();
+    assert!(dataset::shard::samples_from_ipc_stream(&stream.body)
+        .unwrap()
+        .is_empty());
+    let too_wide = c
+        .get(
+            "/v1/stream?split=train&seed=1&epoch=0&window=9",
+            &[("Accept", dataset::server::ARROW_STREAM)],
+        )
+        .unwrap();
+    assert_eq!(too_wide.status, 400);
+}

@@ -82,7 +82,16 @@ impl TruthMaps {
 
     /// Parameters at map point (x, y), bilinear; `None` outside the maps or on nodata.
     pub fn params_at(&self, x: f64, y: f64) -> Option<HapkeParams> {
-        let (col, row) = self.bands[0].transform.map_to_pixel(x, y);
+        let first = &self.bands[0];
+        let (col, row) = first.transform.map_to_pixel(x, y);
+        // Bilinear sampling clamps at the edges: points beyond the outer pixel edges are outside the maps.
+        if col < -0.5
+            || row < -0.5
+            || col > first.width as f64 - 0.5
+            || row > first.height as f64 - 0.5
+        {
+            return None;
+        }
         let v: Vec<f64> = self
             .bands
             .iter()
@@ -278,6 +287,12 @@ pub fn calibrate(
             seen += 1;
         }
     })?;
+    if seen == 0 {
+        bail!(
+            "{}: no train crops to fit the honest baselines on: the train split is empty or --calibration-samples is 0",
+            source.describe()
+        );
+    }
     Ok(Calibration {
         samples: seen,
         hapke_scale: hapke.scale(),

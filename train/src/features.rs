@@ -57,8 +57,14 @@ pub fn to_gray(values: &[f64], valid: &[bool], edge: usize, lo: f64, hi: f64) ->
     })
 }
 
-fn describe(image: &GrayImage, pairs: &[TestPair]) -> Vec<BriefDescriptor> {
+fn describe(image: &GrayImage, valid: &[bool], pairs: &[TestPair]) -> Vec<BriefDescriptor> {
     let (w, h) = image.dimensions();
+    // A patch touching masked pixels would describe the mask's edge, identical in every rendering: skip it.
+    let patch_valid = |c: &Corner| {
+        let m = BRIEF_MARGIN as usize;
+        let (x, y) = (c.x as usize, c.y as usize);
+        (y - m..=y + m).all(|r| (x - m..=x + m).all(|k| valid[r * w as usize + k]))
+    };
     let corners: Vec<Corner> = corners_fast9(image, FAST_THRESHOLD)
         .into_iter()
         .filter(|c| {
@@ -67,6 +73,7 @@ fn describe(image: &GrayImage, pairs: &[TestPair]) -> Vec<BriefDescriptor> {
                 && c.x + BRIEF_MARGIN < w
                 && c.y + BRIEF_MARGIN < h
         })
+        .filter(patch_valid)
         .collect();
     let mut corners = imageproc::suppress::local_maxima(&corners, 2);
     // Strongest first; ties by position so the kept set never depends on detector order.
@@ -184,8 +191,8 @@ impl FeatureMatcher {
         values.sort_by(f64::total_cmp);
         let n = values.len();
         let (lo, hi) = (values[n * 2 / 100], values[(n - 1) * 98 / 100]);
-        let a = describe(&to_gray(truth, valid, edge, lo, hi), &self.pairs);
-        let b = describe(&to_gray(rendered, valid, edge, lo, hi), &self.pairs);
+        let a = describe(&to_gray(truth, valid, edge, lo, hi), valid, &self.pairs);
+        let b = describe(&to_gray(rendered, valid, edge, lo, hi), valid, &self.pairs);
         reciprocal_match_distances(&a, &b)
     }
 }
@@ -231,6 +238,22 @@ mod tests {
         let s = stats.summary();
         assert!(s.within_3px < 0.5 && s.within_5px > 0.5, "{s:?}");
         assert!((s.mean_error_px - 4.0).abs() < 1.0, "{s:?}");
+    }
+
+    #[test]
+    fn masked_edges_never_make_matches() {
+        // A flat rendering against a flat truth, both with a masked rectangle: the only corners are on the mask's
+        // edge, identical in both; they must not count as matches.
+        let matcher = FeatureMatcher::default();
+        let valid: Vec<bool> = (0..128 * 128)
+            .map(|k| !((40..80).contains(&(k % 128)) && (40..80).contains(&(k / 128))))
+            .collect();
+        let flat: Vec<f64> = (0..128 * 128)
+            .map(|k| 0.3 + 0.001 * (k % 128) as f64)
+            .collect();
+        assert!(matcher
+            .match_distances(&flat, &flat, &valid, 128)
+            .is_empty());
     }
 
     #[test]

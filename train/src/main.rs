@@ -410,7 +410,8 @@ fn run(cli: Cli) -> Result<()> {
                     progress.set_length(total as u64);
                     progress.set_position(done as u64);
                 })
-            })?;
+            })
+            .map_err(|e| anyhow::anyhow!("{}: {e:#}", dem.display()))?;
             progress.finish_and_clear();
             train::inference::write_params_geotiff(&maps, &raster, overlap, &out)?;
             println!(

@@ -153,9 +153,11 @@ impl<'a> Heightfield<'a> {
     /// Continuous pixel coordinates of an ENU point's ground position.
     fn pixel_of(&self, p: DVec3) -> DVec2 {
         let f = &self.frame;
+        // Invert at the point's own height: horizontal ENU offsets grow with (R + h) / (R + h0).
+        let h = self.height_of(p);
         let mut map = f.origin_map + f.en_to_map(p.x, p.y);
         for _ in 0..2 {
-            let at = f.map_to_enu(map.x, map.y, f.origin_height_m);
+            let at = f.map_to_enu(map.x, map.y, h);
             map += f.en_to_map(p.x - at.x, p.y - at.y);
         }
         let (c, r) = self.dem.transform.map_to_pixel(map.x, map.y);
@@ -556,6 +558,24 @@ mod tests {
             (hit.y - 4_200.0 * 20f64.to_radians().tan()).abs() < 30.0,
             "{hit}"
         );
+    }
+
+    #[test]
+    fn ground_position_of_a_high_point_far_from_the_centre_is_exact() {
+        // 4 km × 4 km; a point 1.9 km east and north of the centre, 2 km above the frame origin.
+        let raster = dem(800, |_, _| -1200.0);
+        let field = Heightfield::new(&raster).unwrap();
+        let f = &field.frame;
+        let (x, y) = (f.origin_map.x + 1_900.0, f.origin_map.y + 1_900.0);
+        for h in [-1200.0, 800.0, 3000.0] {
+            let p = f.map_to_enu(x, y, h);
+            let px = field.pixel_of(p);
+            let (c, r) = raster.transform.map_to_pixel(x, y);
+            assert!(
+                (px.x - c).abs() < 1e-3 && (px.y - r).abs() < 1e-3,
+                "h {h}: {px} vs ({c}, {r})"
+            );
+        }
     }
 
     #[test]

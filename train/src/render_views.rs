@@ -53,7 +53,7 @@ pub fn run(job: &RenderJob) -> Result<()> {
     let field = Heightfield::new(&dem).with_context(|| format!("{}", job.dem.display()))?;
     let mut methods = vec![("hapke", Reflectance::Hapke(HapkeParams::lunar_typical()))];
     if let Some(path) = job.params {
-        let bands = dataset::raster::read_bands(path)?;
+        let mut bands = dataset::raster::read_bands(path)?;
         if bands[0].width != dem.width
             || bands[0].height != dem.height
             || bands[0].transform != dem.transform
@@ -63,6 +63,10 @@ pub fn run(job: &RenderJob) -> Result<()> {
                 path.display(),
                 job.dem.display()
             );
+        }
+        // The maps are NaN where the DEM had holes; the DEM was filled above, so fill the maps the same way.
+        for band in &mut bands {
+            crate::raycast::fill_holes(band);
         }
         let learned =
             Reflectance::from_param_bands(bands).with_context(|| format!("{}", path.display()))?;

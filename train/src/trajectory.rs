@@ -65,7 +65,7 @@ pub fn parse_trajectory(text: &str) -> Result<Vec<Pose>> {
         .enumerate()
         .map(|(i, l)| (i + 1, l.trim()))
         .filter(|(_, l)| !l.is_empty() && !l.starts_with('#'));
-    let Some((_, header)) = lines.next() else {
+    let Some((header_line, header)) = lines.next() else {
         bail!("empty trajectory: write a header `x,y,z,q0,qx,qy,qz` or `lon,lat,alt,yaw,pitch,roll` and one row per view");
     };
     let columns: Vec<String> = header.split(',').map(|c| c.trim().to_lowercase()).collect();
@@ -75,7 +75,7 @@ pub fn parse_trajectory(text: &str) -> Result<Vec<Pose>> {
         1
     } else {
         bail!(
-            "line 1: header `{header}` is neither `x,y,z,q0,qx,qy,qz` (body-fixed m + quaternion) nor \
+            "line {header_line}: header `{header}` is neither `x,y,z,q0,qx,qy,qz` (body-fixed m + quaternion) nor \
              `lon,lat,alt,yaw,pitch,roll` (degrees, metres, degrees)"
         );
     };
@@ -185,6 +185,10 @@ mod tests {
         let cases = [
             ("", "empty trajectory"),
             ("a,b,c\n1,2,3\n", "line 1: header `a,b,c` is neither"),
+            (
+                "# comment\n\na,b,c\n1,2,3\n",
+                "line 3: header `a,b,c` is neither",
+            ),
             ("x,y,z,q0,qx,qy,qz\n", "no rows"),
             (
                 "x,y,z,q0,qx,qy,qz\n1,2,3,1,0,0\n",

@@ -72,8 +72,10 @@ impl DatasetIndex {
             );
         }
         let manifest = DatasetManifest::load(&manifest_path)?;
-        let manifest_bytes = std::fs::read(&manifest_path)?;
-        let manifest_blake3 = hash_file(&manifest_path)?;
+        let manifest_bytes = std::fs::read(&manifest_path)
+            .with_context(|| format!("{}: cannot read", manifest_path.display()))?;
+        let manifest_blake3 = hash_file(&manifest_path)
+            .with_context(|| format!("{}: cannot read", manifest_path.display()))?;
         for shard in &manifest.shards {
             let path = dir.join(&shard.path);
             let bytes = std::fs::metadata(&path)
@@ -91,7 +93,9 @@ impl DatasetIndex {
                     shard.bytes
                 );
             }
-            if verify_hashes && hash_file(&path)? != shard.blake3 {
+            let hash =
+                || hash_file(&path).with_context(|| format!("{}: cannot read", path.display()));
+            if verify_hashes && hash()? != shard.blake3 {
                 bail!(
                     "{}: blake3 does not match manifest.json; re-publish the dataset",
                     path.display()
@@ -112,7 +116,12 @@ impl DatasetIndex {
             .keys()
             .map(|k| (k.clone(), Vec::new()))
             .collect();
-        let mut row_groups: BTreeMap<String, Vec<RowGroupRef>> = BTreeMap::new();
+        // Every split gets an entry, even one with no shard (publish lists empty splits with count 0).
+        let mut row_groups: BTreeMap<String, Vec<RowGroupRef>> = manifest
+            .split_counts
+            .keys()
+            .map(|k| (k.clone(), Vec::new()))
+            .collect();
         for split in manifest.split_counts.keys() {
             for name in manifest.split_shards(split) {
                 let file = ShardFile::open(&dir.join(name))?;
@@ -130,9 +139,12 @@ impl DatasetIndex {
                             rows: n,
                         });
                     for row in 0..n {
-                        let meta = next
-                            .next()
-                            .context("row metadata shorter than the footer says")?;
+                        let meta = next.next().with_context(|| {
+                            format!(
+                                "{}: row metadata shorter than the footer says; re-publish the dataset",
+                                file.path().display()
+                            )
+                        })?;
                         if meta.split != *split {
                             bail!(
                                 "{}: row {row} of row group {row_group} says split '{}'; re-publish the dataset",
@@ -148,6 +160,12 @@ impl DatasetIndex {
                             row,
                         });
                     }
+                }
+                if next.next().is_some() {
+                    bail!(
+                        "{}: more rows than the footer's row groups say; re-publish the dataset",
+                        file.path().display()
+                    );
                 }
                 shards.push(file);
             }

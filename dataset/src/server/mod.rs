@@ -46,6 +46,14 @@ pub const MAX_ROWS_PER_REQUEST: usize = 100;
 /// Most rows `/v1/filter` lists (it returns the total count too).
 pub const MAX_FILTER_ROWS: usize = 1000;
 pub const ARROW_STREAM: &str = "application/vnd.apache.arrow.stream";
+/// Most row groups one `/v1/stream` window may hold (≈ 55 MB decoded each).
+pub const MAX_STREAM_WINDOW: usize = 8;
+/// Epoch streams running at once; more wait their turn (each holds up to a window, a few hundred MB).
+const CONCURRENT_STREAMS: usize = 2;
+
+/// Limits the epoch streams running at once, whatever clients ask for.
+static STREAM_PERMITS: tokio::sync::Semaphore =
+    tokio::sync::Semaphore::const_new(CONCURRENT_STREAMS);
 
 const VIEWER_HTML: &str = include_str!("viewer.html");
 
@@ -437,7 +445,10 @@ async fn row_groups(
     Query(params): Params,
 ) -> ApiResult<Json<serde_json::Value>> {
     let (split, _) = required_split(&index, &params)?;
-    let groups: Vec<serde_json::Value> = index.row_groups[split]
+    let groups: Vec<serde_json::Value> = index
+        .row_groups
+        .get(split)
+        .map_or(&[][..], Vec::as_slice)
         .iter()
         .map(|g| serde_json::json!({ "shard": g.shard, "row_group": g.row_group, "rows": g.rows }))
         .collect();
@@ -475,14 +486,16 @@ async fn epoch_stream(
             "need 0 <= rank < world <= 1024, got rank {rank} world {world}"
         )));
     }
-    if window == 0 || window > 64 {
+    if window == 0 || window > MAX_STREAM_WINDOW {
         return Err(ApiError::bad_request(format!(
-            "'window' must be 1..=64 row groups, got {window}"
+            "'window' must be 1..={MAX_STREAM_WINDOW} row groups, got {window}"
         )));
     }
     let (sender, mut receiver) = tokio::sync::mpsc::channel::<Result<Vec<u8>, std::io::Error>>(2);
+    let permit = STREAM_PERMITS.acquire().await.map_err(ApiError::internal)?;
     tokio::task::spawn_blocking(move || {
-        let groups = &index.row_groups[&split];
+        let _permit = permit; // held until this stream is done or its client went away
+        let groups = index.row_groups.get(&split).map_or(&[][..], Vec::as_slice);
         let plan = plan_epoch(groups, seed, epoch, window, rank, world);
         let send = |item| sender.blocking_send(item).is_ok();
         let result = (|| -> anyhow::Result<()> {
