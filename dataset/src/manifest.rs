@@ -74,9 +74,22 @@ pub enum ManifestError {
     },
     #[error("{path}: manifest schema {found} does not match this build's {SCHEMA_VERSION}; rebuild the dataset")]
     SchemaVersion { path: PathBuf, found: String },
+    #[error("{dir}: no manifest.json: point at a published dataset directory (g2r-pipeline run writes OUT/dataset)")]
+    NoManifest { dir: PathBuf },
 }
 
 impl DatasetManifest {
+    /// The manifest of a published dataset directory (`dir/manifest.json`).
+    pub fn load_dir(dir: &Path) -> Result<Self, ManifestError> {
+        let path = dir.join("manifest.json");
+        if !path.exists() {
+            return Err(ManifestError::NoManifest {
+                dir: dir.to_path_buf(),
+            });
+        }
+        Self::load(&path)
+    }
+
     pub fn load(path: &Path) -> Result<Self, ManifestError> {
         let text = std::fs::read_to_string(path).map_err(|source| ManifestError::Io {
             path: path.to_path_buf(),

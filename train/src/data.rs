@@ -36,14 +36,7 @@ pub struct LocalSource {
 
 impl LocalSource {
     pub fn open(dir: &Path) -> Result<Self> {
-        let path = dir.join("manifest.json");
-        if !path.exists() {
-            bail!(
-                "{}: no manifest.json: point --data at a published dataset directory (g2r-pipeline run writes OUT/dataset)",
-                dir.display()
-            );
-        }
-        let manifest = DatasetManifest::load(&path)?;
+        let manifest = DatasetManifest::load_dir(dir)?;
         Ok(Self {
             dir: dir.to_path_buf(),
             manifest,

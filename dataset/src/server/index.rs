@@ -65,13 +65,7 @@ impl DatasetIndex {
             .canonicalize()
             .with_context(|| format!("{}: no such dataset directory", dir.display()))?;
         let manifest_path = dir.join("manifest.json");
-        if !manifest_path.exists() {
-            bail!(
-                "{}: no manifest.json: serve a published dataset directory (g2r-pipeline run writes OUT/dataset)",
-                dir.display()
-            );
-        }
-        let manifest = DatasetManifest::load(&manifest_path)?;
+        let manifest = DatasetManifest::load_dir(&dir)?;
         let manifest_bytes = std::fs::read(&manifest_path)
             .with_context(|| format!("{}: cannot read", manifest_path.display()))?;
         let manifest_blake3 = hash_file(&manifest_path)
