@@ -68,6 +68,9 @@ struct TrainArgs {
     max_val_samples: Option<usize>,
     #[arg(long, value_enum, default_value = "flex")]
     backend: BackendKind,
+    /// Learning-rate schedule: constant, or cosine decay from --lr to 0 over the run.
+    #[arg(long, value_enum, default_value = "constant")]
+    lr_schedule: train::training::LrSchedule,
 }
 
 impl TrainArgs {
@@ -86,6 +89,7 @@ impl TrainArgs {
                 max_samples: self.max_train_samples,
             },
             max_val_samples: self.max_val_samples,
+            lr_schedule: self.lr_schedule,
         }
     }
 }

@@ -39,6 +39,43 @@ pub struct FitConfig {
     pub stream: StreamConfig,
     /// Cap on validation samples per epoch (`None` = the whole split).
     pub max_val_samples: Option<usize>,
+    /// Learning rate over the run; runs written before this field existed were constant.
+    #[serde(default)]
+    pub lr_schedule: LrSchedule,
+}
+
+/// How the learning rate changes over a run's optimiser steps.
+#[derive(
+    Debug,
+    Clone,
+    Copy,
+    Default,
+    PartialEq,
+    Eq,
+    serde::Serialize,
+    serde::Deserialize,
+    clap::ValueEnum,
+)]
+#[serde(rename_all = "lowercase")]
+pub enum LrSchedule {
+    /// `--lr` at every step.
+    #[default]
+    Constant,
+    /// Half a cosine from `--lr` at step 0 to 0 at the last step.
+    Cosine,
+}
+
+impl LrSchedule {
+    /// The rate at optimiser step `step` of `total`.
+    pub fn rate(self, base: f64, step: u64, total: u64) -> f64 {
+        match self {
+            Self::Constant => base,
+            Self::Cosine => {
+                let t = step.min(total) as f64 / total.max(1) as f64;
+                base * 0.5 * (1.0 + (std::f64::consts::PI * t).cos())
+            }
+        }
+    }
 }
 
 /// One line of `metrics.jsonl`.
@@ -272,6 +309,7 @@ pub fn fit<B: AutodiffBackend>(
             epoch as u64,
             cursor.next_batch,
         )?;
+        let stream_batches = stream.batches;
         let bar = if show_progress {
             ProgressBar::new(stream.batches as u64)
         } else {
@@ -303,7 +341,12 @@ pub fn fit<B: AutodiffBackend>(
                 );
             }
             let grads = GradientsParams::from_grads(loss.backward(), &net);
-            net = optim.step(config.learning_rate, net, grads);
+            // Every epoch has the same batch count, so the run's length is known from the first stream.
+            let total_steps = (config.epochs * stream_batches) as u64;
+            let rate = config
+                .lr_schedule
+                .rate(config.learning_rate, cursor.step, total_steps);
+            net = optim.step(rate, net, grads);
             step_time.add(step_started);
             cursor.step += 1;
             cursor.next_batch += 1;
@@ -506,4 +549,28 @@ pub fn load_trained<B: Backend>(run: &Path, device: &B::Device) -> Result<(FitCo
         .load_file(checkpoint.clone(), &Rec::new(), device)
         .with_context(|| format!("{}: cannot load the checkpoint", checkpoint.display()))?;
     Ok((config, net))
+}
+
+#[cfg(test)]
+mod schedule_tests {
+    use super::*;
+
+    #[test]
+    fn cosine_decays_from_the_base_rate_to_zero_and_constant_stays() {
+        let cosine = LrSchedule::Cosine;
+        assert_eq!(cosine.rate(1e-3, 0, 100), 1e-3);
+        assert!((cosine.rate(1e-3, 50, 100) - 5e-4).abs() < 1e-15);
+        assert!(cosine.rate(1e-3, 100, 100).abs() < 1e-18);
+        assert!(cosine.rate(1e-3, 25, 100) > cosine.rate(1e-3, 26, 100));
+        assert_eq!(LrSchedule::Constant.rate(1e-3, 77, 100), 1e-3);
+    }
+
+    #[test]
+    fn configs_written_before_the_schedule_existed_load_as_constant() {
+        let json = r#"{"model":"m2","epochs":3,"learning_rate":0.001,"base_width":4,"dropout":true,
+            "stream":{"seed":42,"batch_size":8,"window_groups":4,"augment":true,"max_samples":null},
+            "max_val_samples":null}"#;
+        let config: FitConfig = serde_json::from_str(json).unwrap();
+        assert_eq!(config.lr_schedule, LrSchedule::Constant);
+    }
 }

@@ -43,6 +43,7 @@ fn eval_rows_equal_validation_and_direct_baselines() {
             max_samples: None,
         },
         max_val_samples: None,
+        lr_schedule: train::training::LrSchedule::Constant,
     };
     let options = EvalOptions {
         split: "val".into(),

@@ -40,6 +40,7 @@ fn config(
             max_samples: Some(max_samples),
         },
         max_val_samples: Some(4),
+        lr_schedule: train::training::LrSchedule::Constant,
     }
 }
 
@@ -119,7 +120,11 @@ fn stopping_and_resuming_gives_the_same_network_as_an_uninterrupted_run() {
         synthetic_samples(4, 6),
     );
     let source: Arc<dyn SampleSource> = Arc::new(LocalSource::open(tmp.path()).unwrap());
-    let cfg = config(BrdfModel::M2, 2, 1e-3, 12, true);
+    // Cosine schedule: the resumed half must continue the decay from the saved step, not restart it.
+    let cfg = FitConfig {
+        lr_schedule: train::training::LrSchedule::Cosine,
+        ..config(BrdfModel::M2, 2, 1e-3, 12, true)
+    };
     let device = Default::default();
     let straight = tmp.path().join("straight");
     let a = fit::<Ad>(source.clone(), &cfg, &straight, false, None, &device, false).unwrap();
