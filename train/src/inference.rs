@@ -9,7 +9,7 @@
 
 use anyhow::{bail, Result};
 use burn::prelude::*;
-use dataset::brdf::{leaky_relu, BrdfModel, LEAKY_SLOPE};
+use dataset::brdf::{inverse_leaky_relu, leaky_relu, BrdfModel, LEAKY_SLOPE};
 use dataset::raster::{BandOut, BandValues, Raster, RasterLayout};
 use dataset::schema::CROP_PX;
 
@@ -266,16 +266,8 @@ pub fn render_maps(maps: &ParamMaps, dem: &Raster, sun_dir_enu: [f64; 3]) -> Vec
             let raw: Vec<f64> = maps
                 .bands
                 .iter()
-                .map(|b| {
-                    // The maps hold activated values; the identity of LeakyReLU on x ≥ 0 and its inverse otherwise
-                    // recover the raw parameter evaluate() expects.
-                    let v = b[k] as f64;
-                    if v >= 0.0 {
-                        v
-                    } else {
-                        v / LEAKY_SLOPE
-                    }
-                })
+                // The maps hold activated values; evaluate() expects raw ones.
+                .map(|b| inverse_leaky_relu(b[k] as f64))
                 .collect();
             if raw.iter().any(|v| !v.is_finite()) {
                 return f64::NAN;

@@ -10,7 +10,7 @@
 //!   disk, uniform Hapke or a parameter GeoTIFF from `infer`, and an optional Gaussian PSF.
 
 use anyhow::{bail, Result};
-use dataset::brdf::{BrdfModel, LEAKY_SLOPE};
+use dataset::brdf::{inverse_leaky_relu, BrdfModel};
 use dataset::crs::{LocalFrame, MOON_RADIUS_M};
 use dataset::geometry::{plane_normal, Cosines, HalfDiffCosines};
 use dataset::hapke::{hapke_i_over_f, HFunction, HapkeParams};
@@ -152,9 +152,13 @@ impl<'a> Heightfield<'a> {
 
     /// Continuous pixel coordinates of an ENU point's ground position.
     fn pixel_of(&self, p: DVec3) -> DVec2 {
+        self.pixel_at_height(p, self.height_of(p))
+    }
+
+    /// [`Self::pixel_of`] for a point whose height above the sphere `h` is already known (the marcher needs both).
+    fn pixel_at_height(&self, p: DVec3, h: f64) -> DVec2 {
         let f = &self.frame;
         // Invert at the point's own height: horizontal ENU offsets grow with (R + h) / (R + h0).
-        let h = self.height_of(p);
         let mut map = f.origin_map + f.en_to_map(p.x, p.y);
         for _ in 0..2 {
             let at = f.map_to_enu(map.x, map.y, h);
@@ -228,8 +232,8 @@ impl<'a> Heightfield<'a> {
         let mut entered = false;
         for _ in 0..MAX_STEPS {
             let p = origin + s * dir;
-            let px = self.pixel_of(p);
             let h = self.height_of(p);
+            let px = self.pixel_at_height(p, h);
             if !self.inside(px) {
                 // Outside the DEM: a ray that has been over it and left, or that climbs away, misses.
                 if entered || (dir.z >= 0.0 && h > self.max_height) || h < self.min_height - 1.0 {
@@ -245,8 +249,9 @@ impl<'a> Heightfield<'a> {
                 for _ in 0..30 {
                     let mid = 0.5 * (lo + hi);
                     let q = origin + mid * dir;
-                    let qpx = self.pixel_of(q);
-                    if self.inside(qpx) && self.height_of(q) <= self.surface(qpx) {
+                    let qh = self.height_of(q);
+                    let qpx = self.pixel_at_height(q, qh);
+                    if self.inside(qpx) && qh <= self.surface(qpx) {
                         hi = mid;
                     } else {
                         lo = mid;
@@ -321,14 +326,7 @@ impl Reflectance {
             Self::Params { model, bands } => {
                 let raw: Vec<f64> = bands
                     .iter()
-                    .map(|b| {
-                        let v = b.bilinear(px.x, px.y) as f64;
-                        if v >= 0.0 {
-                            v
-                        } else {
-                            v / LEAKY_SLOPE
-                        }
-                    })
+                    .map(|b| inverse_leaky_relu(b.bilinear(px.x, px.y) as f64))
                     .collect();
                 model.evaluate(&raw, c, hd)
             }
