@@ -296,6 +296,82 @@ fn brightness_correlates_with_but_is_not_determined_by_dem_features() {
     assert!((0.25..0.85).contains(&mean), "mean R² {mean}");
 }
 
+/// Maria are told apart by the DEM, as on the Moon: flooded plains carry fewer craters (the old ones are buried)
+/// and less relief than highlands, and they are darker. This is what makes the unit albedo — the largest
+/// reflectance component — predictable from terrain (pipeline/src/synth/units.rs).
+#[test]
+fn maria_are_darker_smoother_and_less_cratered_than_highlands() {
+    let config =
+        pipeline::synth::WorldConfig::from_toml(pipeline::synth::config::preset("demo").unwrap())
+            .unwrap();
+    let units = pipeline::synth::units::Units::new(&config.reflectance, 42);
+    let dem = read_raster(&demo_world().join("dem/dem.tif")).unwrap();
+    let w_map = read_raster(&demo_world().join("truth/hapke_params.tif")).unwrap();
+    // Per unit (0 = mare, 1 = highland; the soft boundary is left out): cells, summed slope², summed w.
+    let mut stats = [(0usize, 0f64, 0f64); 2];
+    let gsd = dem.transform.gsd_m();
+    for r in (1..dem.height - 1).step_by(3) {
+        for c in (1..dem.width - 1).step_by(3) {
+            let (x, y) = dem.transform.pixel_center(c as f64, r as f64);
+            let highland = units.highland(x, y);
+            let unit = match highland {
+                h if h < 0.05 => 0,
+                h if h > 0.95 => 1,
+                _ => continue,
+            };
+            let dzdx = (dem.get(c + 1, r) - dem.get(c - 1, r)) as f64 / (2.0 * gsd);
+            let dzdy = (dem.get(c, r + 1) - dem.get(c, r - 1)) as f64 / (2.0 * gsd);
+            if !(dzdx.is_finite() && dzdy.is_finite()) {
+                continue; // the delivered DEM's nodata artefacts
+            }
+            let (wc, wr) = w_map.transform.map_to_pixel(x, y);
+            stats[unit].0 += 1;
+            stats[unit].1 += dzdx * dzdx + dzdy * dzdy;
+            stats[unit].2 += w_map.get(wc as usize, wr as usize) as f64;
+        }
+    }
+    assert!(
+        stats.iter().all(|s| s.0 > 1000),
+        "both units present: {stats:?}"
+    );
+    let rms_slope = |u: usize| (stats[u].1 / stats[u].0 as f64).sqrt();
+    let mean_w = |u: usize| stats[u].2 / stats[u].0 as f64;
+    // Craters that predate the flood, per km² of each unit (the catalogue includes a margin: count inside only).
+    let craters: Vec<Value> = serde_json::from_str(
+        &std::fs::read_to_string(demo_world().join("truth/craters.json")).unwrap(),
+    )
+    .unwrap();
+    let flood = config.terrain.mare_flood_age;
+    let mut old = [0usize; 2];
+    for c in &craters {
+        let (x, y) = (c["x_m"].as_f64().unwrap(), c["y_m"].as_f64().unwrap());
+        let (col, row) = dem.transform.map_to_pixel(x, y);
+        let inside = col >= 0.0 && row >= 0.0 && col < dem.width as f64 && row < dem.height as f64;
+        if !inside || c["age"].as_f64().unwrap() <= flood {
+            continue;
+        }
+        match units.highland(x, y) {
+            h if h < 0.05 => old[0] += 1,
+            h if h > 0.95 => old[1] += 1,
+            _ => {}
+        }
+    }
+    let density = |u: usize| old[u] as f64 / stats[u].0 as f64;
+    println!(
+        "mare vs highland: RMS slope {:.3} vs {:.3}, mean w {:.3} vs {:.3}, pre-flood craters per sampled cell \
+         {:.2e} vs {:.2e}",
+        rms_slope(0),
+        rms_slope(1),
+        mean_w(0),
+        mean_w(1),
+        density(0),
+        density(1)
+    );
+    assert!(mean_w(0) < 0.85 * mean_w(1));
+    assert!(rms_slope(0) < 0.8 * rms_slope(1));
+    assert!(density(0) < 0.1 * density(1));
+}
+
 /// R² of an ordinary least-squares fit with three regressors (normal equations, Cramer's rule).
 fn r_squared(rows: &[([f64; 3], f64)]) -> f64 {
     let mut a = [[0.0; 3]; 3];

@@ -1,4 +1,13 @@
-//! The learnable cosine-polynomial BRDF family M1–M6 (scalar f64 reference).
+//! The learnable BRDF families (scalar f64 reference): the paper's cosine polynomials M1–M6, and a
+//! Lommel–Seeliger family L2–L4 that goes past the paper.
+//!
+//! Why L2–L4: M1–M6 are linear in cos i and cos g, but a regolith's single scattering goes as the Lommel–Seeliger
+//! ratio LS = μ0/(μ0+μ) times a phase function (Hapke; Lunar-Lambert mixes LS with Lambert's μ0). No per-pixel map
+//! of an M model can supply that 1/(μ0+μ) dependence on the *view*, because the maps cannot depend on the
+//! geometry of one acquisition. L models keep the same shape as M (per-pixel coefficients of fixed terms, linear in
+//! the parameters, so the same renderer layer and the same costs) with terms LS, LS·cos g, LS·cos² g and μ0.
+//! And H1: one per-pixel scale on the Moon-wide Hapke shape ([`hapke_shape`]); its uniform fit is the honest
+//! scaled-Hapke baseline, so its maps say exactly what the DEM adds to Hapke.
 //!
 //! Convention (the reference renderer's): `f` returns the reflected fraction *including* the cos i factor, and the
 //! image is `I = E · V_sun · f(p; geometry)`. Raw per-pixel parameters pass through LeakyReLU(0.01) inside `f`.
@@ -6,6 +15,7 @@
 //! A surface facing away from the sun (cos i ≤ 0) or from the camera (cos e ≤ 0) reflects nothing toward it: f = 0.
 
 use crate::geometry::{Cosines, HalfDiffCosines, PixelGeometry};
+use crate::hapke::{hapke_i_over_f, HFunction, HapkeParams};
 
 /// Negative slope of the LeakyReLU applied to every raw parameter.
 pub const LEAKY_SLOPE: f64 = 0.01;
@@ -38,10 +48,50 @@ pub enum BrdfModel {
     M4,
     M5,
     M6,
+    L2,
+    L3,
+    L4,
+    H1,
+}
+
+/// The Moon-wide Hapke I/F ([`HapkeParams::lunar_typical`], 2002 H-function): H1's one term. Depends only on the
+/// three cosines, so the Burn layer can evaluate it elementwise with this very function.
+#[inline]
+pub fn hapke_shape(cos_i: f64, cos_e: f64, cos_g: f64) -> f64 {
+    hapke_i_over_f(
+        &HapkeParams::lunar_typical(),
+        cos_i,
+        cos_e,
+        cos_g,
+        HFunction::Hapke2002,
+    )
+}
+
+/// Below this μ0 + μ the Lommel–Seeliger ratio's denominator is held (both grazing: the ratio is bounded by 1
+/// anyway, and the floor keeps f32 and backward free of 0/0). The Burn layer uses the same floor.
+pub const LS_DENOMINATOR_FLOOR: f64 = 1e-6;
+
+/// Lommel–Seeliger ratio μ0/(μ0+μ) for a surface facing both sun and camera.
+#[inline]
+pub fn lommel_seeliger(cos_i: f64, cos_e: f64) -> f64 {
+    cos_i.max(0.0) / (cos_i.max(0.0) + cos_e.max(0.0)).max(LS_DENOMINATOR_FLOOR)
 }
 
 impl BrdfModel {
-    pub const ALL: [BrdfModel; 6] = [Self::M1, Self::M2, Self::M3, Self::M4, Self::M5, Self::M6];
+    pub const ALL: [BrdfModel; 10] = [
+        Self::M1,
+        Self::M2,
+        Self::M3,
+        Self::M4,
+        Self::M5,
+        Self::M6,
+        Self::L2,
+        Self::L3,
+        Self::L4,
+        Self::H1,
+    ];
+    /// The paper's Table 1 models.
+    pub const PAPER: [BrdfModel; 6] = [Self::M1, Self::M2, Self::M3, Self::M4, Self::M5, Self::M6];
 
     pub fn param_count(self) -> usize {
         self.term_names().len()
@@ -56,6 +106,10 @@ impl BrdfModel {
             Self::M4 => &["cos_i", "cos_g", "cos_i^2", "1"],
             Self::M5 => &["cos_i", "cos_g", "cos_g^2", "1"],
             Self::M6 => &["cos_theta_h", "cos_theta_d", "cos_phi_h", "cos_phi_d"],
+            Self::L2 => &["ls", "cos_i"],
+            Self::L3 => &["ls", "ls*cos_g", "cos_i"],
+            Self::L4 => &["ls", "ls*cos_g", "ls*cos_g^2", "cos_i"],
+            Self::H1 => &["hapke_moonwide"],
         }
     }
 
@@ -67,6 +121,10 @@ impl BrdfModel {
             Self::M4 => "m4",
             Self::M5 => "m5",
             Self::M6 => "m6",
+            Self::L2 => "l2",
+            Self::L3 => "l3",
+            Self::L4 => "l4",
+            Self::H1 => "h1",
         }
     }
 
@@ -79,6 +137,15 @@ impl BrdfModel {
             Self::M4 => [c.cos_i, c.cos_g, c.cos_i * c.cos_i, 1.0],
             Self::M5 => [c.cos_i, c.cos_g, c.cos_g * c.cos_g, 1.0],
             Self::M6 => [hd.cos_theta_h, hd.cos_theta_d, hd.cos_phi_h, hd.cos_phi_d],
+            Self::H1 => [hapke_shape(c.cos_i, c.cos_e, c.cos_g), 0.0, 0.0, 0.0],
+            Self::L2 | Self::L3 | Self::L4 => {
+                let ls = lommel_seeliger(c.cos_i, c.cos_e);
+                match self {
+                    Self::L2 => [ls, c.cos_i, 0.0, 0.0],
+                    Self::L3 => [ls, ls * c.cos_g, c.cos_i, 0.0],
+                    _ => [ls, ls * c.cos_g, ls * c.cos_g * c.cos_g, c.cos_i],
+                }
+            }
         }
     }
 
@@ -103,7 +170,12 @@ impl std::str::FromStr for BrdfModel {
         Self::ALL
             .into_iter()
             .find(|m| m.name().eq_ignore_ascii_case(s))
-            .ok_or_else(|| format!("unknown BRDF model '{s}': use one of m1, m2, m3, m4, m5, m6"))
+            .ok_or_else(|| {
+                format!(
+                    "unknown BRDF model '{s}': use one of {}",
+                    Self::ALL.map(|m| m.name()).join(", ")
+                )
+            })
     }
 }
 
@@ -231,8 +303,67 @@ mod tests {
     }
 
     #[test]
+    fn lommel_seeliger_terms_match_hand_values() {
+        // Sun 60° off the normal, camera at nadir: μ0 = 0.5, μ = 1, cos g = 0.5, LS = 1/3.
+        let (n, s, v) = (DVec3::Z, DVec3::new(3f64.sqrt() / 2.0, 0.0, 0.5), DVec3::Z);
+        let (c, hd) = (Cosines::new(n, s, v), HalfDiffCosines::new(n, s, v));
+        let ls = 1.0 / 3.0;
+        let t = BrdfModel::L4.terms(&c, &hd);
+        for (got, want) in t.iter().zip([ls, ls * 0.5, ls * 0.25, 0.5]) {
+            assert!((got - want).abs() < 1e-15, "{t:?}");
+        }
+        // L3 with (a, b, c) = (0.3, 0.2, 0.05): 0.3·LS + 0.2·LS·cos g + 0.05·μ0.
+        let f = BrdfModel::L3.evaluate(&[0.3, 0.2, 0.05], &c, &hd);
+        assert!((f - (0.3 * ls + 0.2 * ls * 0.5 + 0.05 * 0.5)).abs() < 1e-15);
+    }
+
+    #[test]
+    fn lommel_seeliger_ratio_is_bounded_when_both_grazing() {
+        // μ0 = μ = 1e-9: the true ratio is ½; below the floor the ratio shrinks toward 0 but never exceeds 1
+        // or divides by zero.
+        for (mu0, mu) in [
+            (1e-9, 1e-9),
+            (0.0, 0.0),
+            (1e-300, 0.0),
+            (1.0, 0.0),
+            (0.3, 0.7),
+        ] {
+            let ls = lommel_seeliger(mu0, mu);
+            assert!(
+                ls.is_finite() && (0.0..=1.0).contains(&ls),
+                "{mu0} {mu} → {ls}"
+            );
+        }
+        assert!((lommel_seeliger(0.3, 0.7) - 0.3).abs() < 1e-15);
+        assert_eq!(lommel_seeliger(1.0, 0.0), 1.0);
+    }
+
+    #[test]
+    fn h1_is_a_scale_on_the_moonwide_hapke_i_over_f() {
+        let p = HapkeParams::lunar_typical();
+        for (n, s, v) in [
+            (DVec3::Z, DVec3::new(0.6, 0.0, 0.8), DVec3::Z),
+            (
+                DVec3::new(0.1, -0.2, 1.0).normalize(),
+                DVec3::new(-0.7, 0.3, 0.4).normalize(),
+                DVec3::new(0.2, 0.1, 1.0).normalize(),
+            ),
+        ] {
+            let (c, hd) = (Cosines::new(n, s, v), HalfDiffCosines::new(n, s, v));
+            let hapke = hapke_i_over_f(&p, c.cos_i, c.cos_e, c.cos_g, HFunction::Hapke2002);
+            assert!(hapke > 0.0);
+            assert_eq!(BrdfModel::H1.evaluate(&[1.0], &c, &hd), hapke);
+            assert!((BrdfModel::H1.evaluate(&[1.7], &c, &hd) - 1.7 * hapke).abs() < 1e-15);
+        }
+    }
+
+    #[test]
     fn parse_model_names() {
         assert_eq!("M3".parse::<BrdfModel>().unwrap(), BrdfModel::M3);
         assert!("m7".parse::<BrdfModel>().unwrap_err().contains("m1"));
+        for m in BrdfModel::ALL {
+            assert_eq!(m.name().parse::<BrdfModel>().unwrap(), m);
+            assert_eq!(m.param_count(), m.term_names().len());
+        }
     }
 }

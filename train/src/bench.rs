@@ -221,7 +221,7 @@ pub fn bench<B: AutodiffBackend>(
     );
     let layer = || {
         let params = Tensor::<B, 4>::from_data(params_data.clone(), device).require_grad();
-        let geometry = scene_geometry(&SceneInputs::<B>::from_host(&batch, device));
+        let geometry = scene_geometry(&SceneInputs::<B>::from_host(&batch, model, device));
         let loss = masked_mse(
             render(model, params.clone(), &geometry),
             image.clone(),

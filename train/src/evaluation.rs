@@ -28,8 +28,13 @@ use crate::model::UNet;
 use crate::training::{predict_images, FitConfig};
 
 /// The methods, in report order.
-pub const METHODS: [(&str, &str); 6] = [
+pub const METHODS: [(&str, &str); 7] = [
     ("learned", "U-Net → SVBRDF parameters → renderer layer"),
+    (
+        "learned_paper_norm",
+        "the learned rendering with the same per-image affine normalisation as hapke_paper (peeks at the GT; \
+         compares the two on equal terms: spatial pattern only, no per-image brightness level)",
+    ),
     (
         "model_uniform",
         "the run's BRDF model with one parameter set for the whole Moon, least squares on train crops (what the \
@@ -327,6 +332,9 @@ pub struct EvalReport {
     pub learned_over_hapke_paper_sse: f64,
     /// Same against the honest scaled Hapke.
     pub learned_over_hapke_scaled_sse: f64,
+    /// learned_paper_norm over hapke_paper: both normalised per image with the GT, so this compares only the
+    /// spatial pattern within each crop, not the per-image brightness level a DEM cannot always tell.
+    pub learned_over_hapke_both_paper_norm_sse: f64,
     /// (SSE_hapke_paper − SSE_learned) / (SSE_hapke_paper − SSE_oracle), when the oracle ran.
     pub hapke_to_oracle_gap_closed: Option<f64>,
     /// FAST + BRIEF reciprocal matches between the ground truth and each method's rendering (see
@@ -346,6 +354,10 @@ fn method_renderings(
     let hapke = hapke_render(sample, &HapkeParams::lunar_typical());
     let mut out = vec![
         ("learned", learned.to_vec()),
+        (
+            "learned_paper_norm",
+            normalise_like_paper(learned, &truth, &valid),
+        ),
         (
             "model_uniform",
             model_uniform_render(sample, calibration.model, &calibration.model_uniform),
@@ -470,6 +482,9 @@ pub fn evaluate<B: Backend>(
         methods: methods.clone(),
         learned_over_hapke_paper_sse: learned / paper,
         learned_over_hapke_scaled_sse: learned / scaled,
+        learned_over_hapke_both_paper_norm_sse: sse("learned_paper_norm")
+            .context("no normalised learned metrics")?
+            / paper,
         hapke_to_oracle_gap_closed: sse("oracle")
             .map(|oracle| (paper - learned) / (paper - oracle)),
         feature_matching: matches
@@ -502,6 +517,10 @@ pub fn markdown(report: &EvalReport) -> String {
     text.push_str(&format!(
         "\nLearned / paper-normalised Hapke SSE: **{:.3}** (the paper: 0.62). Learned / honest scaled Hapke: {:.3}.\n",
         report.learned_over_hapke_paper_sse, report.learned_over_hapke_scaled_sse
+    ));
+    text.push_str(&format!(
+        "Both normalised per image like the paper (learned_paper_norm / hapke_paper): {:.3}.\n",
+        report.learned_over_hapke_both_paper_norm_sse
     ));
     match report.hapke_to_oracle_gap_closed {
         Some(g) => text.push_str(&format!(

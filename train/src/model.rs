@@ -126,6 +126,20 @@ impl UNetConfig {
 }
 
 impl<B: Backend> UNet<B> {
+    /// Replace the head's bias (one value per output channel): with a zero head, every pixel's raw parameters
+    /// start at `bias`.
+    pub fn with_head_bias(mut self, bias: &[f64], device: &B::Device) -> Self {
+        assert_eq!(
+            bias.len(),
+            self.head.weight.dims()[0],
+            "one bias per output channel"
+        );
+        let tensor =
+            Tensor::<B, 1>::from_data(TensorData::new(bias.to_vec(), [bias.len()]), device);
+        self.head.bias = Some(burn::module::Param::from_tensor(tensor));
+        self
+    }
+
     /// `[N, 1, 128, 128]` normalised heights → `[N, P, 128, 128]` raw BRDF parameters.
     pub fn forward(&self, x: Tensor<B, 4>) -> Tensor<B, 4> {
         let mut skips = Vec::new();

@@ -12,7 +12,7 @@
 
 use burn::prelude::*;
 use burn::tensor::activation::leaky_relu;
-use dataset::brdf::{BrdfModel, LEAKY_SLOPE};
+use dataset::brdf::{BrdfModel, LEAKY_SLOPE, LS_DENOMINATOR_FLOOR};
 use dataset::crs::MOON_RADIUS_M;
 use dataset::schema::{CROP_PX, DEM_PX};
 
@@ -103,6 +103,8 @@ pub struct SceneInputs<B: Backend> {
     pub lit: Tensor<B, 4>,
     /// `[N, 1, 128, 128]` 1 where the photograph is usable, else 0.
     pub valid: Tensor<B, 4>,
+    /// `[N, 1, 128, 128]` H1's term [`dataset::brdf::hapke_shape`], present when built for H1 (see `from_host`).
+    pub hapke_shape: Option<Tensor<B, 4>>,
 }
 
 fn per_sample<B: Backend>(values: Vec<f64>, device: &B::Device) -> Tensor<B, 4> {
@@ -115,8 +117,13 @@ fn raster<B: Backend>(values: Vec<f64>, n: usize, edge: usize, device: &B::Devic
 }
 
 impl<B: Backend> SceneInputs<B> {
-    /// Upload a host batch (f64 on the host; the device's float type decides the precision).
-    pub fn from_host(batch: &HostBatch, device: &B::Device) -> Self {
+    /// Upload a host batch (f64 on the host; the device's float type decides the precision) for rendering with
+    /// `model`. For H1 the Hapke term is evaluated here, on the host, in f64, by the scalar reference on the
+    /// reference geometry: the geometry carries no gradient, so nothing is lost, and it keeps one home for the
+    /// Hapke math instead of a tensor-shaped copy. It must be f64 geometry: Hapke's opposition peak is sharper
+    /// than f32 can resolve through cos g (at g = 0, cos g rounds to 1 − 1.2e-7, i.e. g = 0.03°, which already
+    /// lowers B_S by 0.3 %).
+    pub fn from_host(batch: &HostBatch, model: BrdfModel, device: &B::Device) -> Self {
         let n = batch.len();
         let column = |values: &[f64], stride: usize, k: usize| -> Vec<f64> {
             values.iter().skip(k).step_by(stride).copied().collect()
@@ -142,6 +149,16 @@ impl<B: Backend> SceneInputs<B> {
             ),
             lit: raster(batch.lit.clone(), n, CROP_PX, device),
             valid: raster(batch.valid.clone(), n, CROP_PX, device),
+            hapke_shape: (model == BrdfModel::H1).then(|| {
+                let values = (0..n)
+                    .flat_map(|i| host_pixel_geometry(batch, i))
+                    .map(|g| {
+                        let c = g.cosines;
+                        dataset::brdf::hapke_shape(c.cos_i, c.cos_e, c.cos_g)
+                    })
+                    .collect();
+                raster(values, n, CROP_PX, device)
+            }),
         }
     }
 }
@@ -157,6 +174,8 @@ pub struct SceneGeometry<B: Backend> {
     /// lit fraction where the surface faces both sun and camera, else 0 (f = 0 there, as in the reference).
     pub facing_lit: Tensor<B, 4>,
     pub valid: Tensor<B, 4>,
+    /// H1's Hapke term, when the inputs were built for H1.
+    pub hapke_shape: Option<Tensor<B, 4>>,
 }
 
 /// Map offsets of the apron grid's cell centres in units of gsd: `(col + ½ − n/2, −(row + ½ − n/2))`.
@@ -223,6 +242,7 @@ pub fn scene_geometry<B: Backend>(inputs: &SceneInputs<B>) -> SceneGeometry<B> {
         half_diff,
         facing_lit,
         valid: inputs.valid.clone(),
+        hapke_shape: inputs.hapke_shape.clone(),
     }
 }
 
@@ -287,6 +307,20 @@ pub fn basis<B: Backend>(model: BrdfModel, g: &SceneGeometry<B>) -> Tensor<B, 4>
         BrdfModel::M4 => vec![ci.clone(), cg, ci.clone().square(), ci.ones_like()],
         BrdfModel::M5 => vec![ci.clone(), cg.clone(), cg.square(), ci.ones_like()],
         BrdfModel::M6 => g.half_diff.to_vec(),
+        BrdfModel::H1 => vec![g
+            .hapke_shape
+            .clone()
+            .expect("H1 needs the Hapke term: build SceneInputs::from_host with model H1")],
+        BrdfModel::L2 | BrdfModel::L3 | BrdfModel::L4 => {
+            // dataset::brdf::lommel_seeliger, elementwise.
+            let (mu0, mu) = (ci.clone().clamp_min(0.0), g.cos_e.clone().clamp_min(0.0));
+            let ls = mu0.clone() / (mu0 + mu).clamp_min(LS_DENOMINATOR_FLOOR);
+            match model {
+                BrdfModel::L2 => vec![ls, ci],
+                BrdfModel::L3 => vec![ls.clone(), ls * cg, ci],
+                _ => vec![ls.clone(), ls.clone() * cg.clone(), ls * cg.square(), ci],
+            }
+        }
     };
     Tensor::cat(terms, 1)
 }
@@ -314,34 +348,38 @@ pub fn masked_mse<B: Backend>(
 /// The scalar f64 reference ([`dataset::geometry::crop_pixel_geometry`] + [`dataset::brdf::render_crop`]) applied
 /// to a host batch, sample by sample: what [`render`] must reproduce. `planar_params` is `N × P × 128²`.
 pub fn reference_render(model: BrdfModel, batch: &HostBatch, planar_params: &[f64]) -> Vec<f64> {
-    use dataset::geometry::{crop_pixel_geometry, CropGrid};
     let (npx, p) = (CROP_PX * CROP_PX, model.param_count());
     let mut out = Vec::with_capacity(batch.len() * npx);
     for i in 0..batch.len() {
-        let grid = CropGrid {
-            gsd_m: batch.gsd_m[i],
-            map_to_en: batch.map_to_en[4 * i..4 * i + 4]
-                .try_into()
-                .expect("4 entries"),
-            origin_height_m: batch.origin_height_m[i],
-        };
-        let v3 = |v: &[f64]| glam::DVec3::new(v[3 * i], v[3 * i + 1], v[3 * i + 2]);
-        let geometry = crop_pixel_geometry(
-            &batch.relative_heights_m[i * DEM_PX * DEM_PX..(i + 1) * DEM_PX * DEM_PX],
-            CROP_PX,
-            &grid,
-            v3(&batch.sun_dir_enu),
-            v3(&batch.camera_pos_enu_m),
-        );
         out.extend(dataset::brdf::render_crop(
             model,
             &planar_params[i * p * npx..(i + 1) * p * npx],
-            &geometry,
+            &host_pixel_geometry(batch, i),
             &batch.lit[i * npx..(i + 1) * npx],
             1.0,
         ));
     }
     out
+}
+
+/// The scalar reference geometry ([`dataset::geometry::crop_pixel_geometry`]) of sample `i` of a host batch.
+pub fn host_pixel_geometry(batch: &HostBatch, i: usize) -> Vec<dataset::geometry::PixelGeometry> {
+    use dataset::geometry::{crop_pixel_geometry, CropGrid};
+    let grid = CropGrid {
+        gsd_m: batch.gsd_m[i],
+        map_to_en: batch.map_to_en[4 * i..4 * i + 4]
+            .try_into()
+            .expect("4 entries"),
+        origin_height_m: batch.origin_height_m[i],
+    };
+    let v3 = |v: &[f64]| glam::DVec3::new(v[3 * i], v[3 * i + 1], v[3 * i + 2]);
+    crop_pixel_geometry(
+        &batch.relative_heights_m[i * DEM_PX * DEM_PX..(i + 1) * DEM_PX * DEM_PX],
+        CROP_PX,
+        &grid,
+        v3(&batch.sun_dir_enu),
+        v3(&batch.camera_pos_enu_m),
+    )
 }
 
 #[cfg(test)]
@@ -357,8 +395,8 @@ mod tests {
         let mut samples = synthetic_samples(2, 3);
         samples.extend(hard_case_samples());
         let batch = HostBatch::from_samples(&samples, 20.0);
-        let geometry = scene_geometry(&SceneInputs::<Cpu>::from_host(&batch, &device));
         for model in BrdfModel::ALL {
+            let geometry = scene_geometry(&SceneInputs::<Cpu>::from_host(&batch, model, &device));
             let params = test_params(model, batch.len(), 5);
             let expected = reference_render(model, &batch, &params);
             let n = batch.len();

@@ -42,7 +42,35 @@ pub struct FitConfig {
     /// Learning rate over the run; runs written before this field existed were constant.
     #[serde(default)]
     pub lr_schedule: LrSchedule,
+    /// How the head starts; runs written before this field existed started at zero.
+    #[serde(default)]
+    pub head_init: HeadInit,
 }
+
+/// Where the network's output starts.
+#[derive(
+    Debug,
+    Clone,
+    Copy,
+    Default,
+    PartialEq,
+    Eq,
+    serde::Serialize,
+    serde::Deserialize,
+    clap::ValueEnum,
+)]
+#[serde(rename_all = "lowercase")]
+pub enum HeadInit {
+    /// Zero head: every parameter map starts at 0 (black renderings).
+    #[default]
+    Zero,
+    /// Zero head weights, bias = the model's uniform least-squares fit on train crops: step 0 renders the honest
+    /// uniform baseline, and training spends its steps on the spatial variation alone.
+    Uniform,
+}
+
+/// Train crops the uniform head initialisation is fitted on.
+pub const UNIFORM_INIT_SAMPLES: usize = 256;
 
 /// How the learning rate changes over a run's optimiser steps.
 #[derive(
@@ -142,7 +170,7 @@ fn render_batch<B: Backend>(
     batch: &HostBatch,
     device: &B::Device,
 ) -> (Tensor<B, 4>, SceneGeometry<B>) {
-    let geometry = scene_geometry(&SceneInputs::<B>::from_host(batch, device));
+    let geometry = scene_geometry(&SceneInputs::<B>::from_host(batch, model, device));
     let input = Tensor::<B, 4>::from_data(
         TensorData::new(batch.net_input.clone(), [batch.len(), 1, 128, 128]),
         device,
@@ -285,8 +313,18 @@ pub fn fit<B: AutodiffBackend>(
             },
         )?;
         B::seed(device, keyed_u64(seed, "init", 0));
-        let net = net_config.init::<B>(device);
+        let mut net = net_config.init::<B>(device);
         let _ = net.num_params(); // materialise the lazily initialised weights now, in a fixed order
+        if config.head_init == HeadInit::Uniform {
+            let fit = crate::evaluation::calibrate(&*source, UNIFORM_INIT_SAMPLES, config.model)?;
+            tracing::info!(coefficients = ?fit.model_uniform, samples = fit.samples, "head bias = uniform fit");
+            let raw: Vec<f64> = fit
+                .model_uniform
+                .iter()
+                .map(|&c| dataset::brdf::inverse_leaky_relu(c))
+                .collect();
+            net = net.with_head_bias(&raw, device);
+        }
         let optim = AdamConfig::new().with_epsilon(1e-8).init::<B, UNet<B>>();
         (net, optim, Cursor::start(), Vec::new())
     };
@@ -572,5 +610,6 @@ mod schedule_tests {
             "max_val_samples":null}"#;
         let config: FitConfig = serde_json::from_str(json).unwrap();
         assert_eq!(config.lr_schedule, LrSchedule::Constant);
+        assert_eq!(config.head_init, HeadInit::Zero);
     }
 }

@@ -44,6 +44,7 @@ fn eval_rows_equal_validation_and_direct_baselines() {
         },
         max_val_samples: None,
         lr_schedule: train::training::LrSchedule::Constant,
+        head_init: train::training::HeadInit::Zero,
     };
     let options = EvalOptions {
         split: "val".into(),

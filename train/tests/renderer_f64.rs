@@ -49,8 +49,8 @@ fn params_tensor(model: BrdfModel, values: Vec<f64>, n: usize) -> Tensor<Ad, 4> 
 fn batched_layer_equals_scalar_reference_in_f64() {
     let device = f64_device();
     let batch = batch();
-    let geometry = scene_geometry(&SceneInputs::<Flex>::from_host(&batch, &device));
     for model in BrdfModel::ALL {
+        let geometry = scene_geometry(&SceneInputs::<Flex>::from_host(&batch, model, &device));
         let params = test_params(model, batch.len(), 8);
         let expected = reference_render(model, &batch, &params);
         let tensor = Tensor::<Flex, 4>::from_data(
@@ -78,11 +78,11 @@ struct Scene {
     n: usize,
 }
 
-fn scene(batch: &HostBatch) -> Scene {
+fn scene(batch: &HostBatch, model: BrdfModel) -> Scene {
     let device = f64_device();
     let n = batch.len();
     Scene {
-        geometry: scene_geometry(&SceneInputs::<Ad>::from_host(batch, &device)),
+        geometry: scene_geometry(&SceneInputs::<Ad>::from_host(batch, model, &device)),
         image: Tensor::from_data(
             TensorData::new(batch.image.clone(), [n, 1, CROP_PX, CROP_PX]),
             &device,
@@ -110,9 +110,9 @@ fn loss_and_grad(model: BrdfModel, scene: &Scene, params: &[f64]) -> (f64, Vec<f
 #[test]
 fn gradients_equal_central_differences_on_hard_geometries() {
     let batch = batch();
-    let scene = scene(&batch);
     let npx = CROP_PX * CROP_PX;
     for model in BrdfModel::ALL {
+        let scene = scene(&batch, model);
         let params = test_params(model, batch.len(), 21);
         let (loss, grad) = loss_and_grad(model, &scene, &params);
         assert!(
@@ -153,8 +153,8 @@ fn gradients_equal_central_differences_on_hard_geometries() {
 fn all_invalid_batch_gives_finite_zero_loss_and_zero_gradient() {
     let mut batch = batch();
     batch.valid.iter_mut().for_each(|v| *v = 0.0);
-    let scene = scene(&batch);
     for model in BrdfModel::ALL {
+        let scene = scene(&batch, model);
         let params = test_params(model, batch.len(), 2);
         let (loss, grad) = loss_and_grad(model, &scene, &params);
         assert_eq!(loss, 0.0, "{model:?}");
@@ -168,8 +168,8 @@ fn all_invalid_batch_gives_finite_zero_loss_and_zero_gradient() {
 #[test]
 fn forward_and_backward_are_finite_for_extreme_parameters() {
     let batch = batch();
-    let scene = scene(&batch);
     for model in BrdfModel::ALL {
+        let scene = scene(&batch, model);
         for magnitude in [1e-12, 1.0, 1e6] {
             let params: Vec<f64> = test_params(model, batch.len(), 3)
                 .into_iter()

@@ -8,10 +8,12 @@ use std::sync::Arc;
 use burn::backend::{Autodiff, Flex};
 use burn::module::Module;
 use burn::record::{FullPrecisionSettings, NamedMpkFileRecorder};
-use dataset::brdf::BrdfModel;
+use dataset::brdf::{inverse_leaky_relu, BrdfModel};
+use dataset::schema::CROP_PX;
 use train::bench::synthetic_samples;
 use train::data::{HostBatch, LocalSource, SampleSource, StreamConfig};
 use train::model::UNetConfig;
+use train::render::reference_render;
 use train::training::{fit, predict_images, FitConfig};
 
 type Ad = Autodiff<Flex>;
@@ -41,6 +43,42 @@ fn config(
         },
         max_val_samples: Some(4),
         lr_schedule: train::training::LrSchedule::Constant,
+        head_init: train::training::HeadInit::Zero,
+    }
+}
+
+/// `--init uniform` sets only the head's bias: every pixel's raw parameters are then that bias, so step 0 renders
+/// exactly the uniform model (checked against the scalar reference, negative coefficients included).
+#[test]
+fn a_head_bias_renders_the_uniform_model_before_any_step() {
+    let device = Default::default();
+    let batch = HostBatch::from_samples(&synthetic_samples(2, 11), 20.0);
+    let npx = CROP_PX * CROP_PX;
+    for model in [BrdfModel::M2, BrdfModel::L3, BrdfModel::H1] {
+        let coefficients: Vec<f64> = (0..model.param_count())
+            .map(|k| 0.9 - 0.45 * k as f64)
+            .collect();
+        let raw: Vec<f64> = coefficients
+            .iter()
+            .map(|&c| inverse_leaky_relu(c))
+            .collect();
+        let net = UNetConfig::new(model.param_count())
+            .with_base_width(4)
+            .init::<Flex>(&device)
+            .with_head_bias(&raw, &device);
+        let got = predict_images(&net, model, &batch, &device);
+        let planar: Vec<f64> = (0..batch.len())
+            .flat_map(|_| raw.iter().flat_map(|&r| std::iter::repeat_n(r, npx)))
+            .collect();
+        let want = reference_render(model, &batch, &planar);
+        let scale = want.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        assert!(scale > 0.0);
+        let worst = got
+            .iter()
+            .zip(&want)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max);
+        assert!(worst <= 1e-5 * scale, "{model:?}: {worst:e} of {scale:e}");
     }
 }
 
@@ -123,6 +161,7 @@ fn stopping_and_resuming_gives_the_same_network_as_an_uninterrupted_run() {
     // Cosine schedule: the resumed half must continue the decay from the saved step, not restart it.
     let cfg = FitConfig {
         lr_schedule: train::training::LrSchedule::Cosine,
+        head_init: train::training::HeadInit::Uniform,
         ..config(BrdfModel::M2, 2, 1e-3, 12, true)
     };
     let device = Default::default();

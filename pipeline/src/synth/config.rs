@@ -49,6 +49,13 @@ pub struct TerrainConfig {
     pub rim_height_to_diameter: f64,
     /// Diffusion length of the oldest craters, metres: craters much smaller than this are erased.
     pub max_diffusion_length_m: f64,
+    /// Relief of the background fBm on mare relative to highland (maria are smoother plains), 0..1.
+    pub mare_relief_factor: f64,
+    /// Craters older than this (crater age runs 0 = now .. 1 = oldest surface) predate the mare flood and are
+    /// buried where they formed on mare, so maria carry fewer, fresher craters (see `synth::units`).
+    pub mare_flood_age: f64,
+    /// How far mare plains lie below highlands, metres.
+    pub mare_depth_m: f64,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -166,6 +173,13 @@ impl WorldConfig {
         }
         if self.terrain.crater_min_diameter_m < 4.0 * w.fine_gsd_m {
             return Err("terrain.crater_min_diameter_m must be at least 4 fine pixels".into());
+        }
+        let t = &self.terrain;
+        if !(0.0..=1.0).contains(&t.mare_relief_factor) || !(0.0..=1.0).contains(&t.mare_flood_age)
+        {
+            return Err(
+                "terrain.mare_relief_factor and terrain.mare_flood_age must lie in [0, 1]".into(),
+            );
         }
         let a = &self.acquisitions;
         if !(0.0..90.0).contains(&a.incidence_min_deg)

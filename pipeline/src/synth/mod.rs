@@ -1,7 +1,7 @@
 //! The seeded synthetic lunar world (DESIGN §6): writes exactly what a real user has — a GeoTIFF DEM, GeoTIFF
 //! ortho strips with nodata borders, per-ortho acquisition metadata — plus `truth/` that only evaluation may read.
 //!
-//! Data flow: [`terrain`] (fBm + craters → true DEM, freshness, melt) → [`reflectance`] (true Hapke maps) →
+//! Data flow: [`units`] (mare/highland) → [`terrain`] (fBm + craters → true DEM, freshness, melt) → [`reflectance`] (true Hapke maps) →
 //! [`acquisition`] (strip plans + metadata) → [`render`] (orthos from the truth) → [`dem_product`] (degraded DEM).
 
 pub mod acquisition;
@@ -11,6 +11,7 @@ pub mod noise;
 pub mod reflectance;
 pub mod render;
 pub mod terrain;
+pub mod units;
 
 use std::path::{Path, PathBuf};
 
@@ -167,8 +168,9 @@ pub fn generate(
     info!(world = %w.name, seed, fine_px = fine.width * fine.height, dem_px = dem_grid.width * dem_grid.height, "generating synthetic lunar world");
 
     // Terrain.
-    let mut heights = terrain::background(&config.terrain, &fine, w.base_height_m, seed);
-    let craters = terrain::crater_catalogue(&config.terrain, &fine, seed);
+    let units = units::Units::new(&config.reflectance, seed);
+    let mut heights = terrain::background(&config.terrain, &fine, &units, w.base_height_m, seed);
+    let craters = terrain::crater_catalogue(&config.terrain, &fine, &units, seed);
     let mut freshness = vec![0f32; fine.width * fine.height];
     let mut melt = vec![0f32; fine.width * fine.height];
     let stamping = bar(craters.len() as u64, "craters");
@@ -202,6 +204,7 @@ pub fn generate(
     let maps = reflectance::hapke_maps(
         &config.reflectance,
         &fine,
+        &units,
         &heights,
         &freshness,
         &melt,

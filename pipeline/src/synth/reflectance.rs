@@ -6,6 +6,7 @@ use rayon::prelude::*;
 use super::config::ReflectanceConfig;
 use super::noise::Fbm;
 use super::terrain::smoothstep;
+use super::units::Units;
 use super::Grid;
 use crate::rng::keyed_u64;
 
@@ -18,18 +19,12 @@ pub struct HapkeMaps {
 pub fn hapke_maps(
     cfg: &ReflectanceConfig,
     grid: &Grid,
+    units: &Units,
     heights: &[f32],
     freshness: &[f32],
     melt: &[f32],
     seed: u64,
 ) -> HapkeMaps {
-    let units = Fbm {
-        key: keyed_u64(seed, "albedo-units", 0),
-        hurst: 0.9,
-        amplitude: 1.0,
-        largest_wavelength_m: cfg.unit_wavelength_m,
-        smallest_wavelength_m: cfg.unit_wavelength_m / 8.0,
-    };
     let independent = Fbm {
         key: keyed_u64(seed, "albedo-independent", 0),
         hurst: 0.6,
@@ -50,7 +45,7 @@ pub fn hapke_maps(
                 let (x, y) = grid.center(col, row);
                 let i = row * w + col;
                 // Mare/highland mixing with a soft boundary.
-                let unit = smoothstep(-0.25, 0.25, units.at(x, y));
+                let unit = units.highland(x, y);
                 let base = cfg.w_mare + (cfg.w_highland - cfg.w_mare) * unit;
                 // Slope from central differences on the true DEM (clamped at the raster edge).
                 let at = |c: usize, r: usize| heights[r.min(h - 1) * w + c.min(w - 1)] as f64;

@@ -8,6 +8,7 @@ use serde::{Deserialize, Serialize};
 
 use super::config::{ComplexCraterConfig, TerrainConfig};
 use super::noise::Fbm;
+use super::units::Units;
 use super::Grid;
 use crate::rng::{keyed_rng, keyed_u64};
 
@@ -27,7 +28,7 @@ pub struct Crater {
 }
 
 /// Sample the crater population over the scene (plus a margin, so craters just outside still throw ejecta in).
-pub fn crater_catalogue(cfg: &TerrainConfig, grid: &Grid, seed: u64) -> Vec<Crater> {
+pub fn crater_catalogue(cfg: &TerrainConfig, grid: &Grid, units: &Units, seed: u64) -> Vec<Crater> {
     let mut rng = keyed_rng(seed, "crater-catalogue", 0);
     let margin = 1.5 * cfg.crater_max_diameter_m;
     let (x0, x1) = (grid.min_x - margin, grid.max_x() + margin);
@@ -43,19 +44,23 @@ pub fn crater_catalogue(cfg: &TerrainConfig, grid: &Grid, seed: u64) -> Vec<Crat
         cfg.crater_max_diameter_m.powf(s),
     );
     let mut craters: Vec<Crater> = (0..count)
-        .map(|_| {
+        .filter_map(|_| {
             let u: f64 = rng.random();
             let diameter_m = (a + u * (b - a)).powf(1.0 / s);
             let age: f64 = rng.random();
-            Crater {
-                x_m: rng.random_range(x0..x1),
-                y_m: rng.random_range(y0..y1),
+            let (x_m, y_m) = (rng.random_range(x0..x1), rng.random_range(y0..y1));
+            // The mare flood buried what formed before it: an old crater survives with the probability that its
+            // site is highland.
+            let survives: f64 = rng.random();
+            (age <= cfg.mare_flood_age || survives < units.highland(x_m, y_m)).then(|| Crater {
+                x_m,
+                y_m,
                 diameter_m,
                 age,
                 diffusion_m: cfg.max_diffusion_length_m * age.sqrt(),
                 // Optical maturity is reached quickly: only the youngest ~10 % stay bright.
                 freshness: (1.0 - age).powi(16),
-            }
+            })
         })
         .collect();
     // Oldest first: younger craters are stamped over older ones.
@@ -97,8 +102,14 @@ pub fn smoothstep(e0: f64, e1: f64, x: f64) -> f64 {
     t * t * (3.0 - 2.0 * t)
 }
 
-/// Background fBm heights for every fine cell.
-pub fn background(cfg: &TerrainConfig, grid: &Grid, base_height_m: f64, seed: u64) -> Vec<f32> {
+/// Background fBm heights for every fine cell; mare plains are smoother and lie `mare_depth_m` lower.
+pub fn background(
+    cfg: &TerrainConfig,
+    grid: &Grid,
+    units: &Units,
+    base_height_m: f64,
+    seed: u64,
+) -> Vec<f32> {
     let fbm = Fbm {
         key: keyed_u64(seed, "terrain-fbm", 0),
         hurst: cfg.hurst,
@@ -113,7 +124,10 @@ pub fn background(cfg: &TerrainConfig, grid: &Grid, base_height_m: f64, seed: u6
         .for_each(|(row, out)| {
             for (col, h) in out.iter_mut().enumerate() {
                 let (x, y) = grid.center(col, row);
-                *h = (base_height_m + fbm.at(x, y)) as f32;
+                let highland = units.highland(x, y);
+                let relief = cfg.mare_relief_factor + (1.0 - cfg.mare_relief_factor) * highland;
+                *h = (base_height_m - cfg.mare_depth_m * (1.0 - highland) + relief * fbm.at(x, y))
+                    as f32;
             }
         });
     heights
