@@ -11,6 +11,7 @@ pub mod features;
 pub mod inference;
 pub mod metrics;
 pub mod model;
+pub mod plot;
 pub mod raycast;
 pub mod render;
 pub mod render_views;

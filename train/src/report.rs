@@ -1,7 +1,9 @@
 //! `g2r-train report`: time against error, all measured in one run on this machine ("model only what a scene
 //! needs": what each shortcut saves and what it costs).
 //!
-//! - **BRDF model**: each of M1–M6 with one least-squares coefficient set, uniform Hapke × one scale and
+//! Each measured section is also drawn as a log–log PNG (see [`crate::plot`]).
+//!
+//! - **BRDF model**: each of M1–M6, L2–L4 and H1 with one least-squares coefficient set, uniform Hapke × one scale and
 //!   Lunar-Lambert with one albedo, all fitted on train crops, rendered on the evaluation crops: pixel MSE against
 //!   the per-pixel evaluation time of the reflectance model (geometry is shared and timed once).
 //! - **Inference overlap** (with `--run` and `--dem`): wall time and seam score of `infer` at several overlaps.
@@ -23,6 +25,7 @@ use crate::data::{for_each_sample_group, SampleSource};
 use crate::evaluation::{calibrate, lunar_lambert_from_geometry, model_uniform_from_geometry};
 use crate::inference::{infer_params, render_maps, seam_score, InferOptions};
 use crate::model::UNet;
+use crate::plot::{write_scatter, Point, Scatter};
 
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct ModelRow {
@@ -292,10 +295,89 @@ pub fn markdown(report: &Report) -> String {
     text
 }
 
-/// Write `report.json` and `report.md` into `out`.
+/// The time-against-error plots of a report: (file name, plot), only for the sections that were measured.
+fn plots(report: &Report) -> Vec<(&'static str, &'static str, &'static str, Vec<Point>)> {
+    let mut out = vec![(
+        "brdf_models.png",
+        "BRDF models: pixel MSE against evaluation time",
+        "ns per pixel (BRDF only)",
+        report
+            .brdf_models
+            .iter()
+            .map(|r| Point {
+                label: r.name.clone(),
+                x: r.ns_per_pixel,
+                y: r.pixel_mse,
+            })
+            .collect(),
+    )];
+    if !report.inference_overlap.is_empty() {
+        out.push((
+            "inference_overlap.png",
+            "Inference overlap: seam score against wall time",
+            "seconds",
+            report
+                .inference_overlap
+                .iter()
+                .map(|r| Point {
+                    label: format!("overlap {} px", r.overlap_px),
+                    x: r.seconds,
+                    y: r.seam_score,
+                })
+                .collect(),
+        ));
+    }
+    if !report.renderer.is_empty() {
+        out.push((
+            "renderer.png",
+            "Renderer: RMS I/F vs a 16-ray reference against wall time",
+            "seconds",
+            report
+                .renderer
+                .iter()
+                .map(|r| Point {
+                    label: format!(
+                        "{} ray{}, shadows {}",
+                        r.rays_per_pixel,
+                        if r.rays_per_pixel == 1 { "" } else { "s" },
+                        if r.shadows { "on" } else { "off" }
+                    ),
+                    x: r.seconds,
+                    y: r.rms_vs_reference,
+                })
+                .collect(),
+        ));
+    }
+    out
+}
+
+/// Write `report.json`, `report.md` and one PNG per measured section into `out`.
 pub fn write(report: &Report, out: &Path) -> Result<()> {
     std::fs::create_dir_all(out)?;
     dataset::manifest::write_json_atomic(&out.join("report.json"), report)?;
-    dataset::manifest::write_text_atomic(&out.join("report.md"), &markdown(report))?;
+    let mut text = markdown(report);
+    let font = crate::plot::system_font();
+    for (file, title, x_label, points) in plots(report) {
+        let y_label = if file == "inference_overlap.png" {
+            "seam score (log)"
+        } else {
+            "error (log)"
+        };
+        let plot = Scatter {
+            title,
+            x_label,
+            y_label,
+            points: &points,
+        };
+        write_scatter(&plot, font.as_ref(), &out.join(file))?;
+        text.push_str(&format!("\n![{title}]({file})\n"));
+    }
+    if font.is_none() {
+        tracing::warn!(
+            "no TrueType font found (install fonts-dejavu-core): plots are drawn without labels"
+        );
+        text.push_str("\n(Plots drawn without labels: no system font was found.)\n");
+    }
+    dataset::manifest::write_text_atomic(&out.join("report.md"), &text)?;
     Ok(())
 }

@@ -173,3 +173,45 @@ fn uniform_model_fit_recovers_the_coefficients_that_rendered_the_images() {
         assert!((f - t).abs() < 1e-6, "{fitted:?} vs {truth:?}");
     }
 }
+
+/// `report` on a tiny dataset: every BRDF model gets a row, H1's uniform fit is exactly the honest scaled Hapke (its
+/// one term *is* the Moon-wide Hapke I/F), and the Markdown links a PNG plot that was written.
+#[test]
+fn report_rows_cover_every_model_and_the_plot_is_written() {
+    let dir = tempfile::tempdir().unwrap();
+    write_synthetic_dataset(dir.path(), synthetic_samples(6, 1), synthetic_samples(3, 2));
+    let source = LocalSource::open(dir.path()).unwrap();
+    let (rows, images, pixels, geometry_ns) =
+        train::report::brdf_model_rows(&source, "val", None, 6).unwrap();
+    assert_eq!(images, 3);
+    let names: Vec<&str> = rows.iter().map(|r| r.name.as_str()).collect();
+    for model in BrdfModel::ALL {
+        assert!(
+            names.contains(&format!("{} uniform", model.name()).as_str()),
+            "{names:?}"
+        );
+    }
+    let mse = |name: &str| rows.iter().find(|r| r.name == name).unwrap().pixel_mse;
+    let (h1, hapke) = (mse("h1 uniform"), mse("Hapke (uniform, scaled)"));
+    assert!((h1 - hapke).abs() <= 1e-9 * hapke, "{h1:e} vs {hapke:e}");
+    let report = train::report::Report {
+        split: "val".into(),
+        images,
+        pixels,
+        calibration_samples: 6,
+        geometry_ns_per_pixel: geometry_ns,
+        brdf_models: rows,
+        inference_overlap: Vec::new(),
+        renderer: Vec::new(),
+    };
+    let out = dir.path().join("report");
+    train::report::write(&report, &out).unwrap();
+    let md = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(md.contains("](brdf_models.png)"), "{md}");
+    let png = image::open(out.join("brdf_models.png")).unwrap();
+    assert_eq!((png.width(), png.height()), (900, 600));
+    assert!(
+        !out.join("renderer.png").exists(),
+        "no plot for a section that was not measured"
+    );
+}
