@@ -10,11 +10,11 @@ use dataset::hapke::HapkeParams;
 use dataset::schema::CROP_PX;
 use train::baseline::{hapke_render, normalise_like_paper};
 use train::bench::{synthetic_samples, write_synthetic_dataset};
-use train::data::{LocalSource, StreamConfig};
+use train::data::{HostBatch, LocalSource, SampleSource, StreamConfig};
 use train::evaluation::{calibrate, evaluate, panel_png, write_report, EvalOptions};
 use train::metrics::image_metrics;
 use train::model::UNetConfig;
-use train::training::{validate, FitConfig};
+use train::training::{predict_images, validate, FitConfig};
 
 #[test]
 fn eval_rows_equal_validation_and_direct_baselines() {
@@ -94,6 +94,7 @@ fn eval_rows_equal_validation_and_direct_baselines() {
         names,
         [
             "learned",
+            "learned_paper_norm",
             "model_uniform",
             "hapke_paper",
             "hapke_scaled",
@@ -106,6 +107,7 @@ fn eval_rows_equal_validation_and_direct_baselines() {
         "hapke_paper",
         "hapke_scaled",
         "learned",
+        "learned_paper_norm",
         "lunar_lambert",
         "model_uniform",
     ];
@@ -116,6 +118,7 @@ fn eval_rows_equal_validation_and_direct_baselines() {
             "hapke_paper",
             "hapke_scaled",
             "learned",
+            "learned_paper_norm",
             "lunar_lambert",
             "model_uniform"
         ]
@@ -137,8 +140,38 @@ fn eval_rows_equal_validation_and_direct_baselines() {
     let direct = image_metrics(&paper, &truth, &valid, CROP_PX).unwrap();
     assert_eq!(report.per_image[0].metrics["hapke_paper"], direct);
     assert!(report.hapke_to_oracle_gap_closed.is_none());
-    let ratio = report.methods[0].aggregate.sse / report.methods[2].aggregate.sse;
+    let sse = |name: &str| {
+        report
+            .methods
+            .iter()
+            .find(|m| m.name == name)
+            .unwrap()
+            .aggregate
+            .sse
+    };
+    let ratio = sse("learned") / sse("hapke_paper");
     assert!((report.learned_over_hapke_paper_sse - ratio).abs() < 1e-12);
+    let both = sse("learned_paper_norm") / sse("hapke_paper");
+    assert!((report.learned_over_hapke_both_paper_norm_sse - both).abs() < 1e-12);
+    // learned_paper_norm is the learned rendering put through the paper's normalisation, nothing else.
+    let learned = predict_images(
+        &net,
+        BrdfModel::M2,
+        &HostBatch::from_samples(&val[..1], source.manifest().dem_std_m),
+        &device,
+    );
+    let direct = image_metrics(
+        &normalise_like_paper(&learned, &truth, &valid),
+        &truth,
+        &valid,
+        CROP_PX,
+    )
+    .unwrap();
+    let reported = &report.per_image[0].metrics["learned_paper_norm"];
+    assert!(
+        (reported.mse - direct.mse).abs() <= 1e-6 * direct.mse,
+        "{reported:?} vs {direct:?}"
+    );
 
     let out = dir.path().join("eval");
     write_report(&report, &out).unwrap();
@@ -151,8 +184,8 @@ fn eval_rows_equal_validation_and_direct_baselines() {
         "{md}"
     );
     let panel = image::open(panels.join("0.png")).unwrap();
-    // GT, five methods, |learned − GT|: seven 128-px tiles with 4-px gaps.
-    assert_eq!((panel.width(), panel.height()), (7 * 132 - 4, 128));
+    // GT, six methods, |learned − GT|: eight 128-px tiles with 4-px gaps.
+    assert_eq!((panel.width(), panel.height()), (8 * 132 - 4, 128));
     assert!(!panels.join("2.png").exists());
 }
 
