@@ -279,6 +279,7 @@ enum Command {
     },
 }
 
+#[cfg(not(feature = "cuda"))]
 fn no_cuda() -> anyhow::Error {
     anyhow::anyhow!(
         "this g2r-train was built without CUDA: rebuild with `cargo build --release -p g2r-train --features cuda`"
@@ -621,7 +622,7 @@ fn run(cli: Cli) -> Result<()> {
             backend,
         } => {
             let name = format!("{backend:?}").to_lowercase();
-            let report: train::bench::BenchReport = with_backend!(backend, B => Ok(
+            let report: train::bench::BenchReport = with_backend!(backend, B => Ok::<_, anyhow::Error>(
                 train::bench::bench::<B>(&name, model, batch, width, iters, &Default::default())
             ))?;
             println!("{}", serde_json::to_string_pretty(&report)?);
