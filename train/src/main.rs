@@ -51,9 +51,8 @@ struct TrainArgs {
     /// U-Net width of the first stage (16 = the paper's ~2.16 M weights; 4 or 8 for CPU budgets).
     #[arg(long, default_value_t = 16)]
     width: usize,
-    /// Row groups shuffled together (memory ~ window x 55 MB). Shards are written ortho by ortho, so a narrow
-    /// window ends each epoch on few orthos and skews BatchNorm's running statistics: on the demo shards (7 train
-    /// row groups) H1's val swung 1.05e-4 <-> 2.70e-4 with 4, and fell steadily 1.58, 1.36, 1.28e-4 with 8.
+    /// Row groups shuffled together (memory ~ window x 55 MB). Shards are written ortho by ortho, so a wider
+    /// window mixes more orthos into each stretch of batches (8 covers all of the demo's train row groups).
     #[arg(long, default_value_t = 8)]
     window: usize,
     /// Disable rot90/flip augmentation.
