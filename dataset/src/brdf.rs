@@ -90,8 +90,6 @@ impl BrdfModel {
         Self::L4,
         Self::H1,
     ];
-    /// The paper's Table 1 models.
-    pub const PAPER: [BrdfModel; 6] = [Self::M1, Self::M2, Self::M3, Self::M4, Self::M5, Self::M6];
 
     pub fn param_count(self) -> usize {
         self.term_names().len()

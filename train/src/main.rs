@@ -14,7 +14,7 @@ use train::training::{fit, FitConfig};
 #[command(
     name = "g2r-train",
     version,
-    about = "Train a U-Net that maps 128x128 DEM crops to per-pixel BRDF parameters (M1-M6, L2-L4) through a differentiable renderer",
+    about = "Train a U-Net that maps 128x128 DEM crops to per-pixel BRDF parameters (M1-M6, L2-L4, H1) through a differentiable renderer",
     long_about = "Train a U-Net that maps 128x128 DEM crops (5 m/px) to per-pixel parameters of a small \
 cosine-polynomial BRDF, supervised by rendering through a differentiable renderer layer and comparing with the \
 orthoimage (MSE over valid pixels).\n\nData: a dataset directory published by `g2r-pipeline run` (manifest.json + \
@@ -36,7 +36,7 @@ enum BackendKind {
 
 #[derive(Args, Debug, Clone)]
 struct TrainArgs {
-    /// BRDF model: m1..m6 (the paper's) or l2..l4 (Lommel–Seeliger; see `g2r-train models`).
+    /// BRDF model: m1..m6 (the paper's), l2..l4 (Lommel–Seeliger) or h1 (per-pixel scale on Moon-wide Hapke); see `g2r-train models`.
     #[arg(long, default_value = "m2")]
     model: BrdfModel,
     #[arg(long, default_value_t = 20)]
@@ -102,7 +102,7 @@ impl TrainArgs {
 
 #[derive(Subcommand)]
 enum Command {
-    /// List the BRDF models (M1-M6, L2-L4) with their parameter order (the band order of parameter GeoTIFFs).
+    /// List the BRDF models (M1-M6, L2-L4, H1) with their parameter order (the band order of parameter GeoTIFFs).
     Models,
     /// Train one model; writes config.json, metrics.jsonl (one line per epoch), best/ and last/ checkpoints.
     Fit {
@@ -122,7 +122,7 @@ enum Command {
         #[command(flatten)]
         train: TrainArgs,
     },
-    /// Train every BRDF model (M1-M6, L2-L4) under the same budget and write a comparison table (val MSE, parameters, step time).
+    /// Train every BRDF model (M1-M6, L2-L4, H1) under the same budget and write a comparison table (val MSE, parameters, step time).
     CompareModels {
         /// Dataset directory or server URL, as for `fit`.
         #[arg(long)]
@@ -197,7 +197,7 @@ enum Command {
         #[arg(long, value_enum, default_value = "flex")]
         backend: BackendKind,
     },
-    /// Speed against error, measured in one run: BRDF models (M1-M6 and L2-L4 uniform fits, Hapke, Lunar-Lambert: pixel
+    /// Speed against error, measured in one run: BRDF models (M1-M6, L2-L4 and H1 uniform fits, Hapke, Lunar-Lambert: pixel
     /// MSE vs ns/pixel) and, with --run and --dem, inference overlap (seconds vs seam score). Writes report.md/json.
     Report {
         /// Dataset directory or server URL.
