@@ -249,8 +249,8 @@ pub fn run(
     progress.set_length(ids.len() as u64);
     let mut rejections: BTreeMap<String, BTreeMap<Rejection, u64>> = BTreeMap::new();
     // Encoding a row group (BYTE_STREAM_SPLIT + zstd) runs on its own thread while rayon projects the next chunk;
-    // the channel keeps chunk order, so the file's bytes don't depend on timing. Bounded: at most two chunks wait.
-    let (send, receive) = std::sync::mpsc::sync_channel::<Vec<Sample>>(2);
+    // the channel keeps chunk order, so the file's bytes don't depend on timing. Bounded: at most one chunk waits.
+    let (send, receive) = std::sync::mpsc::sync_channel::<Vec<Sample>>(1);
     std::thread::scope(|scope| -> anyhow::Result<()> {
         let writer_thread = scope.spawn(move || -> anyhow::Result<()> {
             let mut writer = dataset::shard::ShardWriter::create(samples_out)?;
@@ -261,18 +261,48 @@ pub fn run(
             writer.close()?;
             Ok(())
         });
-        let projected = (|| -> anyhow::Result<()> {
-            for record in orthos {
-                let positions: Vec<(usize, usize)> = (0..ids.len())
+        // Reading and decoding the next ortho (GDAL) runs on its own thread while rayon projects the current one:
+        // serial on the main thread it left the pool idle ~1 s per ortho. Rendezvous channel: at most two orthos
+        // are in memory (the one projected, the one read ahead).
+        let wanted: Vec<(&super::ingest::OrthoRecord, Vec<(usize, usize)>)> = orthos
+            .iter()
+            .map(|record| {
+                let positions = (0..ids.len())
                     .filter(|&i| ids[i] == record.ortho_id)
                     .map(|i| (cols[i] as usize, rows[i] as usize))
                     .collect();
+                (record, positions)
+            })
+            .collect();
+        let (send_ortho, receive_ortho) =
+            std::sync::mpsc::sync_channel::<anyhow::Result<(Raster, AcquisitionMetadata)>>(0);
+        let to_read: Vec<&super::ingest::OrthoRecord> = wanted
+            .iter()
+            .filter(|(_, positions)| !positions.is_empty())
+            .map(|(record, _)| *record)
+            .collect();
+        scope.spawn(move || {
+            for record in to_read {
+                let loaded = dataset::raster::read_raster(&record.image_path)
+                    .map_err(anyhow::Error::from)
+                    .and_then(|ortho| {
+                        Ok((ortho, AcquisitionMetadata::load(&record.metadata_path)?))
+                    });
+                let failed = loaded.is_err();
+                if send_ortho.send(loaded).is_err() || failed {
+                    break;
+                }
+            }
+        });
+        let projected = (|| -> anyhow::Result<()> {
+            for (record, positions) in &wanted {
                 let counts = rejections.entry(record.ortho_id.clone()).or_default();
                 if positions.is_empty() {
                     continue;
                 }
-                let ortho = dataset::raster::read_raster(&record.image_path)?;
-                let meta = AcquisitionMetadata::load(&record.metadata_path)?;
+                let (ortho, meta) = receive_ortho
+                    .recv()
+                    .map_err(|_| anyhow::anyhow!("ortho reader thread stopped early"))??;
                 let projector =
                     OrthoProjector::new(dem, &ortho, &meta, params, provenance.to_string())?;
                 for chunk in positions.chunks(dataset::shard::ROW_GROUP_ROWS) {
@@ -295,6 +325,7 @@ pub fn run(
             }
             Ok(())
         })();
+        drop(receive_ortho); // an early error above must not leave the reader blocked on a send
         drop(send);
         let written = writer_thread
             .join()
