@@ -10,8 +10,19 @@ use crate::schema::SCHEMA_VERSION;
 
 /// blake3 of a file's bytes, hex.
 pub fn hash_file(path: &Path) -> io::Result<String> {
+    use std::io::Read;
     let mut hasher = blake3::Hasher::new();
-    hasher.update_reader(std::fs::File::open(path)?)?;
+    // 16 MiB reads hashed across the rayon pool: stage outputs run to gigabytes. (Not mmap: mapped pages
+    // count as resident and would swamp the pipeline's peak-RSS figure.)
+    let mut file = std::fs::File::open(path)?;
+    let mut buffer = vec![0u8; 16 << 20];
+    loop {
+        let read = file.read(&mut buffer)?;
+        if read == 0 {
+            break;
+        }
+        hasher.update_rayon(&buffer[..read]);
+    }
     Ok(hasher.finalize().to_hex().to_string())
 }
 

@@ -17,7 +17,7 @@ use parquet::file::properties::{EnabledStatistics, WriterProperties};
 use parquet::file::writer::SerializedFileWriter;
 use rayon::prelude::*;
 
-use crate::manifest::{hash_file, ShardEntry};
+use crate::manifest::ShardEntry;
 use crate::raster::tmp_path;
 use crate::schema::{
     batch_to_sample_metadata, batch_to_samples, sample_schema, samples_to_batch, Sample,
@@ -91,6 +91,24 @@ pub fn writer_properties() -> WriterProperties {
     builder.build()
 }
 
+/// The shard file, hashed as it is written: a finished shard's checksum costs no second read.
+struct HashingFile {
+    file: File,
+    hasher: blake3::Hasher,
+}
+
+impl std::io::Write for HashingFile {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        let written = self.file.write(buf)?;
+        self.hasher.update(&buf[..written]);
+        Ok(written)
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.file.flush()
+    }
+}
+
 /// Streams samples into one shard file; nothing at `path` until [`ShardWriter::finish`] succeeds.
 ///
 /// Rows are buffered as Arrow batches until a row group is full; its column chunks are then encoded in parallel
@@ -99,7 +117,7 @@ pub fn writer_properties() -> WriterProperties {
 pub struct ShardWriter {
     path: PathBuf,
     tmp: PathBuf,
-    file_writer: SerializedFileWriter<File>,
+    file_writer: SerializedFileWriter<HashingFile>,
     columns: ArrowRowGroupWriterFactory,
     pending: Vec<RecordBatch>,
     pending_rows: usize,
@@ -114,6 +132,10 @@ impl ShardWriter {
             path: tmp.clone(),
             source,
         })?;
+        let file = HashingFile {
+            file,
+            hasher: blake3::Hasher::new(),
+        };
         // ArrowWriter embeds the Arrow schema in the footer metadata; its low-level halves do the writing.
         let (file_writer, columns) =
             ArrowWriter::try_new(file, sample_schema(), Some(writer_properties()))
@@ -146,9 +168,17 @@ impl ShardWriter {
             path: self.path.clone(),
             source,
         })?;
+        self.write_batch(&batch)
+    }
+
+    /// Append rows already in Arrow form (e.g. read from another shard): no per-sample conversion. The batch
+    /// must have the sample schema's columns and types; its schema-level metadata is replaced by this build's.
+    pub fn write_batch(&mut self, batch: &RecordBatch) -> Result<(), ShardError> {
+        let batch = RecordBatch::try_new(sample_schema(), batch.columns().to_vec())
+            .map_err(|e| self.parquet_err(e.into()))?;
         self.pending_rows += batch.num_rows();
+        self.rows += batch.num_rows();
         self.pending.push(batch);
-        self.rows += samples.len();
         while self.pending_rows >= ROW_GROUP_ROWS {
             self.flush_row_group(ROW_GROUP_ROWS)?;
         }
@@ -166,7 +196,8 @@ impl ShardWriter {
             parts.push(batch.slice(0, take));
             taken += take;
             if take < batch.num_rows() {
-                self.pending.push(batch.slice(take, batch.num_rows() - take));
+                self.pending
+                    .push(batch.slice(take, batch.num_rows() - take));
             }
             if taken == rows {
                 break;
@@ -184,16 +215,18 @@ impl ShardWriter {
             .columns
             .create_column_writers(self.row_groups)
             .map_err(|e| self.parquet_err(e))?;
-        let mut leaves = Vec::with_capacity(writers.len());
-        for (field, column) in schema.fields().iter().zip(group.columns()) {
-            leaves.extend(compute_leaves(field, column).map_err(|e| self.parquet_err(e))?);
-        }
-        assert_eq!(writers.len(), leaves.len(), "one writer per leaf column");
+        // Every field of the sample schema is one Parquet leaf (no structs), so writer k encodes column k;
+        // computing its levels inside the parallel closure keeps that off the calling thread too.
+        assert_eq!(writers.len(), group.num_columns(), "one leaf per field");
+        let fields = schema.fields().clone();
         let chunks = writers
             .into_par_iter()
-            .zip(leaves.into_par_iter())
-            .map(|(mut writer, leaf)| {
-                writer.write(&leaf)?;
+            .zip(fields.par_iter())
+            .zip(group.columns().par_iter())
+            .map(|((mut writer, field), column)| {
+                for leaf in compute_leaves(field, column)? {
+                    writer.write(&leaf)?;
+                }
                 writer.close()
             })
             .collect::<Result<Vec<_>, _>>()
@@ -212,44 +245,48 @@ impl ShardWriter {
         Ok(())
     }
 
-    /// Write the last, partial row group and the footer; returns the footer's metadata.
-    fn close_file(mut self) -> Result<(ParquetMetaData, PathBuf, usize), ShardError> {
+    /// Write the last, partial row group and the footer; returns the footer's metadata and the file's blake3.
+    fn close_file(mut self) -> Result<(ParquetMetaData, String, PathBuf, usize), ShardError> {
         if self.pending_rows > 0 {
             self.flush_row_group(self.pending_rows)?;
         }
         let metadata = self
             .file_writer
-            .close()
+            .finish()
             .map_err(|source| ShardError::Parquet {
                 path: self.path.clone(),
                 source,
             })?;
+        let blake3 = self
+            .file_writer
+            .inner()
+            .hasher
+            .finalize()
+            .to_hex()
+            .to_string();
+        drop(self.file_writer);
         std::fs::rename(&self.tmp, &self.path).map_err(|source| ShardError::Io {
             path: self.path.clone(),
             source,
         })?;
-        Ok((metadata, self.path, self.rows))
+        Ok((metadata, blake3, self.path, self.rows))
     }
 
     /// Close and rename into place without hashing: for intermediate files whose checksum someone else takes
     /// (the pipeline runner hashes every stage output). Returns the row count.
     pub fn close(self) -> Result<usize, ShardError> {
-        Ok(self.close_file()?.2)
+        Ok(self.close_file()?.3)
     }
 
     /// Close, rename into place, and describe the finished shard (size, rows, row groups, blake3).
     pub fn finish(self) -> Result<ShardEntry, ShardError> {
-        let (metadata, path, rows) = self.close_file()?;
+        let (metadata, blake3, path, rows) = self.close_file()?;
         let bytes = std::fs::metadata(&path)
             .map_err(|source| ShardError::Io {
                 path: path.clone(),
                 source,
             })?
             .len();
-        let blake3 = hash_file(&path).map_err(|source| ShardError::Io {
-            path: path.clone(),
-            source,
-        })?;
         Ok(ShardEntry {
             path: path
                 .file_name()
@@ -529,6 +566,7 @@ pub fn shard_name(split: &str, index: usize, count: usize) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::manifest::hash_file;
     use crate::testing::synthetic_sample;
 
     #[test]

@@ -8,6 +8,21 @@ use anyhow::Context;
 use clap::{Parser, Subcommand};
 use pipeline::synth::{config, WorldConfig};
 
+/// Keep freed memory in glibc's heap instead of returning it at once. The stages allocate and free tensor-sized
+/// buffers (~17 MB) per row group; by default glibc serves each with a fresh mmap, and the page faults, zeroing and
+/// mmap-lock contention between threads cost the tycho-full publish stage 87.6 s -> 66.7 s wall when raised
+/// (measured with the equivalent MALLOC_* environment variables; mimalloc measured 92 s). Peak RSS is unchanged
+/// there: the memory is reused, not accumulated.
+fn tune_allocator() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: mallopt only sets allocator parameters; called once, before any other thread exists.
+    unsafe {
+        libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20);
+        libc::mallopt(libc::M_TRIM_THRESHOLD, 1 << 30);
+        libc::mallopt(libc::M_TOP_PAD, 256 << 20);
+    }
+}
+
 #[derive(Parser)]
 #[command(
     name = "g2r-pipeline",
@@ -76,6 +91,7 @@ enum Command {
 }
 
 fn main() -> ExitCode {
+    tune_allocator();
     dataset::init_logging();
     match run(Cli::parse()) {
         Ok(()) => ExitCode::SUCCESS,

@@ -95,6 +95,34 @@ pub struct Runner<'a> {
     pub root: PathBuf,
     pub lock_path: PathBuf,
     pub stages: Vec<Stage<'a>>,
+    /// blake3 by path, with the size and modification time it was taken at: within one run a stage's outputs are
+    /// the next stages' inputs, and re-hashing gigabytes of unchanged files cost seconds each time.
+    pub hash_memo: HashMemo,
+}
+
+#[derive(Default)]
+pub struct HashMemo(std::sync::Mutex<BTreeMap<PathBuf, (u64, std::time::SystemTime, String)>>);
+
+impl HashMemo {
+    /// Forget everything: each `run` / `status` starts afresh, so edits between calls are always seen (mtime
+    /// ticks are coarse enough that two writes of equal size can share one).
+    fn clear(&self) {
+        self.0.lock().expect("hash memo poisoned").clear();
+    }
+
+    pub fn hash(&self, path: &Path) -> std::io::Result<String> {
+        let meta = std::fs::metadata(path)?;
+        let stamp = (meta.len(), meta.modified()?);
+        let mut memo = self.0.lock().expect("hash memo poisoned");
+        if let Some((len, modified, hash)) = memo.get(path) {
+            if (*len, *modified) == stamp {
+                return Ok(hash.clone());
+            }
+        }
+        let hash = hash_file(path)?;
+        memo.insert(path.to_path_buf(), (stamp.0, stamp.1, hash.clone()));
+        Ok(hash)
+    }
 }
 
 impl<'a> Runner<'a> {
@@ -111,7 +139,9 @@ impl<'a> Runner<'a> {
             .map(|p| {
                 Ok((
                     self.key(p),
-                    hash_file(p).map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?,
+                    self.hash_memo
+                        .hash(p)
+                        .map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?,
                 ))
             })
             .collect()
@@ -161,14 +191,17 @@ impl<'a> Runner<'a> {
             if !input.exists() {
                 return Ok(Staleness::InputChanged(format!("{key} (missing)")));
             }
-            let now = hash_file(input).map_err(|e| anyhow::anyhow!("{key}: {e}"))?;
+            let now = self
+                .hash_memo
+                .hash(input)
+                .map_err(|e| anyhow::anyhow!("{key}: {e}"))?;
             if entry.inputs.get(&key) != Some(&now) {
                 return Ok(Staleness::InputChanged(key));
             }
         }
         for output in &stage.outputs {
             let key = self.key(output);
-            if entry.outputs.get(&key) != Some(&hash_file(output)?) {
+            if entry.outputs.get(&key) != Some(&self.hash_memo.hash(output)?) {
                 return Ok(Staleness::OutputChanged(key));
             }
         }
@@ -180,6 +213,7 @@ impl<'a> Runner<'a> {
 
     /// Staleness of every stage in order; a stale stage makes every later one stale too.
     pub fn status(&self) -> anyhow::Result<Vec<(&'static str, Staleness)>> {
+        self.hash_memo.clear();
         let lock = self.load_lock()?;
         let mut out = Vec::new();
         let mut first_stale: Option<&'static str> = None;
@@ -199,6 +233,7 @@ impl<'a> Runner<'a> {
 
     /// Run stale stages (and `force`d ones) in order, stopping after `until` if given. Returns the stages run.
     pub fn run(&self, until: Option<&str>, force: &[&str]) -> anyhow::Result<Vec<&'static str>> {
+        self.hash_memo.clear();
         for name in until.into_iter().chain(force.iter().copied()) {
             if !self.stages.iter().any(|s| s.name == name) {
                 let names: Vec<&str> = self.stages.iter().map(|s| s.name).collect();
@@ -299,6 +334,7 @@ mod tests {
         Runner {
             root: dir.to_path_buf(),
             lock_path: dir.join("pipeline.lock.json"),
+            hash_memo: HashMemo::default(),
             stages: vec![
                 Stage {
                     name: "double",

@@ -287,5 +287,6 @@ pub fn pipeline(
         root: m.base_dir.clone(),
         lock_path,
         stages: vec![ingest, erode, sample, project, split, publish],
+        hash_memo: Default::default(),
     })
 }

@@ -8,8 +8,12 @@ use std::path::Path;
 
 use dataset::manifest::{write_json_atomic, DatasetManifest, ShardEntry};
 use dataset::publication::{croissant, dataset_card};
-use dataset::schema::{Sample, CROP_PX, DEM_PX, SCHEMA_VERSION};
-use dataset::shard::{read_row_group, row_group_sizes, shard_name, ShardWriter};
+use std::sync::Arc;
+
+use arrow::array::{AsArray, Float64Array, RecordBatch, StringArray, UInt32Array};
+use arrow::datatypes::{Float32Type, Float64Type};
+use dataset::schema::{CROP_PX, DEM_PX, SCHEMA_VERSION};
+use dataset::shard::{shard_name, ShardFile, ShardWriter};
 
 use super::split::{split_of_tile, tile_of, Split, SplitParams};
 use super::table::{read_table, strings};
@@ -76,24 +80,6 @@ pub fn run(
             .div_ceil(ctx.rows_per_shard)
             .max(1)
     };
-    struct Open {
-        writer: Option<ShardWriter>,
-        index: usize,
-        rows: usize,
-    }
-    let mut open: BTreeMap<String, Open> = split_counts
-        .keys()
-        .map(|s| {
-            (
-                s.clone(),
-                Open {
-                    writer: None,
-                    index: 0,
-                    rows: 0,
-                },
-            )
-        })
-        .collect();
     let mut shards: Vec<ShardEntry> = Vec::new();
     let (mut per_ortho, mut per_tile): (
         BTreeMap<String, BTreeMap<String, u64>>,
@@ -101,72 +87,123 @@ pub fn run(
     ) = Default::default();
     let (mut dem_sq_sum, mut dem_n) = (0f64, 0u64);
     let mut centres: Vec<(f64, f64)> = Vec::new();
-    // Decoding row groups runs on its own thread while this one routes and encodes: order is kept by the channel.
-    let groups = row_group_sizes(samples_path)?.len();
-    let (send, receive) = std::sync::mpsc::sync_channel::<anyhow::Result<Vec<Sample>>>(2);
-    let reader = std::thread::spawn({
-        let samples_path = samples_path.to_path_buf();
-        move || {
+    // Three kinds of thread, joined by bounded channels that keep row order: one decodes the projected row groups,
+    // this one routes rows to splits (and gathers the summary), and one per split cuts its rows into shards and
+    // encodes them (column chunks in parallel on the rayon pool). Routing and encoding then overlap; serially,
+    // one core sat idle for most of the stage.
+    // Rows stay in Arrow form end to end (take + column swap): converting each to a `Sample` and back cost a
+    // copy of every tensor twice.
+    let source = ShardFile::open(samples_path)?;
+    let groups = source.row_group_sizes().len();
+    std::thread::scope(|scope| -> anyhow::Result<()> {
+        let (send, receive) = std::sync::mpsc::sync_channel::<anyhow::Result<Vec<RecordBatch>>>(1);
+        scope.spawn(move || {
             for group in 0..groups {
-                let decoded = read_row_group(&samples_path, group).map_err(anyhow::Error::from);
+                let decoded = source
+                    .read_batches(group, None, true)
+                    .map_err(anyhow::Error::from);
                 let failed = decoded.is_err();
                 if send.send(decoded).is_err() || failed {
                     break;
                 }
             }
+        });
+        let mut to_split = Vec::new();
+        let mut writers = Vec::new();
+        for split in Split::ALL {
+            let (send_rows, receive_rows) = std::sync::mpsc::sync_channel::<RecordBatch>(2);
+            to_split.push(send_rows);
+            let count = shard_count(split.name());
+            writers.push(scope.spawn(move || {
+                write_split_shards(
+                    dataset_dir,
+                    split.name(),
+                    count,
+                    ctx.rows_per_shard,
+                    receive_rows,
+                )
+            }));
         }
-    });
-    for decoded in receive {
-        let group_samples = decoded?;
-        for mut sample in group_samples {
-            let Some((split, tile)) = assignment.get(&sample.sample_id) else {
-                continue;
-            };
-            sample.split = split.clone();
-            sample.tile_id = tile.clone();
-            *per_ortho
-                .entry(sample.ortho_id.clone())
-                .or_default()
-                .entry(split.clone())
-                .or_default() += 1;
-            *per_tile.entry(tile.clone()).or_default() += 1;
-            centres.push((sample.center_x_m, sample.center_y_m));
-            if split == "train" {
-                // DEM normalisation statistic from the train split only: heights minus each crop's mean (f64).
-                let interior = crop_interior(&sample);
-                let mean = interior.iter().sum::<f64>() / interior.len() as f64;
-                dem_sq_sum += interior
-                    .iter()
-                    .map(|h| (h - mean) * (h - mean))
-                    .sum::<f64>();
-                dem_n += interior.len() as u64;
+        let routed_all = (|| -> anyhow::Result<()> {
+            for decoded in receive {
+                for batch in decoded? {
+                    let ids = string_column(&batch, "sample_id")?;
+                    let orthos = string_column(&batch, "ortho_id")?;
+                    let (xs, ys) = (
+                        f64_column(&batch, "center_x")?,
+                        f64_column(&batch, "center_y")?,
+                    );
+                    let dem = batch
+                        .column_by_name("dem")
+                        .and_then(|c| c.as_fixed_size_list_opt())
+                        .ok_or_else(|| {
+                            anyhow::anyhow!("{}: no dem column", samples_path.display())
+                        })?;
+                    let routed: Vec<Option<&(String, String)>> = (0..batch.num_rows())
+                        .map(|i| assignment.get(ids.value(i)))
+                        .collect();
+                    for (k, split) in Split::ALL.into_iter().enumerate() {
+                        let rows: Vec<u32> = (0..batch.num_rows() as u32)
+                            .filter(|&i| routed[i as usize].is_some_and(|(s, _)| s == split.name()))
+                            .collect();
+                        if rows.is_empty() {
+                            continue;
+                        }
+                        for &i in &rows {
+                            let i = i as usize;
+                            let tile = &routed[i].expect("routed").1;
+                            *per_ortho
+                                .entry(orthos.value(i).to_string())
+                                .or_default()
+                                .entry(split.name().to_string())
+                                .or_default() += 1;
+                            *per_tile.entry(tile.clone()).or_default() += 1;
+                            centres.push((xs.value(i), ys.value(i)));
+                            if split == Split::Train {
+                                // DEM normalisation statistic from the train split only: heights minus each crop's mean.
+                                let heights = dem.value(i);
+                                let interior =
+                                    crop_interior(heights.as_primitive::<Float32Type>().values());
+                                let mean = interior.iter().sum::<f64>() / interior.len() as f64;
+                                dem_sq_sum += interior
+                                    .iter()
+                                    .map(|h| (h - mean) * (h - mean))
+                                    .sum::<f64>();
+                                dem_n += interior.len() as u64;
+                            }
+                        }
+                        let taken = arrow::compute::take_record_batch(
+                            &batch,
+                            &UInt32Array::from(rows.clone()),
+                        )?;
+                        let split_names = StringArray::from(vec![split.name(); rows.len()]);
+                        let tile_ids: StringArray = rows
+                            .iter()
+                            .map(|&i| Some(routed[i as usize].expect("routed").1.as_str()))
+                            .collect();
+                        let mut columns = taken.columns().to_vec();
+                        let schema = taken.schema();
+                        columns[schema.index_of("split")?] = Arc::new(split_names);
+                        columns[schema.index_of("tile_id")?] = Arc::new(tile_ids);
+                        let taken = RecordBatch::try_new(schema, columns)?;
+                        if to_split[k].send(taken).is_err() {
+                            return Ok(()); // that writer failed: its error is reported below
+                        }
+                    }
+                }
             }
-            let state = open.get_mut(split).expect("known split");
-            if state.writer.is_none() {
-                let path = dataset_dir.join(shard_name(split, state.index, shard_count(split)));
-                state.writer = Some(ShardWriter::create(&path)?);
-            }
-            state
-                .writer
-                .as_mut()
-                .expect("just opened")
-                .write(std::slice::from_ref(&sample))?;
-            state.rows += 1;
-            if state.rows == ctx.rows_per_shard {
-                shards.push(state.writer.take().expect("open").finish()?);
-                state.index += 1;
-                state.rows = 0;
-            }
+            Ok(())
+        })();
+        drop(to_split);
+        for writer in writers {
+            shards.extend(
+                writer
+                    .join()
+                    .map_err(|_| anyhow::anyhow!("shard writer thread panicked"))??,
+            );
         }
-    }
-    reader
-        .join()
-        .map_err(|_| anyhow::anyhow!("row-group reader thread panicked"))?;
-    for state in open.values_mut() {
-        if let Some(writer) = state.writer.take() {
-            shards.push(writer.finish()?);
-        }
-    }
+        routed_all
+    })?;
     shards.sort_by(|a, b| a.path.cmp(&b.path));
     let dem_std_m = if dem_n > 0 {
         (dem_sq_sum / dem_n as f64).sqrt()
@@ -203,12 +240,62 @@ pub fn run(
     Ok(())
 }
 
-/// The 128 × 128 crop heights (apron excluded) in f64.
-fn crop_interior(sample: &Sample) -> Vec<f64> {
+/// Cut one split's rows (in arrival order) into `count` shards of `rows_per_shard` rows and write them.
+fn write_split_shards(
+    dataset_dir: &Path,
+    split: &str,
+    count: usize,
+    rows_per_shard: usize,
+    rows: std::sync::mpsc::Receiver<RecordBatch>,
+) -> anyhow::Result<Vec<ShardEntry>> {
+    let (mut shards, mut writer, mut in_shard) = (Vec::new(), None::<ShardWriter>, 0);
+    for batch in rows {
+        let mut start = 0;
+        while start < batch.num_rows() {
+            let shard = match writer.as_mut() {
+                Some(shard) => shard,
+                None => writer.insert(ShardWriter::create(&dataset_dir.join(shard_name(
+                    split,
+                    shards.len(),
+                    count,
+                )))?),
+            };
+            let len = (rows_per_shard - in_shard).min(batch.num_rows() - start);
+            shard.write_batch(&batch.slice(start, len))?;
+            in_shard += len;
+            start += len;
+            if in_shard == rows_per_shard {
+                shards.push(writer.take().expect("open").finish()?);
+                in_shard = 0;
+            }
+        }
+    }
+    if let Some(shard) = writer {
+        shards.push(shard.finish()?);
+    }
+    Ok(shards)
+}
+
+/// The 128 × 128 crop heights (apron excluded) in f64, from a 130 × 130 DEM crop.
+fn crop_interior(dem_m: &[f32]) -> Vec<f64> {
     (1..=CROP_PX)
         .flat_map(|r| (1..=CROP_PX).map(move |c| (r, c)))
-        .map(|(r, c)| sample.dem_m[r * DEM_PX + c] as f64)
+        .map(|(r, c)| dem_m[r * DEM_PX + c] as f64)
         .collect()
+}
+
+fn string_column<'b>(batch: &'b RecordBatch, name: &str) -> anyhow::Result<&'b StringArray> {
+    batch
+        .column_by_name(name)
+        .and_then(|c| c.as_string_opt::<i32>())
+        .ok_or_else(|| anyhow::anyhow!("projected samples have no string column '{name}'"))
+}
+
+fn f64_column<'b>(batch: &'b RecordBatch, name: &str) -> anyhow::Result<&'b Float64Array> {
+    batch
+        .column_by_name(name)
+        .and_then(|c| c.as_primitive_opt::<Float64Type>())
+        .ok_or_else(|| anyhow::anyhow!("projected samples have no f64 column '{name}'"))
 }
 
 /// Tiles coloured by split (train grey, val blue, test orange) with sample centres as dark dots; north up.
