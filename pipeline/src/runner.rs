@@ -255,6 +255,7 @@ impl<'a> Runner<'a> {
                     }
                     let _ = std::fs::remove_file(t);
                 }
+                let started = std::time::Instant::now();
                 let inputs = self.hashes(&stage.inputs)?;
                 (stage.run)(&StageOutputs { paths: tmp.clone() })
                     .map_err(|e| e.context(format!("stage '{}' failed", stage.name)))?;
@@ -274,6 +275,13 @@ impl<'a> Runner<'a> {
                     },
                 );
                 write_json_atomic(&self.lock_path, &lock)?;
+                // Where time goes, per stage (logs only: no clock reaches an output).
+                tracing::info!(
+                    stage = stage.name,
+                    seconds = format!("{:.1}", started.elapsed().as_secs_f64()),
+                    peak_rss_mib = peak_rss_mib(),
+                    "stage done"
+                );
                 ran.push(stage.name);
                 upstream_ran = true;
             }
@@ -300,6 +308,14 @@ impl<'a> Runner<'a> {
         }
         Ok(removed)
     }
+}
+
+/// The process's peak resident set so far (VmHWM), in MiB; `None` where /proc is not available.
+fn peak_rss_mib() -> Option<u64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib / 1024)
 }
 
 /// Convenience for stage functions: the single output path.

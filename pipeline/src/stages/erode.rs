@@ -100,16 +100,33 @@ pub fn run(
     out: &std::path::Path,
 ) -> anyhow::Result<()> {
     use super::table::{write_table, Col};
+    use rayon::prelude::*;
+    // Orthos in parallel (GDAL decode and the mask sweep were serial; at most one ortho per pool thread is in
+    // memory), gathered in manifest order so the table's bytes don't depend on scheduling.
+    let per_ortho: Vec<Vec<Run>> = orthos
+        .par_iter()
+        .map(|record| -> anyhow::Result<Vec<Run>> {
+            let ortho = dataset::raster::read_raster(&record.image_path)?;
+            let (c0, r0, w, h, mask) = dem_cell_validity(&ortho, dem);
+            drop(ortho);
+            let eroded = erode_square(&mask, w, h, dataset::schema::DEM_PX);
+            Ok(to_runs(&eroded, w)
+                .into_iter()
+                .map(|run| Run {
+                    row: run.row + r0 as u32,
+                    start: run.start + c0 as u32,
+                    len: run.len,
+                })
+                .collect())
+        })
+        .collect::<anyhow::Result<_>>()?;
     let (mut ids, mut rows, mut starts, mut lens) =
         (Vec::new(), Vec::new(), Vec::new(), Vec::new());
-    for record in orthos {
-        let ortho = dataset::raster::read_raster(&record.image_path)?;
-        let (c0, r0, w, h, mask) = dem_cell_validity(&ortho, dem);
-        let eroded = erode_square(&mask, w, h, dataset::schema::DEM_PX);
-        for run in to_runs(&eroded, w) {
+    for (record, runs) in orthos.iter().zip(per_ortho) {
+        for run in runs {
             ids.push(record.ortho_id.clone());
-            rows.push(run.row + r0 as u32);
-            starts.push(run.start + c0 as u32);
+            rows.push(run.row);
+            starts.push(run.start);
             lens.push(run.len);
         }
     }
