@@ -16,6 +16,7 @@ pub mod manifest;
 pub mod planner;
 pub mod publication;
 pub mod raster;
+pub mod resample;
 pub mod rng;
 pub mod schema;
 pub mod server;

@@ -198,7 +198,9 @@ enum Command {
         backend: BackendKind,
     },
     /// Speed against error, measured in one run: BRDF models (M1-M6, L2-L4 and H1 uniform fits, Hapke, Lunar-Lambert: pixel
-    /// MSE vs ns/pixel) and, with --run and --dem, inference overlap (seconds vs seam score). Writes report.md/json.
+    /// MSE vs ns/pixel); with --dem the renderer (rays/pixel, shadows); with --run and --dem inference overlap
+    /// (seconds vs seam score); with --ortho and --dem the projection resampling kernel (ms/crop vs error against the
+    /// exact area average). Writes report.md/json and one PNG plot per section.
     Report {
         /// Dataset directory or server URL.
         #[arg(long)]
@@ -220,6 +222,12 @@ enum Command {
         /// Overlaps to time, pixels.
         #[arg(long, value_delimiter = ',', default_value = "0,16,32,48")]
         overlaps: Vec<usize>,
+        /// An orthoimage GeoTIFF on the DEM's CRS, for the resampling-kernel section (needs --dem).
+        #[arg(long, requires = "dem")]
+        ortho: Option<PathBuf>,
+        /// Crops cut from --ortho for the resampling-kernel section.
+        #[arg(long, default_value_t = 64)]
+        resampling_crops: usize,
         #[arg(long, value_enum, default_value = "flex")]
         backend: BackendKind,
     },
@@ -444,6 +452,8 @@ fn run(cli: Cli) -> Result<()> {
             run,
             dem,
             overlaps,
+            ortho,
+            resampling_crops,
             backend,
         } => {
             let source = open_source(&data)?;
@@ -475,6 +485,18 @@ fn run(cli: Cli) -> Result<()> {
                 }
                 _ => Vec::new(),
             };
+            let resampling = match (ortho, raster.as_ref()) {
+                (Some(ortho), Some(raster)) => {
+                    let image = dataset::raster::read_raster(&ortho)?;
+                    anyhow::ensure!(
+                        image.crs == raster.crs,
+                        "{}: its CRS differs from the DEM's; pass an ortho on the DEM's map grid (as the pipeline requires)",
+                        ortho.display()
+                    );
+                    train::report::resampling_rows(&image, &raster.transform, resampling_crops)
+                }
+                _ => Vec::new(),
+            };
             let report = train::report::Report {
                 split,
                 images,
@@ -484,6 +506,7 @@ fn run(cli: Cli) -> Result<()> {
                 brdf_models,
                 inference_overlap,
                 renderer,
+                resampling,
             };
             train::report::write(&report, &out)?;
             print!("{}", train::report::markdown(&report));

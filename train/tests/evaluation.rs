@@ -236,6 +236,7 @@ fn report_rows_cover_every_model_and_the_plot_is_written() {
         brdf_models: rows,
         inference_overlap: Vec::new(),
         renderer: Vec::new(),
+        resampling: Vec::new(),
     };
     let out = dir.path().join("report");
     train::report::write(&report, &out).unwrap();
@@ -247,4 +248,55 @@ fn report_rows_cover_every_model_and_the_plot_is_written() {
         !out.join("renderer.png").exists(),
         "no plot for a section that was not measured"
     );
+}
+
+#[test]
+fn report_resampling_section_measures_point_kernels_against_the_area_average() {
+    use dataset::crs::LunarCrs;
+    use dataset::raster::{GeoTransform, Raster};
+    // A 2 m ortho with fine texture (a 2 m checkerboard over a ramp) and a 5 m grid offset from it by 3 m / 1 m.
+    let crs = LunarCrs::equirectangular(0.0, 0.0);
+    let mut ortho = Raster::new(700, 400, GeoTransform::north_up(0.0, 0.0, 2.0), crs, 0.0);
+    for r in 0..400 {
+        for c in 0..700 {
+            ortho.data[r * 700 + c] = 0.1 + 0.0001 * c as f32 + 0.05 * ((r + c) % 2) as f32;
+        }
+    }
+    let dem = GeoTransform::north_up(-3.0, 1.0, 5.0);
+    let rows = train::report::resampling_rows(&ortho, &dem, 3);
+    let names: Vec<&str> = rows.iter().map(|r| r.kernel.as_str()).collect();
+    assert_eq!(names, ["area", "bilinear", "nearest"]);
+    // 1,400 m × 800 m of ortho holds two 640 m crops across and one down.
+    assert!(rows.iter().all(|r| r.crops == 2), "{rows:?}");
+    assert_eq!((rows[0].rms_vs_area, rows[0].valid_ratio), (0.0, 1.0));
+    // Nearest keeps the ±0.025 checkerboard the area average removes; bilinear at a cell centre between pixel
+    // centres blends it partly.
+    assert!(
+        rows[2].rms_vs_area > 0.015 && rows[2].max_abs_vs_area <= 0.05 + 1e-3,
+        "{rows:?}"
+    );
+    assert!(
+        rows[1].rms_vs_area > 0.0 && rows[1].rms_vs_area < rows[2].rms_vs_area,
+        "{rows:?}"
+    );
+    let dir = tempfile::tempdir().unwrap();
+    write_synthetic_dataset(dir.path(), synthetic_samples(4, 1), synthetic_samples(3, 2));
+    let source = LocalSource::open(dir.path()).unwrap();
+    let (brdf_models, images, pixels, geometry_ns) =
+        train::report::brdf_model_rows(&source, "val", None, 4).unwrap();
+    let report = train::report::Report {
+        split: "val".into(),
+        images,
+        pixels,
+        calibration_samples: 4,
+        geometry_ns_per_pixel: geometry_ns,
+        brdf_models,
+        inference_overlap: Vec::new(),
+        renderer: Vec::new(),
+        resampling: rows,
+    };
+    let out = dir.path().join("report");
+    train::report::write(&report, &out).unwrap();
+    let md = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(md.contains("| nearest |") && md.contains("](resampling.png)"), "{md}");
 }

@@ -10,6 +10,7 @@ use dataset::acquisition::AcquisitionMetadata;
 use dataset::crs::{CrsError, LocalFrame};
 use dataset::horizon::{visibility_window, HeightField, VisibilityWindow, SUN_ANGULAR_RADIUS_RAD};
 use dataset::raster::Raster;
+use dataset::resample::{resample_cells, ResampleKernel};
 use dataset::schema::{Sample, CROP_PX, DEM_PX};
 
 /// Rejection thresholds and shadow sampling, from the pipeline manifest.
@@ -127,7 +128,13 @@ impl<'a> OrthoProjector<'a> {
             return Err(Rejection::DemNodata);
         }
         let (crop_c0, crop_r0) = (col - half, row - half);
-        let (mut image, mut valid) = area_resample(self.ortho, dem, crop_c0, crop_r0);
+        let (mut image, mut valid) = resample_cells(
+            self.ortho,
+            &dem.transform,
+            (crop_c0, crop_r0),
+            CROP_PX,
+            ResampleKernel::Area,
+        );
         let mut sun_lit = vec![0f32; CROP_PX * CROP_PX];
         let (mut occluded, mut shadowed) = (0usize, 0usize);
         for j in 0..CROP_PX {
@@ -335,57 +342,6 @@ pub fn run(
     })?;
     dataset::manifest::write_json_atomic(rejections_out, &rejections)?;
     Ok(())
-}
-
-/// Exact area average of the ortho over each cell of the 128 × 128 crop whose top-left DEM cell is (c0, r0).
-/// Both rasters are north-up in the same CRS, so each cell is an axis-aligned rectangle in ortho pixel space and
-/// the weights separate into per-column and per-row overlaps. A cell touching any nodata ortho pixel is invalid.
-pub fn area_resample(ortho: &Raster, dem: &Raster, c0: usize, r0: usize) -> (Vec<f32>, Vec<u8>) {
-    let dem_t = &dem.transform;
-    let ortho_t = &ortho.transform;
-    // Overlaps of [a, b) (in ortho pixel-edge coordinates) with each ortho pixel [k, k+1).
-    let overlaps = |a: f64, b: f64, len: usize| -> Option<(usize, Vec<f64>)> {
-        let (first, last) = (a.floor(), b.ceil());
-        if first < 0.0 || last > len as f64 {
-            return None; // the cell reaches outside the ortho
-        }
-        let weights = (first as usize..last as usize)
-            .map(|k| (b.min(k as f64 + 1.0) - a.max(k as f64)).max(0.0))
-            .collect();
-        Some((first as usize, weights))
-    };
-    let x_edge = |col: usize| dem_t.edge_in(ortho_t, col as f64, 0.0).0;
-    let y_edge = |row: usize| dem_t.edge_in(ortho_t, 0.0, row as f64).1;
-    let columns: Vec<_> = (0..CROP_PX)
-        .map(|i| overlaps(x_edge(c0 + i), x_edge(c0 + i + 1), ortho.width))
-        .collect();
-    let (mut image, mut valid) = (vec![0f32; CROP_PX * CROP_PX], vec![0u8; CROP_PX * CROP_PX]);
-    for j in 0..CROP_PX {
-        let Some((row0, wy)) = overlaps(y_edge(r0 + j), y_edge(r0 + j + 1), ortho.height) else {
-            continue;
-        };
-        for (i, column) in columns.iter().enumerate() {
-            let Some((col0, wx)) = column else { continue };
-            let (mut sum, mut weight) = (0.0f64, 0.0f64);
-            let mut all_valid = true;
-            for (dy, &w_y) in wy.iter().enumerate() {
-                let line = &ortho.data[(row0 + dy) * ortho.width..(row0 + dy + 1) * ortho.width];
-                for (dx, &w_x) in wx.iter().enumerate() {
-                    let v = line[col0 + dx];
-                    if w_x * w_y > 0.0 {
-                        all_valid &= v.is_finite();
-                        sum += w_x * w_y * v as f64;
-                        weight += w_x * w_y;
-                    }
-                }
-            }
-            if all_valid && weight > 0.0 {
-                image[j * CROP_PX + i] = (sum / weight) as f32;
-                valid[j * CROP_PX + i] = 1;
-            }
-        }
-    }
-    (image, valid)
 }
 
 #[cfg(test)]
