@@ -215,7 +215,7 @@ mod tests {
                             x0 + 0.05 + 0.1 * (k % 50) as f64,
                             y0 - 0.05 - 0.1 * (k / 50) as f64,
                         );
-                        (((x / 2.0).floor() + (y / 2.0).floor()).rem_euclid(2.0)) as f64
+                        ((x / 2.0).floor() + (y / 2.0).floor()).rem_euclid(2.0)
                     })
                     .sum::<f64>()
                     / 2500.0;

@@ -298,5 +298,8 @@ fn report_resampling_section_measures_point_kernels_against_the_area_average() {
     let out = dir.path().join("report");
     train::report::write(&report, &out).unwrap();
     let md = std::fs::read_to_string(out.join("report.md")).unwrap();
-    assert!(md.contains("| nearest |") && md.contains("](resampling.png)"), "{md}");
+    assert!(
+        md.contains("| nearest |") && md.contains("](resampling.png)"),
+        "{md}"
+    );
 }
