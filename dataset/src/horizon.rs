@@ -389,9 +389,9 @@ impl VisibilityWindow {
     }
 }
 
-/// Sweep a source's visibility over the field pixels `cols × rows` (half-open ranges), extended by the longest
-/// shadow the field's relief can cast at the source's elevation (capped at 20 km), so blockers outside the area of
-/// interest are seen. Heights are first dropped into `frame`'s up coordinate ([`drop_for_curvature`]) so the one
+/// Sweep a source's visibility over the field pixels `cols × rows` (half-open ranges), extended toward the source by
+/// the longest shadow the field's relief can cast at the source's elevation (capped at 20 km), so blockers outside
+/// the area of interest are seen. Heights are first dropped into `frame`'s up coordinate ([`drop_for_curvature`]) so the one
 /// direction `toward_source_enu` (in `frame`) holds across the window.
 pub fn visibility_window(
     field: &HeightField<'_>,
@@ -404,11 +404,28 @@ pub fn visibility_window(
 ) -> VisibilityWindow {
     let gsd = field.transform.gsd_m();
     let elevation = toward_source_enu.z.clamp(-1.0, 1.0).asin().max(1e-3);
-    let margin_px = ((field.relief_m / elevation.tan()).min(20_000.0) / gsd).ceil() as usize + 4;
-    let col0 = cols.start.saturating_sub(margin_px);
-    let row0 = rows.start.saturating_sub(margin_px);
-    let col1 = (cols.end + margin_px).min(field.width);
-    let row1 = (rows.end + margin_px).min(field.height);
+    let dir = SourceDirection::from_enu(toward_source_enu, frame, angular_radius_rad);
+    // Blockers lie at most `reach_px` away *toward the source*, and the sweep runs from the source side, so cells on
+    // the far side never affect the area of interest: extend toward the source only, per axis by the ray's share
+    // (+10 % for the grid's small rotation against the frame, +4 px for interpolation). Extending all four sides by
+    // the full reach swept ~2-4× the cells for the same values.
+    let reach_px = (field.relief_m / elevation.tan()).min(20_000.0) / gsd;
+    let norm = dir.toward_col.hypot(dir.toward_row).max(1e-12);
+    let extent = |component: f64, toward: bool| {
+        if toward {
+            (1.1 * reach_px * component.abs() / norm).ceil() as usize + 4
+        } else {
+            4
+        }
+    };
+    let col0 = cols
+        .start
+        .saturating_sub(extent(dir.toward_col, dir.toward_col < 0.0));
+    let row0 = rows
+        .start
+        .saturating_sub(extent(dir.toward_row, dir.toward_row < 0.0));
+    let col1 = (cols.end + extent(dir.toward_col, dir.toward_col > 0.0)).min(field.width);
+    let row1 = (rows.end + extent(dir.toward_row, dir.toward_row > 0.0)).min(field.height);
     let (width, height) = (col1 - col0, row1 - row0);
     let mut window: Vec<f32> = (row0..row1)
         .flat_map(|r| {
@@ -422,7 +439,6 @@ pub fn visibility_window(
         .map_to_pixel(frame.origin_map.x, frame.origin_map.y);
     drop_for_curvature(&mut window, width, gsd, oc - col0 as f64, or - row0 as f64);
     let grid = HorizonGrid::new(&window, width, height, gsd);
-    let dir = SourceDirection::from_enu(toward_source_enu, frame, angular_radius_rad);
     let fraction = grid.sweep_visible_fraction(&dir, disk_samples);
     VisibilityWindow {
         col0,
@@ -436,6 +452,79 @@ pub fn visibility_window(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_window_extended_toward_the_source_matches_a_sweep_of_the_whole_field() {
+        use crate::crs::{LocalFrame, LunarCrs};
+        use crate::raster::GeoTransform;
+        // 360 × 360 cells of 5 m: rolling terrain plus a 200 m ridge; area of interest in the middle.
+        let (w, h, gsd) = (360usize, 360usize, 5.0);
+        let heights: Vec<f32> = (0..w * h)
+            .map(|i| {
+                let (c, r) = ((i % w) as f64, (i / w) as f64);
+                let ridge = if (c - 1.3 * r).abs() < 6.0 {
+                    200.0
+                } else {
+                    0.0
+                };
+                (30.0 * (c / 17.0).sin() * (r / 23.0).cos()
+                    + 12.0 * (c / 5.0 + r / 7.0).sin()
+                    + ridge) as f32
+            })
+            .collect();
+        let crs = LunarCrs::equirectangular(-43.3, -11.4);
+        let (x0, y0) = crs.from_lonlat_deg(-11.4, -43.3).unwrap();
+        let transform = GeoTransform::north_up(x0 - 900.0, y0 + 900.0, gsd);
+        let field = HeightField::new(&heights, w, h, transform);
+        let frame = LocalFrame::new(&crs, x0, y0, 0.0).unwrap();
+        let (cols, rows) = (150..210, 160..200);
+        for (azimuth_deg, elevation_deg) in [
+            (30.0, 12.0),
+            (135.0, 20.0),
+            (250.0, 8.0),
+            (330.0, 15.0),
+            (90.0, 10.0),
+        ] {
+            let (az, el) = (f64::to_radians(azimuth_deg), f64::to_radians(elevation_deg));
+            let toward = glam::DVec3::new(az.sin() * el.cos(), az.cos() * el.cos(), el.sin());
+            let window = visibility_window(
+                &field,
+                cols.clone(),
+                rows.clone(),
+                &frame,
+                toward,
+                SUN_ANGULAR_RADIUS_RAD,
+                4,
+            );
+            assert!(
+                window.width * window.height < w * h,
+                "the window must not be the whole field"
+            );
+            // Reference: the same sweep over the whole field.
+            let mut all = heights.clone();
+            let (oc, or) = transform.map_to_pixel(frame.origin_map.x, frame.origin_map.y);
+            drop_for_curvature(&mut all, w, gsd, oc, or);
+            let grid = HorizonGrid::new(&all, w, h, gsd);
+            let dir = SourceDirection::from_enu(toward, &frame, SUN_ANGULAR_RADIUS_RAD);
+            let reference = grid.sweep_visible_fraction(&dir, 4);
+            let mut shadowed = 0;
+            for r in rows.clone() {
+                for c in cols.clone() {
+                    let expected = reference[r * w + c];
+                    shadowed += (expected < 1.0) as usize;
+                    assert_eq!(
+                        window.cell(c, r),
+                        expected,
+                        "azimuth {azimuth_deg}° at ({c}, {r})"
+                    );
+                }
+            }
+            assert!(
+                shadowed > 0,
+                "azimuth {azimuth_deg}°: the ridge must shadow part of the area"
+            );
+        }
+    }
 
     #[test]
     fn disk_fraction_limits() {
