@@ -96,17 +96,33 @@ pub fn run(
     let source = ShardFile::open(samples_path)?;
     let groups = source.row_group_sizes().len();
     std::thread::scope(|scope| -> anyhow::Result<()> {
-        let (send, receive) = std::sync::mpsc::sync_channel::<anyhow::Result<Vec<RecordBatch>>>(1);
-        scope.spawn(move || {
-            for group in 0..groups {
-                let decoded = source
-                    .read_batches(group, None, true)
-                    .map_err(anyhow::Error::from);
-                let failed = decoded.is_err();
-                if send.send(decoded).is_err() || failed {
-                    break;
+        // Two decoders take alternate row groups (decoding FixedSizeList columns was the stage's longest serial
+        // chain); taking from them in turn restores file order.
+        const DECODERS: usize = 2;
+        let mut decoded_groups = Vec::new();
+        for first in 0..DECODERS {
+            let (send, receive) =
+                std::sync::mpsc::sync_channel::<anyhow::Result<Vec<RecordBatch>>>(1);
+            decoded_groups.push(receive);
+            let source = source.clone();
+            scope.spawn(move || {
+                for group in (first..groups).step_by(DECODERS) {
+                    let decoded = source
+                        .read_batches(group, None, true)
+                        .map_err(anyhow::Error::from);
+                    let failed = decoded.is_err();
+                    if send.send(decoded).is_err() || failed {
+                        break;
+                    }
                 }
-            }
+            });
+        }
+        let receive = (0..groups).map(|group| {
+            decoded_groups[group % DECODERS].recv().unwrap_or_else(|_| {
+                Err(anyhow::anyhow!(
+                    "row-group decoder stopped before group {group}"
+                ))
+            })
         });
         let mut to_split = Vec::new();
         let mut writers = Vec::new();
