@@ -454,7 +454,7 @@ fn plots(report: &Report) -> Vec<(&'static str, &'static str, &'static str, Vec<
     if !report.resampling.is_empty() {
         out.push((
             "resampling.png",
-            "Projection resampling: RMS vs the exact area average against time per crop (area itself: 0, not drawn)",
+            "Resampling kernel: RMS vs exact area average (area = 0, not drawn)",
             "ms per crop",
             report
                 .resampling
