@@ -325,7 +325,7 @@ pub fn run(
                         }
                     }
                     if send.send(accepted).is_err() {
-                        break; // the writer failed; its error is reported below
+                        return Ok(()); // the writer failed; its error is reported below
                     }
                     progress.inc(chunk.len() as u64);
                 }
