@@ -17,7 +17,7 @@ use parquet::file::properties::{EnabledStatistics, WriterProperties};
 use parquet::file::writer::SerializedFileWriter;
 use rayon::prelude::*;
 
-use crate::manifest::ShardEntry;
+use crate::manifest::{hash_file, ShardEntry};
 use crate::raster::tmp_path;
 use crate::schema::{
     batch_to_sample_metadata, batch_to_samples, sample_schema, samples_to_batch, Sample,
@@ -53,9 +53,9 @@ pub enum ShardError {
     SchemaVersion { path: PathBuf, found: String },
 }
 
-/// Writer properties: zstd everywhere; on the tensor leaves no dictionary (16k distinct floats per row: interning
-/// them cost the writer ~9 % of the tycho-full project stage) and no page statistics (min/max of a tensor column helps
-/// no query), and BYTE_STREAM_SPLIT on the float ones.
+/// Writer properties: zstd everywhere; on the tensor leaves no dictionary (interning the 16k values per row of the
+/// `valid` mask was ~9 % of the writer thread's time in the tycho-full project stage) and no page statistics
+/// (min/max of a tensor column helps no query), and BYTE_STREAM_SPLIT on the float ones.
 pub fn writer_properties() -> WriterProperties {
     let schema = sample_schema();
     let descriptor = ArrowSchemaConverter::new()
@@ -91,16 +91,18 @@ pub fn writer_properties() -> WriterProperties {
     builder.build()
 }
 
-/// The shard file, hashed as it is written: a finished shard's checksum costs no second read.
+/// The shard file, hashed as it is written (when asked): a finished shard's checksum costs no second read.
 struct HashingFile {
     file: File,
-    hasher: blake3::Hasher,
+    hasher: Option<blake3::Hasher>,
 }
 
 impl std::io::Write for HashingFile {
     fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
         let written = self.file.write(buf)?;
-        self.hasher.update(&buf[..written]);
+        if let Some(hasher) = self.hasher.as_mut() {
+            hasher.update(&buf[..written]);
+        }
         Ok(written)
     }
 
@@ -117,6 +119,7 @@ impl std::io::Write for HashingFile {
 pub struct ShardWriter {
     path: PathBuf,
     tmp: PathBuf,
+    schema: arrow::datatypes::SchemaRef,
     file_writer: SerializedFileWriter<HashingFile>,
     columns: ArrowRowGroupWriterFactory,
     pending: Vec<RecordBatch>,
@@ -126,7 +129,18 @@ pub struct ShardWriter {
 }
 
 impl ShardWriter {
+    /// A shard hashed while it is written; [`ShardWriter::finish`] reports its blake3.
     pub fn create(path: &Path) -> Result<Self, ShardError> {
+        Self::open(path, true)
+    }
+
+    /// An intermediate file closed with [`ShardWriter::close`]: no blake3 while writing, because its reader hashes
+    /// it anyway (the pipeline runner hashes every stage output; doing it here too cost a pass over gigabytes).
+    pub fn create_unhashed(path: &Path) -> Result<Self, ShardError> {
+        Self::open(path, false)
+    }
+
+    fn open(path: &Path, hashed: bool) -> Result<Self, ShardError> {
         let tmp = tmp_path(path);
         let file = File::create(&tmp).map_err(|source| ShardError::Io {
             path: tmp.clone(),
@@ -134,11 +148,12 @@ impl ShardWriter {
         })?;
         let file = HashingFile {
             file,
-            hasher: blake3::Hasher::new(),
+            hasher: hashed.then(blake3::Hasher::new),
         };
+        let schema = sample_schema();
         // ArrowWriter embeds the Arrow schema in the footer metadata; its low-level halves do the writing.
         let (file_writer, columns) =
-            ArrowWriter::try_new(file, sample_schema(), Some(writer_properties()))
+            ArrowWriter::try_new(file, schema.clone(), Some(writer_properties()))
                 .and_then(ArrowWriter::into_serialized_writer)
                 .map_err(|source| ShardError::Parquet {
                     path: path.to_path_buf(),
@@ -147,6 +162,7 @@ impl ShardWriter {
         Ok(Self {
             path: path.to_path_buf(),
             tmp,
+            schema,
             file_writer,
             columns,
             pending: Vec::new(),
@@ -174,7 +190,7 @@ impl ShardWriter {
     /// Append rows already in Arrow form (e.g. read from another shard): no per-sample conversion. The batch
     /// must have the sample schema's columns and types; its schema-level metadata is replaced by this build's.
     pub fn write_batch(&mut self, batch: &RecordBatch) -> Result<(), ShardError> {
-        let batch = RecordBatch::try_new(sample_schema(), batch.columns().to_vec())
+        let batch = RecordBatch::try_new(self.schema.clone(), batch.columns().to_vec())
             .map_err(|e| self.parquet_err(e.into()))?;
         self.pending_rows += batch.num_rows();
         self.rows += batch.num_rows();
@@ -187,7 +203,7 @@ impl ShardWriter {
 
     /// Encode the first `rows` pending rows as one row group.
     fn flush_row_group(&mut self, rows: usize) -> Result<(), ShardError> {
-        let schema = sample_schema();
+        let schema = self.schema.clone();
         // Take the first `rows` rows off the pending batches; only a group spanning batches is copied.
         let (mut parts, mut taken) = (Vec::new(), 0);
         let mut pending = std::mem::take(&mut self.pending).into_iter();
@@ -246,7 +262,9 @@ impl ShardWriter {
     }
 
     /// Write the last, partial row group and the footer; returns the footer's metadata and the file's blake3.
-    fn close_file(mut self) -> Result<(ParquetMetaData, String, PathBuf, usize), ShardError> {
+    fn close_file(
+        mut self,
+    ) -> Result<(ParquetMetaData, Option<String>, PathBuf, usize), ShardError> {
         if self.pending_rows > 0 {
             self.flush_row_group(self.pending_rows)?;
         }
@@ -261,9 +279,8 @@ impl ShardWriter {
             .file_writer
             .inner()
             .hasher
-            .finalize()
-            .to_hex()
-            .to_string();
+            .as_ref()
+            .map(|hasher| hasher.finalize().to_hex().to_string());
         drop(self.file_writer);
         std::fs::rename(&self.tmp, &self.path).map_err(|source| ShardError::Io {
             path: self.path.clone(),
@@ -272,8 +289,7 @@ impl ShardWriter {
         Ok((metadata, blake3, self.path, self.rows))
     }
 
-    /// Close and rename into place without hashing: for intermediate files whose checksum someone else takes
-    /// (the pipeline runner hashes every stage output). Returns the row count.
+    /// Close and rename into place; returns the row count (for [`ShardWriter::create_unhashed`] files).
     pub fn close(self) -> Result<usize, ShardError> {
         Ok(self.close_file()?.3)
     }
@@ -281,6 +297,13 @@ impl ShardWriter {
     /// Close, rename into place, and describe the finished shard (size, rows, row groups, blake3).
     pub fn finish(self) -> Result<ShardEntry, ShardError> {
         let (metadata, blake3, path, rows) = self.close_file()?;
+        let blake3 = match blake3 {
+            Some(hash) => hash,
+            None => hash_file(&path).map_err(|source| ShardError::Io {
+                path: path.clone(),
+                source,
+            })?,
+        };
         let bytes = std::fs::metadata(&path)
             .map_err(|source| ShardError::Io {
                 path: path.clone(),
@@ -566,7 +589,6 @@ pub fn shard_name(split: &str, index: usize, count: usize) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::manifest::hash_file;
     use crate::testing::synthetic_sample;
 
     #[test]
@@ -609,6 +631,10 @@ mod tests {
         assert_eq!(whole.row_groups, 3);
         assert_eq!(singles.blake3, whole.blake3);
         assert_eq!(ragged.blake3, whole.blake3);
+        // Unhashed while written (intermediate files), the checksum of `finish` is still the file's.
+        let mut w = ShardWriter::create_unhashed(&dir.path().join("unhashed.parquet")).unwrap();
+        w.write(&samples).unwrap();
+        assert_eq!(w.finish().unwrap().blake3, whole.blake3);
         assert_eq!(
             read_shard(&dir.path().join("ragged.parquet")).unwrap(),
             samples

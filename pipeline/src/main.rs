@@ -12,7 +12,7 @@ use pipeline::synth::{config, WorldConfig};
 /// time: the page faults, zeroing and mmap-lock contention between threads dominated system time. Measured on
 /// tycho-full with the equivalent MALLOC_* variables: project 141.6 s -> 121.4 s wall at the same peak RSS (1.9 GB)
 /// with these values. A 1 GiB trim threshold was faster still but raised peak RSS to 2.6 GB, past the 2 GiB budget;
-/// mimalloc was slower (publish 92 s against 72 s).
+/// mimalloc was slower (publish 92 s against 72 s with glibc at a 1 GiB trim threshold).
 fn tune_allocator() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     // SAFETY: mallopt only sets allocator parameters; called once, before any other thread exists.

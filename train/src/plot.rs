@@ -82,40 +82,29 @@ pub fn render_scatter(plot: &Scatter, font: Option<&FontVec>) -> (RgbImage, bool
     let xd = decades(points.iter().map(|p| p.x));
     let yd = decades(points.iter().map(|p| p.y));
     let small = PxScale::from(15.0);
+    // A decade tick label: `place` turns the text's size into its top-left corner.
+    let tick_label = |img: &mut RgbImage, d: i32, place: &dyn Fn(u32, u32) -> (i32, i32)| {
+        if let Some(f) = font {
+            let text = format!("1e{d}");
+            let (w, h) = text_size(small, f, &text);
+            let (x, y) = place(w, h);
+            draw_text_mut(img, INK, x, y, small, f, &text);
+        }
+    };
     for d in xd.0..=xd.1 {
         let x = to_px(10f64.powi(d), xd, left, right);
         draw_line_segment_mut(&mut img, (x, top), (x, bottom), GRID);
-        if let Some(f) = font {
-            let text = format!("1e{d}");
-            let (w, _) = text_size(small, f, &text);
-            draw_text_mut(
-                &mut img,
-                INK,
-                x as i32 - w as i32 / 2,
-                bottom as i32 + 6,
-                small,
-                f,
-                &text,
-            );
-        }
+        tick_label(&mut img, d, &|w, _| {
+            (x as i32 - w as i32 / 2, bottom as i32 + 6)
+        });
     }
     for d in yd.0..=yd.1 {
         // y grows upward: the top of the area is the highest decade.
         let y = to_px(10f64.powi(d), yd, bottom, top);
         draw_line_segment_mut(&mut img, (left, y), (right, y), GRID);
-        if let Some(f) = font {
-            let text = format!("1e{d}");
-            let (w, h) = text_size(small, f, &text);
-            draw_text_mut(
-                &mut img,
-                INK,
-                left as i32 - w as i32 - 6,
-                y as i32 - h as i32 / 2,
-                small,
-                f,
-                &text,
-            );
-        }
+        tick_label(&mut img, d, &|w, h| {
+            (left as i32 - w as i32 - 6, y as i32 - h as i32 / 2)
+        });
     }
     draw_hollow_rect_mut(
         &mut img,

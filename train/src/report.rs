@@ -298,28 +298,34 @@ pub fn resampling_rows(
         }
         r += CROP_PX;
     }
-    let run = |kernel: ResampleKernel| {
-        let t0 = Instant::now();
-        let crops: Vec<_> = corners
-            .iter()
-            .map(|&corner| resample_cells(ortho, dem, corner, CROP_PX, kernel))
-            .collect();
-        (crops, t0.elapsed().as_secs_f64())
-    };
-    let (exact, _) = run(ResampleKernel::Area);
-    ResampleKernel::ALL
+    // Each kernel timed over all crops; the area kernel's own timed output is the reference.
+    let timed: Vec<_> = ResampleKernel::ALL
         .into_iter()
         .map(|kernel| {
-            let (crops, seconds) = run(kernel);
-            let (mut sq, mut max_abs, mut n, mut valid) = (0f64, 0f64, 0usize, 0usize);
-            for ((image, mask), (reference, _)) in crops.iter().zip(&exact) {
+            let t0 = Instant::now();
+            let crops: Vec<_> = corners
+                .iter()
+                .map(|&corner| resample_cells(ortho, dem, corner, CROP_PX, kernel))
+                .collect();
+            (kernel, crops, t0.elapsed().as_secs_f64())
+        })
+        .collect();
+    let exact = &timed
+        .iter()
+        .find(|(kernel, _, _)| *kernel == ResampleKernel::Area)
+        .expect("ALL holds the area kernel")
+        .1;
+    timed
+        .iter()
+        .map(|(kernel, crops, seconds)| {
+            let (mut sq, mut max_abs, mut valid) = (0f64, 0f64, 0usize);
+            for ((image, mask), (reference, _)) in crops.iter().zip(exact) {
                 for k in 0..image.len() {
                     if mask[k] == 1 {
                         valid += 1;
                         let d = (image[k] - reference[k]) as f64;
                         sq += d * d;
                         max_abs = max_abs.max(d.abs());
-                        n += 1;
                     }
                 }
             }
@@ -327,8 +333,12 @@ pub fn resampling_rows(
             ResampleRow {
                 kernel: kernel.name().into(),
                 crops: corners.len(),
-                ms_per_crop: 1e3 * seconds / corners.len().max(1) as f64,
-                rms_vs_area: if n > 0 { (sq / n as f64).sqrt() } else { 0.0 },
+                ms_per_crop: 1e3 * *seconds / corners.len().max(1) as f64,
+                rms_vs_area: if valid > 0 {
+                    (sq / valid as f64).sqrt()
+                } else {
+                    0.0
+                },
                 max_abs_vs_area: max_abs,
                 valid_ratio: valid as f64 / total.max(1) as f64,
             }

@@ -260,11 +260,10 @@ pub fn run(
     let (send, receive) = std::sync::mpsc::sync_channel::<Vec<Sample>>(1);
     std::thread::scope(|scope| -> anyhow::Result<()> {
         let writer_thread = scope.spawn(move || -> anyhow::Result<()> {
-            let mut writer = dataset::shard::ShardWriter::create(samples_out)?;
+            let mut writer = dataset::shard::ShardWriter::create_unhashed(samples_out)?;
             for chunk in receive {
                 writer.write(&chunk)?;
             }
-            // The runner hashes this output; hashing it here too cost a second pass over gigabytes.
             writer.close()?;
             Ok(())
         });

@@ -180,23 +180,20 @@ pub fn run(
                                 let heights = dem.value(i);
                                 let interior =
                                     crop_interior(heights.as_primitive::<Float32Type>().values());
-                                let mean = interior.iter().sum::<f64>() / interior.len() as f64;
-                                dem_sq_sum += interior
-                                    .iter()
-                                    .map(|h| (h - mean) * (h - mean))
-                                    .sum::<f64>();
-                                dem_n += interior.len() as u64;
+                                let n = (CROP_PX * CROP_PX) as f64;
+                                let mean = interior.clone().sum::<f64>() / n;
+                                dem_sq_sum +=
+                                    interior.map(|h| (h - mean) * (h - mean)).sum::<f64>();
+                                dem_n += (CROP_PX * CROP_PX) as u64;
                             }
                         }
-                        let taken = arrow::compute::take_record_batch(
-                            &batch,
-                            &UInt32Array::from(rows.clone()),
-                        )?;
                         let split_names = StringArray::from(vec![split.name(); rows.len()]);
                         let tile_ids: StringArray = rows
                             .iter()
                             .map(|&i| Some(routed[i as usize].expect("routed").1.as_str()))
                             .collect();
+                        let taken =
+                            arrow::compute::take_record_batch(&batch, &UInt32Array::from(rows))?;
                         let mut columns = taken.columns().to_vec();
                         let schema = taken.schema();
                         columns[schema.index_of("split")?] = Arc::new(split_names);
@@ -292,12 +289,13 @@ fn write_split_shards(
     Ok(shards)
 }
 
-/// The 128 × 128 crop heights (apron excluded) in f64, from a 130 × 130 DEM crop.
-fn crop_interior(dem_m: &[f32]) -> Vec<f64> {
-    (1..=CROP_PX)
-        .flat_map(|r| (1..=CROP_PX).map(move |c| (r, c)))
-        .map(|(r, c)| dem_m[r * DEM_PX + c] as f64)
-        .collect()
+/// The 128 × 128 crop heights (apron excluded) in f64, row-major, from a 130 × 130 DEM crop.
+fn crop_interior(dem_m: &[f32]) -> impl Iterator<Item = f64> + Clone + '_ {
+    (1..=CROP_PX).flat_map(move |r| {
+        dem_m[r * DEM_PX + 1..=r * DEM_PX + CROP_PX]
+            .iter()
+            .map(|&h| h as f64)
+    })
 }
 
 fn string_column<'b>(batch: &'b RecordBatch, name: &str) -> anyhow::Result<&'b StringArray> {
