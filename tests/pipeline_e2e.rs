@@ -80,7 +80,7 @@ fn pipeline_is_reproducible_incremental_and_readable() {
         .unwrap();
     std::fs::remove_dir_all(dir.join("out/dataset")).unwrap();
     assert_eq!(run(&m, Some("sample")), vec!["ingest", "erode", "sample"]);
-    assert_eq!(run(&m, None), vec!["project", "split", "publish"]);
+    assert_eq!(run(&m, None), vec!["split", "project", "publish"]);
     let second = published(dir);
     assert_eq!(
         first.keys().collect::<Vec<_>>(),

@@ -202,7 +202,20 @@ impl<'a> HorizonGrid<'a> {
     ///
     /// `disk_samples` elevation samples across the disk (1 = hard shadow at the centre). Returns row-major f32.
     pub fn sweep_visible_fraction(&self, dir: &SourceDirection, disk_samples: usize) -> Vec<f32> {
-        let n = self.width * self.height;
+        self.sweep_visible_fraction_in(dir, disk_samples, 0..self.width, 0..self.height)
+    }
+
+    /// [`Self::sweep_visible_fraction`] kept only for the cells `cols × rows` (row-major over that rectangle):
+    /// the sweeps still cross the whole grid, so blockers anywhere upstream count, but only the area of interest
+    /// is stored (a window extended toward a low sun can be 4× the area it serves).
+    pub fn sweep_visible_fraction_in(
+        &self,
+        dir: &SourceDirection,
+        disk_samples: usize,
+        cols: std::ops::Range<usize>,
+        rows: std::ops::Range<usize>,
+    ) -> Vec<f32> {
+        let n = cols.len() * rows.len();
         if self.source_clears_all_slopes(dir) {
             return vec![1.0; n];
         }
@@ -234,7 +247,13 @@ impl<'a> HorizonGrid<'a> {
         let lit: Vec<Vec<bool>> = {
             use rayon::prelude::*;
             disk.par_iter()
-                .map(|&(_, elevation)| self.sweep_hard(dir.toward_col, dir.toward_row, elevation))
+                .map(|&(_, elevation)| {
+                    self.sweep_hard(
+                        (dir.toward_col, dir.toward_row),
+                        elevation,
+                        (cols.clone(), rows.clone()),
+                    )
+                })
                 .collect()
         };
         let mut total = vec![0.0f32; n];
@@ -250,14 +269,21 @@ impl<'a> HorizonGrid<'a> {
     }
 
     /// Hard-edged visibility of a point source at `elevation` (radians): the shadow-surface recurrence
-    /// S(p) = max(h(p), S(p + step) − |step|·tan(elevation)), processed from the source side.
-    fn sweep_hard(&self, toward_col: f64, toward_row: f64, elevation: f64) -> Vec<bool> {
+    /// S(p) = max(h(p), S(p + step) − |step|·tan(elevation)), processed from the source side over the whole grid;
+    /// returned for the cells `cols × rows` only (row-major over that rectangle).
+    fn sweep_hard(
+        &self,
+        (toward_col, toward_row): (f64, f64),
+        elevation: f64,
+        (cols, rows): (std::ops::Range<usize>, std::ops::Range<usize>),
+    ) -> Vec<bool> {
         let (w, h) = (self.width, self.height);
+        let (aoi_w, aoi_n) = (cols.len(), cols.len() * rows.len());
         if elevation <= 0.0 {
-            return vec![false; w * h];
+            return vec![false; aoi_n];
         }
         if elevation.tan() > self.max_slope_tan {
-            return vec![true; w * h];
+            return vec![true; aoi_n];
         }
         let tan_e = elevation.tan();
         // Work on a view where the dominant axis of the direction is "columns" and the source lies at lower index.
@@ -268,11 +294,16 @@ impl<'a> HorizonGrid<'a> {
             (toward_row, toward_col)
         };
         if major.abs() < 1e-15 {
-            return vec![true; w * h];
+            return vec![true; aoi_n];
         }
         let slope = minor / major.abs(); // minor-axis offset per major step toward the source
         let step_m = self.gsd_m * (1.0 + slope * slope).sqrt();
         let (n_major, n_minor) = if col_major { (w, h) } else { (h, w) };
+        let (aoi_major, aoi_minor) = if col_major {
+            (cols.clone(), rows.clone())
+        } else {
+            (rows.clone(), cols.clone())
+        };
         let index = |maj: usize, min: usize| {
             if col_major {
                 min * w + maj
@@ -280,12 +311,17 @@ impl<'a> HorizonGrid<'a> {
                 maj * w + min
             }
         };
+        let aoi_index = |maj: usize, min: usize| {
+            let (c, r) = if col_major { (maj, min) } else { (min, maj) };
+            (r - rows.start) * aoi_w + (c - cols.start)
+        };
         let toward_low = major < 0.0; // source toward decreasing major index
-        let mut lit = vec![true; w * h];
+        let mut lit = vec![true; aoi_n];
         let mut prev = vec![f64::NEG_INFINITY; n_minor];
         let mut cur = vec![0.0f64; n_minor];
         for step in 0..n_major {
             let maj = if toward_low { step } else { n_major - 1 - step };
+            let keep = aoi_major.contains(&maj);
             for (min, cur_s) in cur.iter_mut().enumerate() {
                 let hh = self.heights[index(maj, min)] as f64;
                 let hh = if hh.is_finite() {
@@ -313,7 +349,9 @@ impl<'a> HorizonGrid<'a> {
                     }
                 };
                 let shadow_top = upstream - step_m * tan_e;
-                lit[index(maj, min)] = hh >= shadow_top;
+                if keep && aoi_minor.contains(&min) {
+                    lit[aoi_index(maj, min)] = hh >= shadow_top;
+                }
                 *cur_s = hh.max(shadow_top);
             }
             std::mem::swap(&mut prev, &mut cur);
@@ -402,6 +440,10 @@ pub fn visibility_window(
     angular_radius_rad: f64,
     disk_samples: usize,
 ) -> VisibilityWindow {
+    let (cols, rows) = (
+        cols.start.min(field.width)..cols.end.min(field.width),
+        rows.start.min(field.height)..rows.end.min(field.height),
+    );
     let gsd = field.transform.gsd_m();
     let elevation = toward_source_enu.z.clamp(-1.0, 1.0).asin().max(1e-3);
     let dir = SourceDirection::from_enu(toward_source_enu, frame, angular_radius_rad);
@@ -439,12 +481,18 @@ pub fn visibility_window(
         .map_to_pixel(frame.origin_map.x, frame.origin_map.y);
     drop_for_curvature(&mut window, width, gsd, oc - col0 as f64, or - row0 as f64);
     let grid = HorizonGrid::new(&window, width, height, gsd);
-    let fraction = grid.sweep_visible_fraction(&dir, disk_samples);
+    // Only the area of interest is kept: the extension exists to hold blockers, not answers.
+    let fraction = grid.sweep_visible_fraction_in(
+        &dir,
+        disk_samples,
+        cols.start - col0..cols.end - col0,
+        rows.start - row0..rows.end - row0,
+    );
     VisibilityWindow {
-        col0,
-        row0,
-        width,
-        height,
+        col0: cols.start,
+        row0: rows.start,
+        width: cols.len(),
+        height: rows.len(),
         fraction,
     }
 }

@@ -185,8 +185,20 @@ pub struct RasterInfo {
     pub nodata: Option<f64>,
 }
 
+/// Cap GDAL's block cache (default 5 % of RAM) at 64 MB, once per process, before the first block is read. This
+/// crate reads and writes whole rasters, so every block passes through the cache exactly once: a large cache only
+/// kept a second copy of each ortho (~300 MB on tycho-full) alive while it was read, raising peak RSS.
+pub fn limit_gdal_block_cache() {
+    static ONCE: std::sync::Once = std::sync::Once::new();
+    ONCE.call_once(|| {
+        // Only fails on an interior NUL in key or value, which these constants do not have.
+        let _ = gdal::config::set_config_option("GDAL_CACHEMAX", "64");
+    });
+}
+
 /// Open a raster and validate what every stage relies on: a lunar CRS and a north-up geotransform.
 pub fn open_lunar(path: &Path) -> Result<(Dataset, RasterInfo), RasterError> {
+    limit_gdal_block_cache();
     if !path.exists() {
         return Err(RasterError::Open {
             path: path.to_path_buf(),
@@ -312,6 +324,7 @@ pub fn write_geotiff(
         nodata,
     } = layout.clone();
     let tmp = tmp_path(path);
+    limit_gdal_block_cache();
     let driver = DriverManager::get_driver_by_name("GTiff").map_err(gdal_err(path))?;
     let options = RasterCreationOptions::from_iter([
         "TILED=YES",

@@ -124,6 +124,8 @@ pub struct ShardWriter {
     columns: ArrowRowGroupWriterFactory,
     pending: Vec<RecordBatch>,
     pending_rows: usize,
+    /// Rows per row group ([`ROW_GROUP_ROWS`] unless a small shard size asks for fewer).
+    group_rows: usize,
     row_groups: usize,
     rows: usize,
 }
@@ -167,9 +169,17 @@ impl ShardWriter {
             columns,
             pending: Vec::new(),
             pending_rows: 0,
+            group_rows: ROW_GROUP_ROWS,
             row_groups: 0,
             rows: 0,
         })
+    }
+
+    /// Cut row groups of `rows` rows instead of [`ROW_GROUP_ROWS`] (shards smaller than one default row group are
+    /// cut from files written this way).
+    pub fn with_row_group_rows(mut self, rows: usize) -> Self {
+        self.group_rows = rows.max(1);
+        self
     }
 
     fn parquet_err(&self, source: parquet::errors::ParquetError) -> ShardError {
@@ -195,8 +205,8 @@ impl ShardWriter {
         self.pending_rows += batch.num_rows();
         self.rows += batch.num_rows();
         self.pending.push(batch);
-        while self.pending_rows >= ROW_GROUP_ROWS {
-            self.flush_row_group(ROW_GROUP_ROWS)?;
+        while self.pending_rows >= self.group_rows {
+            self.flush_row_group(self.group_rows)?;
         }
         Ok(())
     }
@@ -261,6 +271,51 @@ impl ShardWriter {
         Ok(())
     }
 
+    /// Append row group `group` of `source` as it is encoded: its column chunks' bytes are copied, not decoded
+    /// and re-encoded (publishing a split file as shards costs a file copy). Rows written with [`Self::write`] and
+    /// not yet flushed would land after it, so they must not exist: call this only on a writer fed by row groups.
+    pub fn append_encoded_row_group(
+        &mut self,
+        source: &EncodedRowGroups,
+        group: usize,
+    ) -> Result<(), ShardError> {
+        if self.pending_rows > 0 {
+            return Err(self.parquet_err(parquet::errors::ParquetError::General(
+                "encoded row groups cannot follow partly buffered rows".into(),
+            )));
+        }
+        let metadata = &source.metadata;
+        let Some(row_group) = metadata.row_groups().get(group) else {
+            return Err(ShardError::RowGroup {
+                path: source.path.clone(),
+                row_group: group,
+                count: metadata.num_row_groups(),
+            });
+        };
+        let page_index = metadata.page_index_for_row_group(group);
+        let path = &self.path;
+        let err = |source| ShardError::Parquet {
+            path: path.clone(),
+            source,
+        };
+        let mut writer = self.file_writer.next_row_group().map_err(err)?;
+        for (k, column) in row_group.columns().iter().enumerate() {
+            let close = parquet::column::writer::ColumnCloseResult {
+                bytes_written: column.compressed_size() as u64,
+                rows_written: row_group.num_rows() as u64,
+                metadata: column.clone(),
+                bloom_filter: None,
+                column_index: page_index.column_index(k).cloned(),
+                offset_index: page_index.offset_index(k).cloned(),
+            };
+            writer.append_column(&source.file, close).map_err(err)?;
+        }
+        writer.close().map_err(err)?;
+        self.row_groups += 1;
+        self.rows += row_group.num_rows() as usize;
+        Ok(())
+    }
+
     /// Write the last, partial row group and the footer; returns the footer's metadata and the file's blake3.
     fn close_file(
         mut self,
@@ -320,6 +375,59 @@ impl ShardWriter {
             row_groups: metadata.num_row_groups() as u64,
             blake3,
         })
+    }
+}
+
+/// A sample file opened for copying its row groups verbatim ([`ShardWriter::append_encoded_row_group`]): footer
+/// and page index parsed, schema checked to be this build's sample schema leaf for leaf.
+pub struct EncodedRowGroups {
+    path: PathBuf,
+    file: File,
+    metadata: ParquetMetaData,
+}
+
+impl EncodedRowGroups {
+    pub fn open(path: &Path) -> Result<Self, ShardError> {
+        let parquet_err = |source| ShardError::Parquet {
+            path: path.to_path_buf(),
+            source,
+        };
+        let file = File::open(path).map_err(|source| ShardError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let metadata = parquet::file::metadata::ParquetMetaDataReader::new()
+            .with_page_index_policy(parquet::file::metadata::PageIndexPolicy::Optional)
+            // Full page encoding stats (not the default summary mask), so the copied footer matches the source's.
+            .with_metadata_options(Some(
+                parquet::file::metadata::ParquetMetaDataOptions::new()
+                    .with_encoding_stats_as_mask(false),
+            ))
+            .parse_and_finish(&file)
+            .map_err(parquet_err)?;
+        let expected = ArrowSchemaConverter::new()
+            .convert(&sample_schema())
+            .map_err(parquet_err)?;
+        if metadata.file_metadata().schema() != expected.root_schema() {
+            return Err(parquet_err(parquet::errors::ParquetError::General(
+                "its Parquet schema is not this build's sample schema; re-run the stage that wrote it"
+                    .into(),
+            )));
+        }
+        Ok(Self {
+            path: path.to_path_buf(),
+            file,
+            metadata,
+        })
+    }
+
+    /// Row count per row group, from the footer.
+    pub fn row_group_sizes(&self) -> Vec<usize> {
+        self.metadata
+            .row_groups()
+            .iter()
+            .map(|rg| rg.num_rows() as usize)
+            .collect()
     }
 }
 
@@ -639,6 +747,52 @@ mod tests {
             read_shard(&dir.path().join("ragged.parquet")).unwrap(),
             samples
         );
+    }
+
+    #[test]
+    fn copied_row_groups_give_the_bytes_of_encoding_the_same_rows() {
+        // Publish cuts a split's file into shards by copying encoded row groups: each shard must be exactly the
+        // file a writer encoding those rows would produce, footer and page index included.
+        let dir = tempfile::tempdir().unwrap();
+        let samples: Vec<Sample> = (0..530).map(synthetic_sample).collect();
+        let encode = |name: &str, rows: &[Sample]| {
+            let mut w = ShardWriter::create(&dir.path().join(name)).unwrap();
+            w.write(rows).unwrap();
+            w.finish().unwrap()
+        };
+        encode("split.parquet", &samples);
+        let source = EncodedRowGroups::open(&dir.path().join("split.parquet")).unwrap();
+        assert_eq!(source.row_group_sizes(), vec![256, 256, 18]);
+        let copy = |name: &str, groups: &[usize]| {
+            let mut w = ShardWriter::create(&dir.path().join(name)).unwrap();
+            for &g in groups {
+                w.append_encoded_row_group(&source, g).unwrap();
+            }
+            w.finish().unwrap()
+        };
+        let (first, rest) = (copy("a.parquet", &[0]), copy("b.parquet", &[1, 2]));
+        let (first_encoded, rest_encoded) = (
+            encode("a-enc.parquet", &samples[..256]),
+            encode("b-enc.parquet", &samples[256..]),
+        );
+        assert_eq!((first.rows, first.row_groups), (256, 1));
+        assert_eq!((rest.rows, rest.row_groups), (274, 2));
+        assert_eq!(first.blake3, first_encoded.blake3);
+        assert_eq!(rest.blake3, rest_encoded.blake3);
+        assert_eq!(
+            read_shard(&dir.path().join("b.parquet")).unwrap(),
+            samples[256..]
+        );
+        // Rows already buffered would land after the copied group: refused.
+        let mut w = ShardWriter::create(&dir.path().join("mixed.parquet")).unwrap();
+        w.write(&samples[..3]).unwrap();
+        assert!(w.append_encoded_row_group(&source, 0).is_err());
+        assert!(matches!(
+            ShardWriter::create(&dir.path().join("c.parquet"))
+                .unwrap()
+                .append_encoded_row_group(&source, 3),
+            Err(ShardError::RowGroup { count: 3, .. })
+        ));
     }
 
     #[test]

@@ -29,7 +29,7 @@ fn tune_allocator() {
     version,
     about = "Turn a lunar DEM + orthoimages into DEM-image pair shards; generate a synthetic lunar world",
     long_about = "Turn a lunar DEM + orthoimages + acquisition metadata into Parquet shards of DEM-image pairs \
-(erode -> sample -> project -> split -> publish), and generate a seeded synthetic lunar world with a hidden \
+(erode -> sample -> split -> project -> publish), and generate a seeded synthetic lunar world with a hidden \
 ground truth to run it on.\n\nLogs go to stderr (RUST_LOG=debug for more); progress bars show on a terminal."
 )]
 struct Cli {
@@ -62,7 +62,7 @@ enum Command {
         #[arg(long)]
         force: bool,
     },
-    /// Run the stale stages of a pipeline manifest: ingest -> erode -> sample -> project -> split -> publish.
+    /// Run the stale stages of a pipeline manifest: ingest -> erode -> sample -> split -> project -> publish.
     ///
     /// A stage is stale when its code version, parameters or input files changed, or an output is missing or
     /// modified (see `status`). Outputs go to the manifest's output.dir: stages/ (intermediate Parquet tables),
@@ -71,7 +71,7 @@ enum Command {
     Run {
         /// Pipeline manifest (TOML), e.g. manifests/demo.toml.
         manifest: PathBuf,
-        /// Stop after this stage (ingest, erode, sample, project, split, publish).
+        /// Stop after this stage (ingest, erode, sample, split, project, publish).
         #[arg(long)]
         until: Option<String>,
         /// Re-run this stage even if it is up to date (repeatable); later stages follow.

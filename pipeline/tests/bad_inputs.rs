@@ -311,6 +311,21 @@ fn pipeline_manifest_missing_a_field() {
 }
 
 #[test]
+fn shard_size_that_cuts_a_row_group() {
+    // Shards are copied as whole 256-row groups: 300 rows per shard would split one.
+    let (tmp, m) = case();
+    let text = std::fs::read_to_string(&m)
+        .unwrap()
+        .replace("rows_per_shard = 40", "rows_per_shard = 300");
+    std::fs::write(&m, text).unwrap();
+    assert_refused(
+        tmp.path(),
+        &m,
+        &["m.toml", "rows_per_shard = 300", "multiple of 256"],
+    );
+}
+
+#[test]
 fn duplicate_ortho_id() {
     let (tmp, m) = case();
     let (_, json) = first_ortho(tmp.path());
@@ -332,7 +347,7 @@ fn unknown_stage_name() {
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(
         stderr.contains("unknown stage 'projekt'")
-            && stderr.contains("ingest, erode, sample, project, split, publish"),
+            && stderr.contains("ingest, erode, sample, split, project, publish"),
         "{stderr}"
     );
     assert!(!tmp.path().join("out/dataset/manifest.json").exists());

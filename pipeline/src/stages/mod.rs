@@ -1,5 +1,6 @@
-//! Pipeline stages (DESIGN §7), in data-flow order: [`ingest`] → [`erode`] → [`sample`] → [`project`] →
-//! [`split`] → [`publish`]. [`pipeline`] declares them to the [`crate::runner`] with their inputs, params and
+//! Pipeline stages (DESIGN §7), in data-flow order: [`ingest`] → [`erode`] → [`sample`] → [`split`] →
+//! [`project`] → [`publish`]. Split runs on the sampled footprints, before projection: assignment needs only a
+//! crop's centre and size, and crops straddling two splits (17 % on tycho-full) are then never projected. [`pipeline`] declares them to the [`crate::runner`] with their inputs, params and
 //! outputs; each module holds the algorithm (tested on its own) and the stage function that does the file IO.
 
 pub mod erode;
@@ -19,17 +20,25 @@ use crate::manifest::PipelineManifest;
 use crate::runner::{Runner, Stage};
 
 /// Stage names in order.
-pub const STAGES: [&str; 6] = ["ingest", "erode", "sample", "project", "split", "publish"];
+pub const STAGES: [&str; 6] = ["ingest", "erode", "sample", "split", "project", "publish"];
+
+/// Rows per row group of the projected split files and the shards cut from them: the default 256, or the whole
+/// shard when shards are smaller (the manifest requires `rows_per_shard` ≤ 256 or a multiple of 256).
+pub fn row_group_rows(rows_per_shard: usize) -> usize {
+    rows_per_shard.min(dataset::shard::ROW_GROUP_ROWS)
+}
 
 /// Outputs of each stage, under the manifest's output directory.
 pub struct Layout {
     pub orthos: PathBuf,
     pub runs: PathBuf,
     pub positions: PathBuf,
-    pub samples: PathBuf,
-    pub rejections: PathBuf,
     pub assignment: PathBuf,
     pub split_summary: PathBuf,
+    /// One sample file per split, in [`split::Split::ALL`] order.
+    pub split_samples: [PathBuf; 3],
+    pub rejections: PathBuf,
+    pub train_dem: PathBuf,
     pub dataset: PathBuf,
 }
 
@@ -40,10 +49,12 @@ impl Layout {
             orthos: s.join("ingest/orthos.parquet"),
             runs: s.join("erode/runs.parquet"),
             positions: s.join("sample/positions.parquet"),
-            samples: s.join("project/samples.parquet"),
-            rejections: s.join("project/rejections.json"),
             assignment: s.join("split/assignment.parquet"),
             split_summary: s.join("split/summary.json"),
+            split_samples: split::Split::ALL
+                .map(|split| s.join(format!("project/{}.parquet", split.name()))),
+            rejections: s.join("project/rejections.json"),
+            train_dem: s.join("project/train_dem.json"),
             dataset: manifest.dataset_dir(),
         }
     }
@@ -142,55 +153,20 @@ pub fn pipeline(
         }),
         check: None,
     };
-    let (od, l4, dem4, pp, prov) = (
-        ortho_dir.clone(),
-        Layout::of(&m),
-        dem.clone(),
-        m.project.clone(),
-        provenance.clone(),
-    );
-    let progress4 = progress.clone();
-    let project = Stage {
-        name: "project",
-        code_version: "1",
-        // Everything projection reads: positions, the DEM, and each ortho's image and metadata.
-        inputs: [
-            layout.positions.clone(),
-            layout.orthos.clone(),
-            dem_input.clone(),
-        ]
-        .into_iter()
-        .chain(images.iter().cloned())
-        .chain(metadata.iter().cloned())
-        .collect(),
-        params: serde_json::to_value(&m.project)?,
-        outputs: vec![layout.samples.clone(), layout.rejections.clone()],
-        run: Box::new(move |out| {
-            let orthos = ingest::read(&l4.orthos, &od)?;
-            project::run(
-                dem4.get()?,
-                &orthos,
-                &l4.positions,
-                &pp,
-                &prov,
-                (&out.paths[0], &out.paths[1]),
-                &progress4,
-            )
-        }),
-        check: None,
-    };
-    let (l5, dem5, sp) = (Layout::of(&m), dem.clone(), m.split.clone());
+    let (l4, dem4, sp) = (Layout::of(&m), dem.clone(), m.split.clone());
     let split = Stage {
         name: "split",
-        // 2: summary states the tile size and guard band (the card and the server's tile map read them).
-        code_version: "2",
-        inputs: vec![layout.samples.clone(), dem_input.clone()],
+        // 3: assigns sampled positions (before projection) instead of projected samples.
+        code_version: "3",
+        inputs: vec![layout.positions.clone(), dem_input.clone()],
         params: serde_json::json!({ "split": serde_json::to_value(&m.split)?, "seed": seed }),
         outputs: vec![layout.assignment.clone(), layout.split_summary.clone()],
         run: Box::new(move |out| {
+            let dem = dem4.get()?;
             split::run(
-                &l5.samples,
-                crop_half_m(dem5.get()?),
+                &l4.positions,
+                &dem.transform,
+                crop_half_m(dem),
                 seed,
                 &sp,
                 &out.paths[0],
@@ -199,19 +175,76 @@ pub fn pipeline(
         }),
         check: None,
     };
+    let (od, l5, dem5, pp, prov) = (
+        ortho_dir.clone(),
+        Layout::of(&m),
+        dem.clone(),
+        m.project.clone(),
+        provenance.clone(),
+    );
+    let group_rows = row_group_rows(m.publish.rows_per_shard);
+    let progress5 = progress.clone();
+    let project = Stage {
+        name: "project",
+        // 2: projects assigned positions only, into one file per split.
+        code_version: "2",
+        // Everything projection reads: assigned positions, the DEM, and each ortho's image and metadata.
+        inputs: [
+            layout.assignment.clone(),
+            layout.orthos.clone(),
+            dem_input.clone(),
+        ]
+        .into_iter()
+        .chain(images.iter().cloned())
+        .chain(metadata.iter().cloned())
+        .collect(),
+        // The row-group size is the shards' (publish copies whole groups), so it is a projection parameter too.
+        params: serde_json::json!({
+            "project": serde_json::to_value(&m.project)?,
+            "row_group_rows": group_rows,
+        }),
+        outputs: layout
+            .split_samples
+            .iter()
+            .cloned()
+            .chain([layout.rejections.clone(), layout.train_dem.clone()])
+            .collect(),
+        run: Box::new(move |out| {
+            let orthos = ingest::read(&l5.orthos, &od)?;
+            let p = &out.paths;
+            project::run(
+                dem5.get()?,
+                &orthos,
+                &l5.assignment,
+                &pp,
+                (&prov, group_rows),
+                &project::ProjectOutputs {
+                    split_samples: [&p[0], &p[1], &p[2]],
+                    rejections: &p[3],
+                    train_dem: &p[4],
+                },
+                &progress5,
+            )
+        }),
+        check: None,
+    };
     let (l6, dem6, m6, lock6) = (Layout::of(&m), dem.clone(), m.clone(), lock_path.clone());
     let check_dir = layout.dataset.clone();
     let publish = Stage {
         name: "publish",
-        // 2: card and Croissant written by dataset::publication.
-        code_version: "2",
-        inputs: vec![
-            layout.samples.clone(),
-            layout.assignment.clone(),
-            layout.rejections.clone(),
-            layout.split_summary.clone(),
-            dem_input,
-        ],
+        // 2: card and Croissant written by dataset::publication. 3: shards copied from per-split files.
+        code_version: "3",
+        inputs: layout
+            .split_samples
+            .iter()
+            .cloned()
+            .chain([
+                layout.train_dem.clone(),
+                layout.rejections.clone(),
+                layout.split_summary.clone(),
+                dem_input,
+            ])
+            .collect(),
         // The split parameters shape the card and the map, so they are publish parameters too.
         params: serde_json::json!({
             "dataset": serde_json::to_value(&m.dataset)?,
@@ -266,15 +299,13 @@ pub fn pipeline(
                 manifest: &p[4],
             };
             std::fs::create_dir_all(&l6.dataset)?;
-            publish::run(
-                &ctx,
-                &l6.samples,
-                &l6.assignment,
-                &l6.rejections,
-                &l6.split_summary,
-                &l6.dataset,
-                &outputs,
-            )
+            let [train, val, test] = &l6.split_samples;
+            let projected = publish::ProjectedInputs {
+                split_samples: [train, val, test],
+                train_dem: &l6.train_dem,
+                rejections: &l6.rejections,
+            };
+            publish::run(&ctx, &projected, &l6.split_summary, &l6.dataset, &outputs)
         }),
         // Shards are listed by manifest.json, not declared up front: a missing or altered shard makes publish stale.
         check: Some(Box::new(move || {
@@ -286,7 +317,7 @@ pub fn pipeline(
     Ok(Runner {
         root: m.base_dir.clone(),
         lock_path,
-        stages: vec![ingest, erode, sample, project, split, publish],
+        stages: vec![ingest, erode, sample, split, project, publish],
         hash_memo: Default::default(),
     })
 }

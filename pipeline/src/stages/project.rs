@@ -43,8 +43,8 @@ pub enum Rejection {
 /// What all crops of one ortho share: the rasters, metadata, and visibility swept once on the full DEM.
 pub struct OrthoProjector<'a> {
     pub dem: &'a Raster,
-    pub ortho: &'a Raster,
-    pub meta: &'a AcquisitionMetadata,
+    pub ortho: Raster,
+    pub meta: AcquisitionMetadata,
     sun_visibility: VisibilityWindow,
     camera_visibility: VisibilityWindow,
     provenance: String,
@@ -52,15 +52,15 @@ pub struct OrthoProjector<'a> {
 
 impl<'a> OrthoProjector<'a> {
     /// Sweep sun and camera visibility over the DEM around the ortho (one frame at the ortho centre: the sun is
-    /// far, and the camera ~50 km away changes direction by only the strip's angular width).
+    /// far, and the camera ~50 km away changes direction by only the strip's angular width). `field` is `dem`'s
+    /// height field, built once per stage (its relief scan covers the whole DEM).
     pub fn new(
-        dem: &'a Raster,
-        ortho: &'a Raster,
-        meta: &'a AcquisitionMetadata,
+        (dem, field): (&'a Raster, &HeightField<'_>),
+        ortho: Raster,
+        meta: AcquisitionMetadata,
         params: &ProjectParams,
         provenance: String,
     ) -> Result<Self, CrsError> {
-        let field = HeightField::new(&dem.data, dem.width, dem.height, dem.transform);
         let (x0, y0) = (ortho.transform.origin_x, ortho.transform.origin_y);
         let (x1, y1) = ortho
             .transform
@@ -83,7 +83,7 @@ impl<'a> OrthoProjector<'a> {
         );
         let camera = frame.body_point_to_enu(mid).normalize();
         let sun_visibility = visibility_window(
-            &field,
+            field,
             cols.clone(),
             rows.clone(),
             &frame,
@@ -91,7 +91,7 @@ impl<'a> OrthoProjector<'a> {
             SUN_ANGULAR_RADIUS_RAD,
             params.sun_disk_samples,
         );
-        let camera_visibility = visibility_window(&field, cols, rows, &frame, camera, 0.0, 1);
+        let camera_visibility = visibility_window(field, cols, rows, &frame, camera, 0.0, 1);
         Ok(Self {
             dem,
             ortho,
@@ -129,7 +129,7 @@ impl<'a> OrthoProjector<'a> {
         }
         let (crop_c0, crop_r0) = (col - half, row - half);
         let (mut image, mut valid) = resample_cells(
-            self.ortho,
+            &self.ortho,
             &dem.transform,
             (crop_c0, crop_r0),
             CROP_PX,
@@ -168,10 +168,7 @@ impl<'a> OrthoProjector<'a> {
         }
 
         // Geometry in the crop's own ENU frame, from the metadata.
-        let (cx, cy) = (
-            dem.transform.origin_x + col as f64 * dem.transform.pixel_width,
-            dem.transform.origin_y + row as f64 * dem.transform.pixel_height,
-        );
+        let (cx, cy) = super::split::crop_centre_m(&dem.transform, col as u32, row as u32);
         let center_h = dem.bilinear(col as f64 - 0.5, row as f64 - 0.5) as f64;
         let frame =
             LocalFrame::new(&dem.crs, cx, cy, center_h).map_err(|_| Rejection::OutsideDem)?;
@@ -233,53 +230,127 @@ impl<'a> OrthoProjector<'a> {
     }
 }
 
-/// Stage: project every sampled centre, ortho by ortho (sorted), crops in parallel in chunks of one row group, and
-/// stream accepted samples into one Parquet file; rejections are counted per ortho and reason.
+/// Where the project stage writes: one sample file per split (row groups of `row_group_rows`, in assignment
+/// order, so publish can copy them into shards without decoding), the rejection counts, and the train-split DEM
+/// statistic.
+pub struct ProjectOutputs<'p> {
+    pub split_samples: [&'p std::path::Path; 3],
+    pub rejections: &'p std::path::Path,
+    pub train_dem: &'p std::path::Path,
+}
+
+/// Sum of squared deviations of train crops' heights from each crop's own mean: the dataset's DEM normalisation
+/// statistic (std = √(sum / values)), gathered here so that publishing needs no tensor decode.
+#[derive(Debug, Default, serde::Serialize, serde::Deserialize)]
+pub struct TrainDemStatistic {
+    pub squared_deviation_sum_m2: f64,
+    pub values: u64,
+}
+
+impl TrainDemStatistic {
+    fn add(&mut self, dem_m: &[f32]) {
+        let interior = crop_interior(dem_m);
+        let n = (CROP_PX * CROP_PX) as f64;
+        let mean = interior.clone().sum::<f64>() / n;
+        self.squared_deviation_sum_m2 += interior.map(|h| (h - mean) * (h - mean)).sum::<f64>();
+        self.values += (CROP_PX * CROP_PX) as u64;
+    }
+
+    pub fn std_m(&self) -> f64 {
+        if self.values > 0 {
+            (self.squared_deviation_sum_m2 / self.values as f64).sqrt()
+        } else {
+            0.0
+        }
+    }
+}
+
+/// The 128 × 128 crop heights (apron excluded) in f64, row-major, from a 130 × 130 DEM crop.
+fn crop_interior(dem_m: &[f32]) -> impl Iterator<Item = f64> + Clone + '_ {
+    (1..=CROP_PX).flat_map(move |r| {
+        dem_m[r * DEM_PX + 1..=r * DEM_PX + CROP_PX]
+            .iter()
+            .map(|&h| h as f64)
+    })
+}
+
+/// Stage: project every assigned centre, ortho by ortho (sorted), crops in parallel in chunks of one row group,
+/// and stream accepted samples into their split's file; rejections are counted per ortho and reason.
 pub fn run(
     dem: &Raster,
     orthos: &[super::ingest::OrthoRecord],
-    positions_path: &std::path::Path,
+    assignment_path: &std::path::Path,
     params: &ProjectParams,
-    provenance: &str,
-    (samples_out, rejections_out): (&std::path::Path, &std::path::Path),
+    (provenance, row_group_rows): (&str, usize),
+    out: &ProjectOutputs,
     progress: &indicatif::ProgressBar,
 ) -> anyhow::Result<()> {
+    use super::split::Split;
     use super::table::{read_table, strings, u32s};
     use rayon::prelude::*;
     use std::collections::BTreeMap;
-    let batches = read_table(positions_path)?;
-    let (ids, cols, rows) = (
+    let batches = read_table(assignment_path)?;
+    let (ids, cols, rows, splits, tiles) = (
         strings(&batches, "ortho_id")?,
         u32s(&batches, "col")?,
         u32s(&batches, "row")?,
+        strings(&batches, "split")?,
+        strings(&batches, "tile_id")?,
     );
     progress.set_length(ids.len() as u64);
     let mut rejections: BTreeMap<String, BTreeMap<Rejection, u64>> = BTreeMap::new();
-    // Encoding a row group (BYTE_STREAM_SPLIT + zstd) runs on its own thread while rayon projects the next chunk;
-    // the channel keeps chunk order, so the file's bytes don't depend on timing. Bounded: at most one chunk waits.
-    let (send, receive) = std::sync::mpsc::sync_channel::<Vec<Sample>>(1);
+    // Encoding row groups (BYTE_STREAM_SPLIT + zstd) runs on its own thread while rayon projects the next chunk;
+    // the channel keeps chunk order, so the files' bytes don't depend on timing. Bounded: at most one chunk waits.
+    let (send, receive) = std::sync::mpsc::sync_channel::<Vec<Sample>>(0);
+    let field = &HeightField::new(&dem.data, dem.width, dem.height, dem.transform);
     std::thread::scope(|scope| -> anyhow::Result<()> {
-        let writer_thread = scope.spawn(move || -> anyhow::Result<()> {
-            let mut writer = dataset::shard::ShardWriter::create_unhashed(samples_out)?;
+        let writer_thread = scope.spawn(move || -> anyhow::Result<TrainDemStatistic> {
+            let mut writers = Split::ALL
+                .iter()
+                .zip(out.split_samples)
+                .map(|(_, path)| {
+                    Ok(dataset::shard::ShardWriter::create_unhashed(path)?
+                        .with_row_group_rows(row_group_rows))
+                })
+                .collect::<anyhow::Result<Vec<_>>>()?;
+            let mut train_dem = TrainDemStatistic::default();
             for chunk in receive {
-                writer.write(&chunk)?;
+                let mut by_split: [Vec<Sample>; 3] = Default::default();
+                for sample in chunk {
+                    let k = Split::ALL
+                        .iter()
+                        .position(|s| s.name() == sample.split)
+                        .expect("assignment splits are train/val/test");
+                    if k == 0 {
+                        train_dem.add(&sample.dem_m);
+                    }
+                    by_split[k].push(sample);
+                }
+                for (writer, samples) in writers.iter_mut().zip(&by_split) {
+                    if !samples.is_empty() {
+                        writer.write(samples)?;
+                    }
+                }
             }
-            writer.close()?;
-            Ok(())
+            for writer in writers {
+                writer.close()?;
+            }
+            Ok(train_dem)
         });
-        // Reading and decoding the next ortho (GDAL) runs on its own thread while rayon projects the current one:
-        // serial on the main thread it left the pool idle ~1 s per ortho. Rendezvous channel: at most two orthos
-        // are in memory (the one projected, the one read ahead).
-        let wanted: Vec<(&super::ingest::OrthoRecord, Vec<(usize, usize)>)> = orthos
+        // One ortho after another, each with its positions (and their split and tile) in assignment order.
+        let wanted: Vec<(&super::ingest::OrthoRecord, Vec<usize>)> = orthos
             .iter()
             .map(|record| {
                 let positions = (0..ids.len())
                     .filter(|&i| ids[i] == record.ortho_id)
-                    .map(|i| (cols[i] as usize, rows[i] as usize))
                     .collect();
                 (record, positions)
             })
             .collect();
+        // Reading and decoding the next ortho (GDAL) runs on its own thread while rayon projects the current one:
+        // serial on the main thread it left the pool idle ~1 s per ortho. Rendezvous channel: at most two orthos
+        // are in memory (the one projected, the one read ahead). Building the next projector (its visibility
+        // sweeps) ahead as well measured no faster (the stage is CPU-bound) and raised peak RSS by ~0.3 GB.
         let (send_ortho, receive_ortho) =
             std::sync::mpsc::sync_channel::<anyhow::Result<(Raster, AcquisitionMetadata)>>(0);
         let to_read: Vec<&super::ingest::OrthoRecord> = wanted
@@ -310,11 +381,17 @@ pub fn run(
                     .recv()
                     .map_err(|_| anyhow::anyhow!("ortho reader thread stopped early"))??;
                 let projector =
-                    OrthoProjector::new(dem, &ortho, &meta, params, provenance.to_string())?;
+                    OrthoProjector::new((dem, field), ortho, meta, params, provenance.to_string())?;
                 for chunk in positions.chunks(dataset::shard::ROW_GROUP_ROWS) {
                     let results: Vec<Result<Sample, Rejection>> = chunk
                         .par_iter()
-                        .map(|&(c, r)| projector.project(c, r, params))
+                        .map(|&i| {
+                            let mut sample =
+                                projector.project(cols[i] as usize, rows[i] as usize, params)?;
+                            sample.split = splits[i].clone();
+                            sample.tile_id = tiles[i].clone();
+                            Ok(sample)
+                        })
                         .collect();
                     let mut accepted = Vec::with_capacity(results.len());
                     for result in results {
@@ -337,9 +414,10 @@ pub fn run(
             .join()
             .map_err(|_| anyhow::anyhow!("shard writer thread panicked"))?;
         projected?;
-        written
+        dataset::manifest::write_json_atomic(out.train_dem, &written?)?;
+        Ok(())
     })?;
-    dataset::manifest::write_json_atomic(rejections_out, &rejections)?;
+    dataset::manifest::write_json_atomic(out.rejections, &rejections)?;
     Ok(())
 }
 
@@ -408,6 +486,14 @@ mod tests {
         Scene { dem, ortho, meta }
     }
 
+    impl Scene {
+        fn projector(&self, params: &ProjectParams) -> OrthoProjector<'_> {
+            let field = HeightField::new(&self.dem.data, 400, 400, self.dem.transform);
+            let (ortho, meta) = (self.ortho.clone(), self.meta.clone());
+            OrthoProjector::new((&self.dem, &field), ortho, meta, params, "test".into()).unwrap()
+        }
+    }
+
     fn params() -> ProjectParams {
         ProjectParams {
             min_valid_fraction: 0.9,
@@ -425,8 +511,7 @@ mod tests {
             (0.5 + gx * (x - origin.origin_x) + gy * (origin.origin_y - y)) as f32
         };
         let s = scene(ramp);
-        let projector =
-            OrthoProjector::new(&s.dem, &s.ortho, &s.meta, &params(), "test".into()).unwrap();
+        let projector = s.projector(&params());
         let (col, row) = (200, 190);
         let sample = projector.project(col, row, &params()).unwrap();
         assert!(sample.valid.iter().all(|&v| v == 1));
@@ -474,8 +559,7 @@ mod tests {
         let by = origin.origin_y - 5.0 * 180.0; // DEM row 180
         let s =
             scene(move |x, y| ((x > bx && x < bx + 10.0 && y < by && y > by - 10.0) as u8) as f32);
-        let projector =
-            OrthoProjector::new(&s.dem, &s.ortho, &s.meta, &params(), "test".into()).unwrap();
+        let projector = s.projector(&params());
         let sample = projector.project(col, row, &params()).unwrap();
         let lit: Vec<(usize, usize)> = (0..CROP_PX * CROP_PX)
             .filter(|&k| sample.image[k] > 0.0)
@@ -490,8 +574,7 @@ mod tests {
     #[test]
     fn geometry_columns_agree_with_an_independent_computation() {
         let s = scene(|_, _| 0.3);
-        let projector =
-            OrthoProjector::new(&s.dem, &s.ortho, &s.meta, &params(), "test".into()).unwrap();
+        let projector = s.projector(&params());
         let (col, row) = (230, 150);
         let sample = projector.project(col, row, &params()).unwrap();
         // Independent route: PROJ for the centre's lon/lat, explicit ENU basis, pushbroom time by bisection.
@@ -559,7 +642,7 @@ mod tests {
         let mut s = scene(|_, _| 0.3);
         let p = params();
         {
-            let projector = OrthoProjector::new(&s.dem, &s.ortho, &s.meta, &p, "t".into()).unwrap();
+            let projector = s.projector(&p);
             assert_eq!(
                 projector.project(10, 200, &p).unwrap_err(),
                 Rejection::OutsideDem
@@ -571,7 +654,7 @@ mod tests {
             );
         }
         s.dem.data[200 * 400 + 200] = f32::NAN;
-        let projector = OrthoProjector::new(&s.dem, &s.ortho, &s.meta, &p, "t".into()).unwrap();
+        let projector = s.projector(&p);
         assert_eq!(
             projector.project(210, 210, &p).unwrap_err(),
             Rejection::DemNodata
@@ -583,7 +666,7 @@ mod tests {
                 s.dem.data[r * 400 + c] = H0 + 300.0;
             }
         }
-        let projector = OrthoProjector::new(&s.dem, &s.ortho, &s.meta, &p, "t".into()).unwrap();
+        let projector = s.projector(&p);
         assert_eq!(
             projector.project(250, 200, &p).unwrap_err(),
             Rejection::TooShadowed

@@ -89,26 +89,34 @@ pub fn split_of_footprint(
     Some(first)
 }
 
-/// Stage: assign each projected sample to a split by its footprint (crop square ± guard band); write
-/// (sample_id, split, tile_id) for kept samples and the dropped count.
+/// Stage: assign each sampled position to a split by its footprint (the crop + apron square around the centre,
+/// ± guard band); write the kept positions with their split and tile, in sampling order, and the dropped count.
+///
+/// Runs before projection: a footprint is fixed by its centre and the crop size, so assignment needs no pixels,
+/// and projecting the ~17 % of tycho-full crops that straddle two splits only to drop them cost that share of the
+/// project stage.
 pub fn run(
-    samples_path: &std::path::Path,
+    positions_path: &std::path::Path,
+    dem_transform: &dataset::raster::GeoTransform,
     crop_half_m: f64,
     seed: u64,
     params: &SplitParams,
     out: &std::path::Path,
     summary_out: &std::path::Path,
 ) -> anyhow::Result<()> {
-    use super::table::{write_table, Col};
-    let positions = dataset::shard::read_sample_positions(samples_path)?;
-    let (ids, xs, ys) = (
-        positions.sample_ids,
-        positions.center_x_m,
-        positions.center_y_m,
+    use super::table::{read_table, strings, u32s, write_table, Col};
+    let batches = read_table(positions_path)?;
+    let (orthos, cols, rows) = (
+        strings(&batches, "ortho_id")?,
+        u32s(&batches, "col")?,
+        u32s(&batches, "row")?,
     );
-    let (mut kept_ids, mut splits, mut tiles) = (Vec::new(), Vec::new(), Vec::new());
+    let mut kept: (Vec<String>, Vec<u32>, Vec<u32>) = Default::default();
+    let (mut splits, mut tiles) = (Vec::new(), Vec::new());
     let mut dropped = 0u64;
-    for ((id, x), y) in ids.into_iter().zip(xs).zip(ys) {
+    for ((ortho, col), row) in orthos.into_iter().zip(cols).zip(rows) {
+        // The crop centre: the DEM grid corner (col, row), as the project stage places it.
+        let (x, y) = crop_centre_m(dem_transform, col, row);
         match split_of_footprint(
             (x - crop_half_m, y - crop_half_m),
             (x + crop_half_m, y + crop_half_m),
@@ -116,7 +124,9 @@ pub fn run(
             params,
         ) {
             Some(split) => {
-                kept_ids.push(id);
+                kept.0.push(ortho);
+                kept.1.push(col);
+                kept.2.push(row);
                 splits.push(split.name().to_string());
                 tiles.push(tile_id(tile_of(x, y, params.tile_size_m)));
             }
@@ -126,7 +136,9 @@ pub fn run(
     write_table(
         out,
         vec![
-            ("sample_id", Col::Str(kept_ids)),
+            ("ortho_id", Col::Str(kept.0)),
+            ("col", Col::U32(kept.1)),
+            ("row", Col::U32(kept.2)),
             ("split", Col::Str(splits)),
             ("tile_id", Col::Str(tiles)),
         ],
@@ -140,6 +152,14 @@ pub fn run(
         }),
     )?;
     Ok(())
+}
+
+/// Map coordinates of the crop centred at DEM grid corner (col, row): where the project stage puts `center_x/y`.
+pub fn crop_centre_m(t: &dataset::raster::GeoTransform, col: u32, row: u32) -> (f64, f64) {
+    (
+        t.origin_x + col as f64 * t.pixel_width,
+        t.origin_y + row as f64 * t.pixel_height,
+    )
 }
 
 #[cfg(test)]
