@@ -31,8 +31,8 @@ pub fn dataset_card(m: &DatasetManifest, summary: &serde_json::Value) -> String 
     } else {
         format!(
             "Splits are geographic: tiles of {tile} m assigned by a keyed hash; a sample's whole footprint \
-             (+ {guard} m guard band) lies in tiles of its split; {dropped} samples straddling splits were dropped. \
-             Rejected crops by reason: {rej:?}.",
+             (+ {guard} m guard band) lies in tiles of its split; {dropped} sampled crops straddling splits were dropped \
+             before projection. Projected crops rejected by reason: {rej:?}.",
             tile = split["tile_size_m"],
             guard = split["guard_band_m"],
             dropped = split["dropped_straddling_splits"],
@@ -43,7 +43,7 @@ pub fn dataset_card(m: &DatasetManifest, summary: &serde_json::Value) -> String 
         "# {name}\n\nLunar DEM–image pairs for learning a spatially varying BRDF from terrain geometry.\n\n\
          - pairs: {total} ({splits})\n- shards: {n} Parquet files, {mib:.1} MiB\n- license: {license}\n- seed: {seed}\n\
          - schema version: {schema}\n- DEM std for normalisation (train split only, crop mean removed): {std:.3} m\n\n\
-         ## How it was made\n\n`g2r-pipeline run` (ingest → erode → sample → project → split → publish). {how}\n\n\
+         ## How it was made\n\n`g2r-pipeline run` (ingest → erode → sample → split → project → publish). {how}\n\n\
          ## Schema\n\n{schema_table}\n\
          Read with pyarrow: `pyarrow.parquet.read_table(\"train-00000-of-NNNNN.parquet\")`; with polars: \
          `polars.read_parquet(...)`. Serve over HTTP: `g2r-dataset serve DIR`.\n",
@@ -148,7 +148,7 @@ mod tests {
         assert!(card.contains("- pairs: 4 (train 3, val 1)"), "{card}");
         assert!(card.contains("2.0 MiB"));
         assert!(card.contains("tiles of 2560.0 m"));
-        assert!(card.contains("5 samples straddling"));
+        assert!(card.contains("5 sampled crops straddling"));
         assert!(
             card.contains(r#"{"camera_occluded": 1, "too_shadowed": 5}"#),
             "{card}"
