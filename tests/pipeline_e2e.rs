@@ -144,6 +144,18 @@ df = pl.read_parquet(files[0])
 assert df.height == t.num_rows and "sun_dir_enu" in df.columns
 assert len(df["sun_lit"][0]) == 128 * 128
 n = sum(pq.ParquetFile(f).metadata.num_rows for f in files)
+# The summary's tallies (polars group-bys in the publish stage) against a count of the shards' own rows.
+import json, collections
+summary = json.load(open(sys.argv[1] + "/summary.json"))
+per_ortho, per_tile = collections.defaultdict(dict), collections.Counter()
+for f in files:
+    t = pq.read_table(f, columns=["ortho_id", "split", "tile_id"])
+    for o, s, tile in zip(*(t.column(c).to_pylist() for c in ["ortho_id", "split", "tile_id"])):
+        per_ortho[o][s] = per_ortho[o].get(s, 0) + 1
+        per_tile[tile] += 1
+assert summary["per_ortho"] == per_ortho, (summary["per_ortho"], dict(per_ortho))
+assert summary["per_tile"] == dict(per_tile), (summary["per_tile"], dict(per_tile))
+assert len(per_tile) > 1
 print("rows", n)
 "#;
     let out = Command::new(g2r_tests::python())

@@ -9,10 +9,8 @@ use std::path::Path;
 use dataset::manifest::{write_json_atomic, DatasetManifest, ShardEntry};
 use dataset::publication::{croissant, dataset_card};
 
-use arrow::array::{AsArray, RecordBatch};
-use arrow::datatypes::Float64Type;
 use dataset::schema::SCHEMA_VERSION;
-use dataset::shard::{shard_name, EncodedRowGroups, ShardFile, ShardWriter};
+use dataset::shard::{shard_name, EncodedRowGroups, ShardWriter};
 
 use super::project::TrainDemStatistic;
 use super::split::{split_of_tile, tile_of, Split, SplitParams};
@@ -45,12 +43,74 @@ pub struct ProjectedInputs<'a> {
     pub rejections: &'a Path,
 }
 
-/// What one split contributes to the summary and the map.
+/// Rows per ortho and split, rows per tile, and every sample centre: the summary's tables and the map's dots.
 #[derive(Default)]
-struct SplitTally {
-    per_ortho: BTreeMap<String, u64>,
+struct Tally {
+    per_ortho: BTreeMap<String, BTreeMap<String, u64>>,
     per_tile: BTreeMap<String, u64>,
     centres: Vec<(f64, f64)>,
+}
+
+/// Tally the published rows with polars: a lazy scan of the split files reads only the four scalar columns it needs
+/// (no tensor page is decoded), then two group-bys count rows per (ortho, split) and per tile.
+fn tally_splits(files: &[(Split, &Path)]) -> anyhow::Result<Tally> {
+    use polars::prelude::*;
+    let frames = files
+        .iter()
+        .map(|(split, path)| {
+            Ok(LazyFrame::scan_parquet(
+                PlRefPath::try_from_path(path)?,
+                ScanArgsParquet::default(),
+            )?
+            .select([
+                col("ortho_id"),
+                col("tile_id"),
+                col("center_x"),
+                col("center_y"),
+            ])
+            .with_column(lit(split.name()).alias("split")))
+        })
+        .collect::<PolarsResult<Vec<_>>>()?;
+    let rows = concat(frames, UnionArgs::default())?.collect()?;
+    let count = |keys: &[&str]| -> PolarsResult<DataFrame> {
+        rows.clone()
+            .lazy()
+            .group_by(keys.iter().map(|k| col(*k)).collect::<Vec<_>>())
+            .agg([len().cast(DataType::UInt64).alias("rows")])
+            .collect()
+    };
+    // The columns are non-null (written from Rust values), so a null would only read as "".
+    let strings = |df: &DataFrame, name: &str| -> PolarsResult<Vec<String>> {
+        Ok(df
+            .column(name)?
+            .str()?
+            .iter()
+            .map(|v| v.unwrap_or_default().to_string())
+            .collect())
+    };
+    let mut tally = Tally::default();
+    let per_ortho = count(&["ortho_id", "split"])?;
+    for ((ortho, split), n) in strings(&per_ortho, "ortho_id")?
+        .into_iter()
+        .zip(strings(&per_ortho, "split")?)
+        .zip(per_ortho.column("rows")?.u64()?.into_no_null_iter())
+    {
+        tally.per_ortho.entry(ortho).or_default().insert(split, n);
+    }
+    let per_tile = count(&["tile_id"])?;
+    for (tile, n) in strings(&per_tile, "tile_id")?
+        .into_iter()
+        .zip(per_tile.column("rows")?.u64()?.into_no_null_iter())
+    {
+        tally.per_tile.insert(tile, n);
+    }
+    tally.centres = rows
+        .column("center_x")?
+        .f64()?
+        .into_no_null_iter()
+        .zip(rows.column("center_y")?.f64()?.into_no_null_iter())
+        .collect();
+    Ok(tally)
 }
 
 pub fn run(
@@ -73,7 +133,7 @@ pub fn run(
         }
     }
     // One thread per split: copying is disk and blake3 work, and the splits are independent.
-    let results: Vec<anyhow::Result<(Vec<ShardEntry>, SplitTally)>> = std::thread::scope(|scope| {
+    let results: Vec<anyhow::Result<Vec<ShardEntry>>> = std::thread::scope(|scope| {
         let handles: Vec<_> = Split::ALL
             .iter()
             .zip(projected.split_samples)
@@ -91,27 +151,23 @@ pub fn run(
     });
     let mut split_counts: BTreeMap<String, u64> = BTreeMap::new();
     let mut shards: Vec<ShardEntry> = Vec::new();
-    let mut per_ortho: BTreeMap<String, BTreeMap<String, u64>> = BTreeMap::new();
-    let mut per_tile: BTreeMap<String, u64> = BTreeMap::new();
-    let mut centres: Vec<(f64, f64)> = Vec::new();
     for (split, result) in Split::ALL.iter().zip(results) {
-        let (split_shards, tally) = result?;
+        let split_shards = result?;
         split_counts.insert(
             split.name().to_string(),
             split_shards.iter().map(|s| s.rows).sum(),
         );
         shards.extend(split_shards);
-        for (ortho, n) in tally.per_ortho {
-            per_ortho
-                .entry(ortho)
-                .or_default()
-                .insert(split.name().to_string(), n);
-        }
-        for (tile, n) in tally.per_tile {
-            *per_tile.entry(tile).or_default() += n;
-        }
-        centres.extend(tally.centres);
     }
+    let files: Vec<(Split, &Path)> = Split::ALL
+        .into_iter()
+        .zip(projected.split_samples)
+        .collect();
+    let Tally {
+        per_ortho,
+        per_tile,
+        centres,
+    } = tally_splits(&files)?;
     shards.sort_by(|a, b| a.path.cmp(&b.path));
     let train_dem: TrainDemStatistic =
         serde_json::from_str(&std::fs::read_to_string(projected.train_dem)?)?;
@@ -145,14 +201,13 @@ pub fn run(
     Ok(())
 }
 
-/// Cut one split's sample file into shards of `rows_per_shard` rows by copying whole encoded row groups, and
-/// tally its rows per ortho and tile from the scalar columns (no tensor is decoded).
+/// Cut one split's sample file into shards of `rows_per_shard` rows by copying whole encoded row groups.
 fn publish_split(
     dataset_dir: &Path,
     split: &str,
     path: &Path,
     ctx: &PublishContext,
-) -> anyhow::Result<(Vec<ShardEntry>, SplitTally)> {
+) -> anyhow::Result<Vec<ShardEntry>> {
     let source = EncodedRowGroups::open(path)?;
     let sizes = source.row_group_sizes();
     let rows: usize = sizes.iter().sum();
@@ -182,54 +237,7 @@ fn publish_split(
         }
         shards.push(writer.finish()?);
     }
-    let mut tally = SplitTally::default();
-    let file = ShardFile::open(path)?;
-    for g in 0..sizes.len() {
-        for batch in file.read_batches(g, None, false)? {
-            let (orthos, tiles) = (
-                string_column(&batch, "ortho_id", path)?,
-                string_column(&batch, "tile_id", path)?,
-            );
-            let (xs, ys) = (
-                f64_column(&batch, "center_x", path)?,
-                f64_column(&batch, "center_y", path)?,
-            );
-            for i in 0..batch.num_rows() {
-                *tally
-                    .per_ortho
-                    .entry(orthos.value(i).to_string())
-                    .or_default() += 1;
-                *tally
-                    .per_tile
-                    .entry(tiles.value(i).to_string())
-                    .or_default() += 1;
-                tally.centres.push((xs.value(i), ys.value(i)));
-            }
-        }
-    }
-    Ok((shards, tally))
-}
-
-fn string_column<'b>(
-    batch: &'b RecordBatch,
-    name: &str,
-    path: &Path,
-) -> anyhow::Result<&'b arrow::array::StringArray> {
-    batch
-        .column_by_name(name)
-        .and_then(|c| c.as_string_opt::<i32>())
-        .ok_or_else(|| anyhow::anyhow!("{}: no string column '{name}'", path.display()))
-}
-
-fn f64_column<'b>(
-    batch: &'b RecordBatch,
-    name: &str,
-    path: &Path,
-) -> anyhow::Result<&'b arrow::array::Float64Array> {
-    batch
-        .column_by_name(name)
-        .and_then(|c| c.as_primitive_opt::<Float64Type>())
-        .ok_or_else(|| anyhow::anyhow!("{}: no f64 column '{name}'", path.display()))
+    Ok(shards)
 }
 
 /// Tiles coloured by split (train grey, val blue, test orange) with sample centres as dark dots; north up.
