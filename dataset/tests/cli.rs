@@ -78,7 +78,7 @@ fn publish_rewrites_card_and_croissant_only_when_every_shard_verifies() {
         std::fs::read(dir.join("croissant.json")).unwrap(),
         croissant
     );
-    assert!(card.contains("2 samples straddling splits were dropped"));
+    assert!(card.contains("2 sampled crops straddling splits were dropped before projection"));
 
     // A tampered shard: refused, named, and nothing (re)written.
     let shard = dir.join("train-00000-of-00001.parquet");
