@@ -82,6 +82,13 @@ fn assert_refused(dir: &Path, manifest: &Path, needles: &[&str]) {
     );
 }
 
+/// Replace `from` by `to` in a text file (a manifest) in place.
+fn edit_text(path: &Path, from: &str, to: &str) {
+    let text = std::fs::read_to_string(path).unwrap();
+    assert!(text.contains(from), "{} has no '{from}'", path.display());
+    std::fs::write(path, text.replace(from, to)).unwrap();
+}
+
 fn rewrite_json(path: &Path, edit: impl FnOnce(&mut serde_json::Value)) {
     let mut v: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
@@ -303,10 +310,7 @@ fn positions_in_kilometres_not_metres() {
 #[test]
 fn pipeline_manifest_missing_a_field() {
     let (tmp, m) = case();
-    let text = std::fs::read_to_string(&m)
-        .unwrap()
-        .replace("coverage = 1.0\n", "");
-    std::fs::write(&m, text).unwrap();
+    edit_text(&m, "coverage = 1.0\n", "");
     assert_refused(tmp.path(), &m, &["m.toml", "coverage"]);
 }
 
@@ -314,10 +318,7 @@ fn pipeline_manifest_missing_a_field() {
 fn shard_size_that_cuts_a_row_group() {
     // Shards are copied as whole 256-row groups: 300 rows per shard would split one.
     let (tmp, m) = case();
-    let text = std::fs::read_to_string(&m)
-        .unwrap()
-        .replace("rows_per_shard = 40", "rows_per_shard = 300");
-    std::fs::write(&m, text).unwrap();
+    edit_text(&m, "rows_per_shard = 40", "rows_per_shard = 300");
     assert_refused(
         tmp.path(),
         &m,
