@@ -402,6 +402,8 @@ pub struct VisibilityWindow {
     pub width: usize,
     pub height: usize,
     pub fraction: Vec<f32>,
+    /// Cells the sweep crossed: the area of interest extended toward the source (only the former is stored).
+    pub swept_cells: usize,
 }
 
 impl VisibilityWindow {
@@ -494,6 +496,7 @@ pub fn visibility_window(
         width: cols.len(),
         height: rows.len(),
         fraction,
+        swept_cells: width * height,
     }
 }
 
@@ -544,10 +547,15 @@ mod tests {
                 SUN_ANGULAR_RADIUS_RAD,
                 4,
             );
+            // The sweep reaches beyond the area of interest toward the source, but not over the whole field.
             assert!(
-                window.width * window.height < w * h,
-                "the window must not be the whole field"
+                window.swept_cells > cols.len() * rows.len() && window.swept_cells < w * h,
+                "swept {} cells (area of interest {}, field {})",
+                window.swept_cells,
+                cols.len() * rows.len(),
+                w * h
             );
+            assert_eq!((window.width, window.height), (cols.len(), rows.len()));
             // Reference: the same sweep over the whole field.
             let mut all = heights.clone();
             let (oc, or) = transform.map_to_pixel(frame.origin_map.x, frame.origin_map.y);

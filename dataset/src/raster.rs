@@ -40,6 +40,14 @@ impl GeoTransform {
         )
     }
 
+    /// Map coordinates of pixel *edge* (col, row): the corner of pixel (col, row), no +0.5.
+    pub fn pixel_edge(&self, col: f64, row: f64) -> (f64, f64) {
+        (
+            self.origin_x + col * self.pixel_width,
+            self.origin_y + row * self.pixel_height,
+        )
+    }
+
     /// Continuous pixel coordinates (col, row) whose *centre* is at map (x, y): the inverse of [`Self::pixel_center`].
     pub fn map_to_pixel(&self, x: f64, y: f64) -> (f64, f64) {
         (

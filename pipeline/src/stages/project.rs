@@ -177,10 +177,7 @@ impl<'a> OrthoProjector<'a> {
             frame.body_point_to_enu(self.meta.spacecraft_for_ground(frame.origin_body));
         let view_dir = camera_pos.normalize();
         let corner = |dc: f64, dr: f64| {
-            let (x, y) = (
-                dem.transform.origin_x + dc * dem.transform.pixel_width,
-                dem.transform.origin_y + dr * dem.transform.pixel_height,
-            );
+            let (x, y) = dem.transform.pixel_edge(dc, dr);
             frame.map_to_lonlat_deg(x, y)
         };
         let (c0, c1, r0, r1) = (

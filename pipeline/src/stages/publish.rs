@@ -226,13 +226,9 @@ fn publish_split(
     let groups_per_shard = ctx.rows_per_shard / group_rows;
     let count = rows.div_ceil(ctx.rows_per_shard).max(1);
     let mut shards = Vec::new();
-    for (i, groups) in (0..sizes.len())
-        .collect::<Vec<_>>()
-        .chunks(groups_per_shard)
-        .enumerate()
-    {
+    for (i, first) in (0..sizes.len()).step_by(groups_per_shard).enumerate() {
         let mut writer = ShardWriter::create(&dataset_dir.join(shard_name(split, i, count)))?;
-        for &g in groups {
+        for g in first..(first + groups_per_shard).min(sizes.len()) {
             writer.append_encoded_row_group(&source, g)?;
         }
         shards.push(writer.finish()?);

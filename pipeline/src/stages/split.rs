@@ -156,10 +156,7 @@ pub fn run(
 
 /// Map coordinates of the crop centred at DEM grid corner (col, row): where the project stage puts `center_x/y`.
 pub fn crop_centre_m(t: &dataset::raster::GeoTransform, col: u32, row: u32) -> (f64, f64) {
-    (
-        t.origin_x + col as f64 * t.pixel_width,
-        t.origin_y + row as f64 * t.pixel_height,
-    )
+    t.pixel_edge(col as f64, row as f64)
 }
 
 #[cfg(test)]
