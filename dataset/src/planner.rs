@@ -76,6 +76,36 @@ pub fn plan_epoch(
     }
 }
 
+/// `max` rows spread evenly over `groups` in their fixed order (row ⌊k·total/max⌋ for k = 0..max), or every row
+/// when `max` ≥ the total. A capped evaluation or validation set then covers every shard, ortho and tile instead
+/// of the first few in file order (shards are written ortho by ortho, so the first N rows are one or two orthos).
+pub fn spread_rows(groups: &[RowGroupRef], max: usize) -> Vec<RowRef> {
+    let total: usize = groups.iter().map(|g| g.rows).sum();
+    let take = max.min(total);
+    let mut picks = Vec::with_capacity(take);
+    let (mut k, mut first_row) = (0usize, 0usize);
+    for (group, g) in groups.iter().enumerate() {
+        let end = first_row + g.rows;
+        loop {
+            if k == take {
+                return picks;
+            }
+            // u128: k·total overflows u64 only for absurd sizes, but the cost is nil.
+            let global = (k as u128 * total as u128 / take as u128) as usize;
+            if global >= end {
+                break;
+            }
+            picks.push(RowRef {
+                group,
+                row: global - first_row,
+            });
+            k += 1;
+        }
+        first_row = end;
+    }
+    picks
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -109,6 +139,44 @@ mod tests {
             assert!(plan.windows[w].contains(&row.group));
         }
         assert!(plan.window_of.windows(2).all(|p| p[0] <= p[1]));
+    }
+
+    #[test]
+    fn spread_rows_are_evenly_spaced_distinct_and_reach_the_last_group() {
+        let g = groups(&[256, 256, 100, 256, 7]);
+        let total = 875;
+        let global = |r: &RowRef| g[..r.group].iter().map(|x| x.rows).sum::<usize>() + r.row;
+        for max in [1, 2, 3, 10, 100, 874] {
+            let rows = spread_rows(&g, max);
+            assert_eq!(rows.len(), max);
+            let at: Vec<usize> = rows.iter().map(global).collect();
+            assert!(
+                at.windows(2).all(|p| p[0] < p[1]),
+                "distinct, in file order"
+            );
+            assert!(rows.iter().all(|r| r.row < g[r.group].rows));
+            assert_eq!(at[0], 0);
+            // Gaps differ by at most one row: ⌊total/max⌋ or ⌈total/max⌉.
+            let (lo, hi) = (total / max, total.div_ceil(max));
+            assert!(
+                at.windows(2).all(|p| (lo..=hi).contains(&(p[1] - p[0]))),
+                "max {max}"
+            );
+            assert!(total - at[max - 1] <= hi, "reaches the end, max {max}");
+        }
+        // Five spread rows land in different groups; the first five rows in file order would all be in group 0.
+        let groups_hit: Vec<usize> = spread_rows(&g, 5).iter().map(|r| r.group).collect();
+        assert_eq!(groups_hit, vec![0, 0, 1, 2, 3]);
+        // At or above the total: every row once, in order.
+        for max in [875, 10_000] {
+            let rows = spread_rows(&g, max);
+            assert_eq!(
+                rows.iter().map(global).collect::<Vec<_>>(),
+                (0..total).collect::<Vec<_>>()
+            );
+        }
+        assert!(spread_rows(&g, 0).is_empty());
+        assert!(spread_rows(&[], 5).is_empty());
     }
 
     #[test]

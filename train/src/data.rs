@@ -330,23 +330,27 @@ impl Iterator for EpochStream {
     }
 }
 
-/// Call `f` with the samples of each row group of a split in file order, up to `max` samples in all: one row
-/// group in memory at a time, whatever the split's size.
+/// Call `f` with the samples of each row group of a split in file order, one row group in memory at a time,
+/// whatever the split's size. With `max` below the split's size, the samples are `max` rows spread evenly over the
+/// whole split ([`dataset::planner::spread_rows`]), not its first rows: evaluation, validation and calibration
+/// subsets then see every ortho and tile.
 pub fn for_each_sample_group(
     source: &dyn SampleSource,
     split: &str,
     max: Option<usize>,
     mut f: impl FnMut(&[Sample]),
 ) -> Result<()> {
-    let mut remaining = max.unwrap_or(usize::MAX);
-    for group in source.row_groups(split)? {
-        if remaining == 0 {
-            break;
+    let groups = source.row_groups(split)?;
+    let picks = dataset::planner::spread_rows(&groups, max.unwrap_or(usize::MAX));
+    // Picks are in file order, so each group is read once, and only groups that hold a pick are read.
+    for chunk in picks.chunk_by(|a, b| a.group == b.group) {
+        let samples = source.read_row_group(&groups[chunk[0].group])?;
+        if chunk.len() == samples.len() {
+            f(&samples);
+        } else {
+            let wanted: Vec<Sample> = chunk.iter().map(|r| samples[r.row].clone()).collect();
+            f(&wanted);
         }
-        let mut samples = source.read_row_group(&group)?;
-        samples.truncate(remaining);
-        remaining -= samples.len();
-        f(&samples);
     }
     Ok(())
 }

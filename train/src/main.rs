@@ -64,7 +64,7 @@ struct TrainArgs {
     /// Train samples per epoch (default: the whole train split).
     #[arg(long)]
     max_train_samples: Option<usize>,
-    /// Validation samples per epoch (default: the whole val split).
+    /// Validation samples per epoch, spread evenly over the val split (default: all of it).
     #[arg(long)]
     max_val_samples: Option<usize>,
     #[arg(long, value_enum, default_value = "flex")]
@@ -140,7 +140,7 @@ enum Command {
         data: String,
         #[arg(long, default_value = "val")]
         split: String,
-        /// Samples to evaluate (default: the whole split).
+        /// Samples to evaluate, spread evenly over the split (default: all of it).
         #[arg(long)]
         max_samples: Option<usize>,
     },
@@ -161,12 +161,12 @@ enum Command {
         /// Output directory (default RUN/eval-SPLIT).
         #[arg(long)]
         out: Option<PathBuf>,
-        /// Images to evaluate (default: the whole split).
+        /// Images to evaluate, spread evenly over the split so every ortho and tile is represented (default: all).
         #[arg(long)]
         max_samples: Option<usize>,
         #[arg(long, default_value_t = 8)]
         batch: usize,
-        /// Train crops used to fit the honest Hapke scale and Lunar-Lambert albedo.
+        /// Train crops (spread evenly over the split) used to fit the honest Hapke scale and Lunar-Lambert albedo.
         #[arg(long, default_value_t = 256)]
         calibration_samples: usize,
         /// PNG panels for the first N images.

@@ -208,7 +208,7 @@ pub fn predict_images<B: Backend>(
         .expect("f64 after convert")
 }
 
-/// Validation over (up to `max`) val samples in file order, in inference mode, one row group in memory at a time.
+/// Validation over (up to `max`, spread evenly over the split) val samples, in inference mode, one row group in memory at a time.
 pub fn validate<B: Backend>(
     net: &UNet<B>,
     model: BrdfModel,
