@@ -311,7 +311,46 @@ pub fn calibrate(
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct PerImage {
     pub sample_id: String,
+    pub ortho_id: String,
+    pub incidence_deg: f64,
     pub metrics: BTreeMap<String, ImageMetrics>,
+}
+
+/// One ortho's share of an evaluation: mean per-image pixel MSE per method over its images. Shards are written
+/// ortho by ortho and each ortho has its own sun and view, so this shows whether a method's error is spread evenly
+/// or sits in a few acquisitions (e.g. a brightness level a uniform model cannot match).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct PerOrtho {
+    pub ortho_id: String,
+    pub images: usize,
+    pub mean_incidence_deg: f64,
+    pub mean_pixel_mse: BTreeMap<String, f64>,
+}
+
+/// Group per-image results by ortho (sorted by ortho id; methods as they appear in the images).
+pub fn per_ortho(per_image: &[PerImage]) -> Vec<PerOrtho> {
+    let mut groups: BTreeMap<&str, Vec<&PerImage>> = BTreeMap::new();
+    for image in per_image {
+        groups.entry(&image.ortho_id).or_default().push(image);
+    }
+    groups
+        .into_iter()
+        .map(|(ortho_id, images)| {
+            let n = images.len() as f64;
+            let mut sums: BTreeMap<String, f64> = BTreeMap::new();
+            for image in &images {
+                for (method, m) in &image.metrics {
+                    *sums.entry(method.clone()).or_default() += m.mse;
+                }
+            }
+            PerOrtho {
+                ortho_id: ortho_id.to_string(),
+                images: images.len(),
+                mean_incidence_deg: images.iter().map(|i| i.incidence_deg).sum::<f64>() / n,
+                mean_pixel_mse: sums.into_iter().map(|(k, v)| (k, v / n)).collect(),
+            }
+        })
+        .collect()
 }
 
 #[derive(Debug, Clone, serde::Serialize)]
@@ -340,6 +379,7 @@ pub struct EvalReport {
     /// FAST + BRIEF reciprocal matches between the ground truth and each method's rendering (see
     /// [`crate::features`]); the paper's Table 1 used a learned matcher.
     pub feature_matching: BTreeMap<String, MatchSummary>,
+    pub per_ortho: Vec<PerOrtho>,
     pub per_image: Vec<PerImage>,
 }
 
@@ -440,6 +480,8 @@ pub fn evaluate<B: Backend>(
                 }
                 per_image.push(PerImage {
                     sample_id: sample.sample_id.clone(),
+                    ortho_id: sample.ortho_id.clone(),
+                    incidence_deg: sample.incidence_deg,
                     metrics,
                 });
             }
@@ -491,6 +533,7 @@ pub fn evaluate<B: Backend>(
             .iter()
             .map(|(name, stats)| (name.to_string(), stats.summary()))
             .collect(),
+        per_ortho: per_ortho(&per_image),
         per_image,
     })
 }
@@ -550,6 +593,7 @@ pub fn markdown(report: &EvalReport) -> String {
             ));
         }
     }
+    text.push_str(&per_ortho_markdown(report));
     text.push_str(&format!(
         "\nUniform {} coefficients (least squares on the same crops): {:?}.\n",
         report.calibration.model.name(),
@@ -560,6 +604,35 @@ pub fn markdown(report: &EvalReport) -> String {
          window, K1 0.01, K2 0.03, data range = each image's GT range, fully valid windows only.\n",
         report.calibration.samples, report.calibration.hapke_scale, report.calibration.lunar_lambert_albedo
     ));
+    text
+}
+
+/// The per-ortho table: mean per-image pixel MSE of each method, one row per ortho.
+fn per_ortho_markdown(report: &EvalReport) -> String {
+    let names: Vec<&str> = report.methods.iter().map(|m| m.name.as_str()).collect();
+    let mut text = format!(
+        "\n## Per ortho\n\nMean per-image pixel MSE over each ortho's images (a per-ortho mean, so it differs from the \
+         pooled figures above).\n\n| ortho | images | mean incidence ° | {} |\n|---|---|---|{}\n",
+        names.join(" | "),
+        "---|".repeat(names.len())
+    );
+    for o in &report.per_ortho {
+        let cells: Vec<String> = names
+            .iter()
+            .map(|n| {
+                o.mean_pixel_mse
+                    .get(*n)
+                    .map_or("—".into(), |v| format!("{v:.3e}"))
+            })
+            .collect();
+        text.push_str(&format!(
+            "| {} | {} | {:.1} | {} |\n",
+            o.ortho_id,
+            o.images,
+            o.mean_incidence_deg,
+            cells.join(" | ")
+        ));
+    }
     text
 }
 
@@ -624,6 +697,42 @@ pub fn write_report(report: &EvalReport, out: &Path) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn per_ortho_means_group_images_by_their_ortho() {
+        let image = |ortho: &str, incidence: f64, learned: f64, scaled: f64| PerImage {
+            sample_id: format!("{ortho}:0:0"),
+            ortho_id: ortho.into(),
+            incidence_deg: incidence,
+            metrics: [("learned", learned), ("hapke_scaled", scaled)]
+                .into_iter()
+                .map(|(name, mse)| {
+                    let m = ImageMetrics {
+                        valid_pixels: 1,
+                        sse: mse,
+                        mse,
+                        psnr_db: 0.0,
+                        ssim: None,
+                    };
+                    (name.to_string(), m)
+                })
+                .collect(),
+        };
+        // Interleaved on purpose: grouping must not depend on file order.
+        let images = [
+            image("M2", 30.0, 1.0, 4.0),
+            image("M1", 60.0, 2.0, 2.0),
+            image("M2", 50.0, 3.0, 8.0),
+        ];
+        let groups = per_ortho(&images);
+        assert_eq!(groups.len(), 2);
+        assert_eq!((groups[0].ortho_id.as_str(), groups[0].images), ("M1", 1));
+        assert_eq!((groups[1].ortho_id.as_str(), groups[1].images), ("M2", 2));
+        assert_eq!(groups[1].mean_incidence_deg, 40.0);
+        assert_eq!(groups[1].mean_pixel_mse["learned"], 2.0);
+        assert_eq!(groups[1].mean_pixel_mse["hapke_scaled"], 6.0);
+        assert_eq!(groups[0].mean_pixel_mse["hapke_scaled"], 2.0);
+    }
 
     #[test]
     fn scale_fit_recovers_a_known_scale_and_ignores_invalid_pixels() {
