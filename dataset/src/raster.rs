@@ -48,6 +48,13 @@ impl GeoTransform {
         )
     }
 
+    /// Map extent `(min_x, min_y, max_x, max_y)` of a `width` × `height` raster on this grid (outer pixel edges).
+    pub fn bounds(&self, width: usize, height: usize) -> (f64, f64, f64, f64) {
+        let (xa, ya) = self.pixel_edge(0.0, 0.0);
+        let (xb, yb) = self.pixel_edge(width as f64, height as f64);
+        (xa.min(xb), ya.min(yb), xa.max(xb), ya.max(yb))
+    }
+
     /// Continuous pixel coordinates (col, row) whose *centre* is at map (x, y): the inverse of [`Self::pixel_center`].
     pub fn map_to_pixel(&self, x: f64, y: f64) -> (f64, f64) {
         (
@@ -441,6 +448,19 @@ mod tests {
         assert_eq!(gt.pixel_center(0.0, 0.0), (1002.5, 4997.5));
         let (c, r) = gt.map_to_pixel(1002.5 + 5.0 * 7.0, 4997.5 - 5.0 * 3.0);
         assert!((c - 7.0).abs() < 1e-12 && (r - 3.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn bounds_are_the_outer_pixel_edges() {
+        // 7 × 4 cells of 5 m, top-left corner at (1000, 5000): x spans 35 m, y spans 20 m downwards.
+        let gt = GeoTransform::north_up(1000.0, 5000.0, 5.0);
+        assert_eq!(gt.bounds(7, 4), (1000.0, 4980.0, 1035.0, 5000.0));
+        // A south-up grid (positive pixel height) gives the same kind of extent, min before max.
+        let south_up = GeoTransform {
+            pixel_height: 5.0,
+            ..gt
+        };
+        assert_eq!(south_up.bounds(7, 4), (1000.0, 5000.0, 1035.0, 5020.0));
     }
 
     #[test]

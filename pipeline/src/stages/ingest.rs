@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Context};
 use dataset::acquisition::AcquisitionMetadata;
 use dataset::crs::LocalFrame;
-use dataset::raster::{open_lunar, RasterInfo};
+use dataset::raster::open_lunar;
 
 use super::table::{f64s, read_table, strings, write_table, Col};
 
@@ -53,21 +53,11 @@ pub fn metadata_files(ortho_dir: &Path) -> anyhow::Result<Vec<PathBuf>> {
     Ok(files)
 }
 
-fn bbox(info: &RasterInfo) -> (f64, f64, f64, f64) {
-    let t = &info.transform;
-    (
-        t.origin_x,
-        t.origin_y + info.height as f64 * t.pixel_height,
-        t.origin_x + info.width as f64 * t.pixel_width,
-        t.origin_y,
-    )
-}
-
 /// Validate inputs and write `orthos.parquet`.
 pub fn run(dem_path: &Path, ortho_dir: &Path, out: &Path) -> anyhow::Result<()> {
     let (dem_ds, dem) = open_lunar(dem_path)?;
     let dem_band = dem_ds.rasterband(1)?;
-    let (dem_x0, dem_y0, dem_x1, dem_y1) = bbox(&dem);
+    let (dem_x0, dem_y0, dem_x1, dem_y1) = dem.transform.bounds(dem.width, dem.height);
     // An all-nodata DEM (or one that is NaN-laden) is useless: check a decimated read.
     let preview = dem_band.read_as::<f32>(
         (0, 0),
@@ -117,7 +107,7 @@ pub fn run(dem_path: &Path, ortho_dir: &Path, out: &Path) -> anyhow::Result<()> 
         if info.transform.gsd_m() > dem.transform.gsd_m() + 1e-9 {
             bail!("{}: pixel size {} m is coarser than the DEM's {} m; orthos must be at least as fine as the DEM", image_path.display(), info.transform.gsd_m(), dem.transform.gsd_m());
         }
-        let (x0, y0, x1, y1) = bbox(&info);
+        let (x0, y0, x1, y1) = info.transform.bounds(info.width, info.height);
         if x1 <= dem_x0 || x0 >= dem_x1 || y1 <= dem_y0 || y0 >= dem_y1 {
             bail!(
                 "{}: does not overlap the DEM {}; check that both are in the same area and CRS",

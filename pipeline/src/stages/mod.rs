@@ -264,13 +264,7 @@ pub fn pipeline(
         .collect(),
         run: Box::new(move |out| {
             let dem = dem6.get()?;
-            let t = &dem.transform;
-            let bounds = (
-                t.origin_x,
-                t.origin_y + dem.height as f64 * t.pixel_height,
-                t.origin_x + dem.width as f64 * t.pixel_width,
-                t.origin_y,
-            );
+            let bounds = dem.transform.bounds(dem.width, dem.height);
             // The lock entries of the five upstream stages (not publish's own previous entry): ties the dataset to
             // exactly those inputs and stays the same across re-publishing.
             let text = std::fs::read_to_string(&lock6)
