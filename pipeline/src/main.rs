@@ -78,12 +78,13 @@ enum Command {
         #[arg(long)]
         force: Vec<String>,
     },
-    /// Say for each stage whether it is up to date, and if not, why (params, inputs, code version, outputs).
+    /// Say for each stage whether it is up to date, and if not, why (params, inputs, code version, outputs); list
+    /// stray files under stages/ that no stage of this version writes (an older layout's outputs).
     Status {
         /// Pipeline manifest (TOML).
         manifest: PathBuf,
     },
-    /// Remove every stage output and the lock of a pipeline manifest.
+    /// Remove every stage output, stray files under stages/, the published dataset and the lock of a manifest.
     Clean {
         /// Pipeline manifest (TOML).
         manifest: PathBuf,
@@ -160,11 +161,21 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             for (stage, status) in runner.status()? {
                 println!("{stage:>8}: {status}");
             }
+            for (path, bytes) in runner.stray_files(&manifest.stage_dir())? {
+                println!(
+                    "   stray: {} ({bytes} B): no stage of this version writes it; `g2r-pipeline clean` removes it",
+                    path.display()
+                );
+            }
         }
         Command::Clean { manifest } => {
             let manifest = pipeline::manifest::PipelineManifest::load(&manifest)?;
             let runner = pipeline::stages::pipeline(&manifest, indicatif::ProgressBar::hidden())?;
-            let removed = runner.clean()?;
+            let mut removed = runner.clean()?;
+            for (path, _) in runner.stray_files(&manifest.stage_dir())? {
+                std::fs::remove_file(&path)?;
+                removed += 1;
+            }
             // Shards are listed by the published manifest, not by the runner: remove them with it.
             let dataset_dir = manifest.dataset_dir();
             if dataset_dir.exists() {

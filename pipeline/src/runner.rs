@@ -292,6 +292,38 @@ impl<'a> Runner<'a> {
         Ok(ran)
     }
 
+    /// Files under `dir` that no stage declares as an output (nor its temporary), with their sizes, sorted: what an
+    /// older version's stages wrote and this one no longer does. Nothing reads them, but they can be large.
+    pub fn stray_files(&self, dir: &Path) -> anyhow::Result<Vec<(PathBuf, u64)>> {
+        let known: std::collections::BTreeSet<PathBuf> = self
+            .stages
+            .iter()
+            .flat_map(|s| s.outputs.iter())
+            .flat_map(|p| [p.clone(), tmp_path(p)])
+            .collect();
+        let (mut found, mut pending) = (Vec::new(), vec![dir.to_path_buf()]);
+        while let Some(d) = pending.pop() {
+            let entries = match std::fs::read_dir(&d) {
+                Ok(entries) => entries,
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => continue,
+                Err(e) => {
+                    return Err(anyhow::Error::new(e).context(format!("listing {}", d.display())))
+                }
+            };
+            for entry in entries {
+                let entry = entry?;
+                let meta = entry.metadata()?;
+                if meta.is_dir() {
+                    pending.push(entry.path());
+                } else if !known.contains(&entry.path()) {
+                    found.push((entry.path(), meta.len()));
+                }
+            }
+        }
+        found.sort();
+        Ok(found)
+    }
+
     /// Remove every declared output, leftover temporaries and the lock.
     pub fn clean(&self) -> anyhow::Result<usize> {
         let mut removed = 0;
@@ -472,6 +504,33 @@ mod tests {
         assert!(
             err.contains("unknown stage 'nope'") && err.contains("double, sum"),
             "{err}"
+        );
+    }
+
+    #[test]
+    fn files_no_stage_declares_are_listed_as_strays() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("in.txt"), "1 2").unwrap();
+        let (fail, calls) = (Cell::new(false), Cell::new(0));
+        let runner = pipeline(dir.path(), 2, &fail, &calls);
+        let out = dir.path().join("out");
+        assert!(runner.stray_files(&out).unwrap().is_empty(), "nothing yet");
+        runner.run(None, &[]).unwrap();
+        assert!(
+            runner.stray_files(&out).unwrap().is_empty(),
+            "only declared outputs"
+        );
+        // What an older layout left behind, one level down too; a stage's own temporary is not a stray.
+        std::fs::create_dir_all(out.join("old")).unwrap();
+        std::fs::write(out.join("old/samples.parquet"), "12345").unwrap();
+        std::fs::write(out.join("aaa.txt"), "1").unwrap();
+        std::fs::write(tmp_path(&out.join("sum.txt")), "9").unwrap();
+        assert_eq!(
+            runner.stray_files(&out).unwrap(),
+            vec![
+                (out.join("aaa.txt"), 1),
+                (out.join("old/samples.parquet"), 5)
+            ]
         );
     }
 
