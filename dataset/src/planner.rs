@@ -164,7 +164,7 @@ mod tests {
             );
             assert!(total - at[max - 1] <= hi, "reaches the end, max {max}");
         }
-        // Five spread rows land in different groups; the first five rows in file order would all be in group 0.
+        // Five spread rows reach four of the five groups; the first five rows in file order are all in group 0.
         let groups_hit: Vec<usize> = spread_rows(&g, 5).iter().map(|r| r.group).collect();
         assert_eq!(groups_hit, vec![0, 0, 1, 2, 3]);
         // At or above the total: every row once, in order.

@@ -344,7 +344,19 @@ pub fn for_each_sample_group(
     let picks = dataset::planner::spread_rows(&groups, max.unwrap_or(usize::MAX));
     // Picks are in file order, so each group is read once, and only groups that hold a pick are read.
     for chunk in picks.chunk_by(|a, b| a.group == b.group) {
-        let samples = source.read_row_group(&groups[chunk[0].group])?;
+        let group = &groups[chunk[0].group];
+        let samples = source.read_row_group(group)?;
+        if samples.len() != group.rows {
+            bail!(
+                "{}: row group {} of {} holds {} rows, but its listing says {}; the dataset changed while being \
+                 read: re-run with a consistent copy (`g2r-dataset verify` checks the shards)",
+                source.describe(),
+                group.row_group,
+                group.shard,
+                samples.len(),
+                group.rows
+            );
+        }
         if chunk.len() == samples.len() {
             f(&samples);
         } else {
