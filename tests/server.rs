@@ -13,7 +13,10 @@ use dataset::client::HttpClient;
 use dataset::planner::plan_epoch;
 use dataset::schema::{Sample, CROP_PX, SCHEMA_VERSION};
 use dataset::shard::read_shard;
-use train::data::{EpochStream, HttpSource, LocalSource, SampleSource, StreamConfig};
+use train::data::{
+    ElevationNormalisation, EpochStream, HttpSource, InputNormalisation, LocalSource, SampleSource,
+    StreamConfig,
+};
 
 const TILE_M: f64 = 2560.0;
 /// (split, rows per shard): train spans two shards and three row groups.
@@ -559,11 +562,19 @@ fn trainer_over_http_gets_the_same_first_epoch_batches_as_from_local_files() {
         local.row_groups("train").unwrap(),
         remote.row_groups("train").unwrap()
     );
-    let from_local: Vec<_> = EpochStream::start(local, "train", config, 0, 0)
+    // Both input planes, so the elevation plane is carried over HTTP too.
+    let input = InputNormalisation {
+        dem_std_m: local.manifest().dem_std_m,
+        elevation: Some(ElevationNormalisation {
+            mean_m: -1000.0,
+            std_m: 100.0,
+        }),
+    };
+    let from_local: Vec<_> = EpochStream::start(local, "train", config, input, 0, 0)
         .unwrap()
         .map(Result::unwrap)
         .collect();
-    let from_http: Vec<_> = EpochStream::start(remote, "train", config, 0, 0)
+    let from_http: Vec<_> = EpochStream::start(remote, "train", config, input, 0, 0)
         .unwrap()
         .map(Result::unwrap)
         .collect();

@@ -135,7 +135,7 @@ mod tests {
     #[test]
     fn rendering_a_transformed_sample_equals_transforming_the_rendering() {
         use crate::bench::{synthetic_samples, test_params};
-        use crate::data::HostBatch;
+        use crate::data::{HostBatch, InputNormalisation};
         use crate::render::reference_render;
         use dataset::brdf::BrdfModel;
         let sample = &synthetic_samples(1, 9)[0];
@@ -148,7 +148,10 @@ mod tests {
             }
             let plain = reference_render(
                 model,
-                &HostBatch::from_samples(std::slice::from_ref(sample), 1.0),
+                &HostBatch::from_samples(
+                    std::slice::from_ref(sample),
+                    &InputNormalisation::relief(1.0),
+                ),
                 &params,
             );
             let scale = plain.iter().fold(0.0f64, |m, v| m.max(v.abs()));
@@ -158,7 +161,8 @@ mod tests {
                     .chunks(npx)
                     .flat_map(|plane| d.apply_raster(plane, CROP_PX))
                     .collect();
-                let turned = HostBatch::from_samples(&[d.apply(sample)], 1.0);
+                let turned =
+                    HostBatch::from_samples(&[d.apply(sample)], &InputNormalisation::relief(1.0));
                 let rendered = reference_render(model, &turned, &turned_params);
                 let expected = d.apply_raster(&plain, CROP_PX);
                 let worst = rendered

@@ -11,7 +11,7 @@ use dataset::geometry::{crop_pixel_geometry, CropGrid};
 use dataset::schema::{Sample, CROP_PX, DEM_PX};
 use rand::Rng;
 
-use crate::data::HostBatch;
+use crate::data::{HostBatch, InputNormalisation};
 use crate::model::UNetConfig;
 use crate::render::{masked_mse, render, scene_geometry, SceneInputs};
 use crate::training::train_loss;
@@ -163,7 +163,10 @@ pub fn write_synthetic_dataset(dir: &std::path::Path, train: Vec<Sample>, val: V
 
 /// A host batch of [`synthetic_samples`] (DEM std 20 m).
 pub fn synthetic_batch(n: usize, seed: u64) -> HostBatch {
-    HostBatch::from_samples(&synthetic_samples(n, seed), 20.0)
+    HostBatch::from_samples(
+        &synthetic_samples(n, seed),
+        &InputNormalisation::relief(20.0),
+    )
 }
 
 #[derive(Debug, Clone, serde::Serialize)]

@@ -168,8 +168,11 @@ pub fn open_source(data: &str) -> Result<Arc<dyn SampleSource>> {
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct HostBatch {
     pub sample_ids: Vec<String>,
-    /// Network input `N × 128²`: interior heights minus the crop mean, over the train-split std.
+    /// Network input `N × C × 128²` ([`InputNormalisation::planes`]): interior heights minus the crop mean over
+    /// the train-split std, then (when the run uses it) absolute elevation.
     pub net_input: Vec<f64>,
+    /// Input planes per sample (`C`).
+    pub input_channels: usize,
     /// `N × 130²` heights relative to each crop's ENU origin (with apron), metres.
     pub relative_heights_m: Vec<f64>,
     pub image: Vec<f64>,
@@ -191,17 +194,15 @@ impl HostBatch {
         self.sample_ids.is_empty()
     }
 
-    /// Assemble a batch; `dem_std_m` is the manifest's train-split DEM std (DESIGN §5).
-    pub fn from_samples(samples: &[Sample], dem_std_m: f64) -> Self {
-        let mut b = HostBatch::default();
+    /// Assemble a batch, with the network input normalised as `input` says (DESIGN §5).
+    pub fn from_samples(samples: &[Sample], input: &InputNormalisation) -> Self {
+        let mut b = HostBatch {
+            input_channels: input.channels(),
+            ..HostBatch::default()
+        };
         for s in samples {
             b.sample_ids.push(s.sample_id.clone());
-            let interior: Vec<f64> = (0..CROP_PX * CROP_PX)
-                .map(|k| s.dem_m[(k / CROP_PX + 1) * DEM_PX + k % CROP_PX + 1] as f64)
-                .collect();
-            let mean = interior.iter().sum::<f64>() / interior.len() as f64;
-            b.net_input
-                .extend(interior.iter().map(|h| (h - mean) / dem_std_m));
+            input.push_planes(&crop_interior_m(s), &mut b.net_input);
             b.relative_heights_m
                 .extend(s.dem_m.iter().map(|&h| h as f64 - s.enu_origin_height_m));
             b.image.extend(s.image.iter().map(|&v| v as f64));
@@ -214,6 +215,89 @@ impl HostBatch {
             b.origin_height_m.push(s.enu_origin_height_m);
         }
         b
+    }
+}
+
+/// A sample's interior heights (the `128²` crop inside the one-pixel apron), row-major, metres.
+pub fn crop_interior_m(sample: &Sample) -> Vec<f64> {
+    (0..CROP_PX * CROP_PX)
+        .map(|k| sample.dem_m[(k / CROP_PX + 1) * DEM_PX + k % CROP_PX + 1] as f64)
+        .collect()
+}
+
+/// How a crop's heights become the network's input planes; saved with a run (`normalisation.json`) so that
+/// evaluation and inference on a new DEM feed the network exactly what training did.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct InputNormalisation {
+    /// Train-split DEM std: the relief plane is (height − crop mean) / this (DESIGN §5).
+    pub dem_std_m: f64,
+    /// Absolute-elevation plane, (height − mean) / std over train crops, when the run uses one. The relief plane
+    /// hides where a crop sits (crater floor, mare plain or rim), and at the crop scale that explains much of the
+    /// albedo (`--elevation-input`); runs written before it existed have none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub elevation: Option<ElevationNormalisation>,
+}
+
+/// Mean and std of absolute heights over train crops' pixels.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ElevationNormalisation {
+    pub mean_m: f64,
+    pub std_m: f64,
+}
+
+impl ElevationNormalisation {
+    /// Pooled mean and std of the crops' heights (`crops` of `CROP_PX²` each; non-finite heights skipped).
+    pub fn of_crops<'a>(crops: impl IntoIterator<Item = &'a [f64]>) -> Result<Self> {
+        let (mut n, mut sum, mut sum_sq) = (0usize, 0f64, 0f64);
+        for crop in crops {
+            for &z in crop.iter().filter(|z| z.is_finite()) {
+                n += 1;
+                sum += z;
+                sum_sq += z * z;
+            }
+        }
+        if n < 2 {
+            bail!("no finite heights to normalise the elevation input with");
+        }
+        let mean_m = sum / n as f64;
+        // Heights are ~−1e3 m with ~1e2 m spread: the one-pass form loses ~1e-10 relative here, far below need.
+        let std_m = ((sum_sq / n as f64 - mean_m * mean_m).max(0.0)).sqrt();
+        if std_m <= 0.0 {
+            bail!("train crops all have the same height: the elevation input would divide by zero");
+        }
+        Ok(Self { mean_m, std_m })
+    }
+}
+
+impl InputNormalisation {
+    /// Relief only (the paper's input).
+    pub fn relief(dem_std_m: f64) -> Self {
+        Self {
+            dem_std_m,
+            elevation: None,
+        }
+    }
+
+    pub fn channels(&self) -> usize {
+        1 + usize::from(self.elevation.is_some())
+    }
+
+    /// Append one crop's planes (`CROP_PX²` heights, row-major, metres) channel after channel. A non-finite height
+    /// (a DEM hole at inference) is fed as the crop's mean height in every plane: a function of the crop alone,
+    /// so the same terrain gives the same input whatever the DEM's extent.
+    pub fn push_planes(&self, heights_m: &[f64], out: &mut Vec<f64>) {
+        let finite = heights_m.iter().filter(|z| z.is_finite());
+        let count = finite.clone().count();
+        let mean = finite.sum::<f64>() / count.max(1) as f64;
+        let filled = |z: f64| if z.is_finite() { z } else { mean };
+        out.extend(
+            heights_m
+                .iter()
+                .map(|&z| (filled(z) - mean) / self.dem_std_m),
+        );
+        if let Some(e) = self.elevation {
+            out.extend(heights_m.iter().map(|&z| (filled(z) - e.mean_m) / e.std_m));
+        }
     }
 }
 
@@ -248,6 +332,7 @@ impl EpochStream {
         source: Arc<dyn SampleSource>,
         split: &str,
         config: StreamConfig,
+        input: InputNormalisation,
         epoch: u64,
         start_batch: usize,
     ) -> Result<Self> {
@@ -263,7 +348,6 @@ impl EpochStream {
             .max_samples
             .map_or(plan.rows.len(), |m| m.min(plan.rows.len()));
         let batches = total.div_ceil(config.batch_size);
-        let dem_std = source.manifest().dem_std_m;
         let (sender, receiver) = sync_channel(2);
         let worker = std::thread::spawn(move || {
             let mut cache: BTreeMap<usize, Vec<Sample>> = BTreeMap::new();
@@ -298,7 +382,7 @@ impl EpochStream {
                     });
                 }
                 if sender
-                    .send(Ok(HostBatch::from_samples(&samples, dem_std)))
+                    .send(Ok(HostBatch::from_samples(&samples, &input)))
                     .is_err()
                 {
                     return; // the consumer stopped early
@@ -365,4 +449,49 @@ pub fn for_each_sample_group(
         }
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn planes_are_relief_then_elevation_and_a_hole_is_fed_at_the_crop_mean() {
+        let input = InputNormalisation {
+            dem_std_m: 2.0,
+            elevation: Some(ElevationNormalisation {
+                mean_m: 10.0,
+                std_m: 4.0,
+            }),
+        };
+        // Crop mean over the finite heights: (10 + 12 + 20) / 3 = 14.
+        let mut out = Vec::new();
+        input.push_planes(&[10.0, 12.0, f64::NAN, 20.0], &mut out);
+        assert_eq!(out, vec![-2.0, -1.0, 0.0, 3.0, 0.0, 0.5, 1.0, 2.5]);
+        assert_eq!(input.channels(), 2);
+
+        let mut relief = Vec::new();
+        InputNormalisation::relief(2.0).push_planes(&[10.0, 12.0, f64::NAN, 20.0], &mut relief);
+        assert_eq!(relief, out[..4]);
+        assert_eq!(InputNormalisation::relief(2.0).channels(), 1);
+    }
+
+    #[test]
+    fn elevation_statistics_pool_every_finite_height_of_every_crop() {
+        // Heights 1, 2, 3, 5: mean 2.75, population variance (3.0625 + 0.5625 + 0.0625 + 5.0625) / 4 = 2.1875.
+        let crops = [vec![1.0, 2.0, f64::NAN, 3.0], vec![5.0, f64::INFINITY]];
+        let e = ElevationNormalisation::of_crops(crops.iter().map(Vec::as_slice)).unwrap();
+        assert_eq!(e.mean_m, 2.75);
+        assert!((e.std_m - 2.1875f64.sqrt()).abs() < 1e-15);
+        // Lunar-scale heights keep their precision in the one-pass form.
+        let far = [vec![-1201.0, -1199.0]];
+        let e = ElevationNormalisation::of_crops(far.iter().map(Vec::as_slice)).unwrap();
+        assert_eq!((e.mean_m, e.std_m), (-1200.0, 1.0));
+
+        let flat = [vec![3.0, 3.0]];
+        let err = ElevationNormalisation::of_crops(flat.iter().map(Vec::as_slice)).unwrap_err();
+        assert!(err.to_string().contains("same height"), "{err}");
+        let empty: [Vec<f64>; 0] = [];
+        assert!(ElevationNormalisation::of_crops(empty.iter().map(Vec::as_slice)).is_err());
+    }
 }

@@ -21,7 +21,7 @@ use dataset::raster::{read_bands, Raster};
 use dataset::schema::{Sample, CROP_PX};
 
 use crate::baseline::{hapke_render, normalise_like_paper, truth_and_valid};
-use crate::data::{for_each_sample_group, HostBatch, SampleSource};
+use crate::data::{for_each_sample_group, HostBatch, InputNormalisation, SampleSource};
 use crate::features::{FeatureMatcher, MatchStats, MatchSummary};
 use crate::metrics::{image_metrics, AggregateMetrics, ImageMetrics, MetricsAccumulator};
 use crate::model::UNet;
@@ -58,6 +58,8 @@ pub struct EvalOptions {
     pub calibration_samples: usize,
     /// PNG panels written for the first images.
     pub panels: usize,
+    /// The run's network input normalisation (`training::run_input`).
+    pub input: InputNormalisation,
 }
 
 /// The world's true Hapke parameter maps (`truth/hapke_params.tif`: w, b, c, B_S0, h_S, θ̄ in degrees).
@@ -434,7 +436,6 @@ pub fn evaluate<B: Backend>(
     device: &B::Device,
     mut on_image: impl FnMut(usize, &Sample, &[(&'static str, Vec<f64>)]) -> Result<()>,
 ) -> Result<EvalReport> {
-    let dem_std = source.manifest().dem_std_m;
     let mut accumulators: BTreeMap<&str, MetricsAccumulator> = BTreeMap::new();
     let matcher = FeatureMatcher::default();
     let mut matches: BTreeMap<&str, MatchStats> = BTreeMap::new();
@@ -442,7 +443,7 @@ pub fn evaluate<B: Backend>(
     let mut failure: Option<anyhow::Error> = None;
     for_each_sample_group(source, &options.split, options.max_samples, |samples| {
         for chunk in samples.chunks(options.batch_size) {
-            let batch = HostBatch::from_samples(chunk, dem_std);
+            let batch = HostBatch::from_samples(chunk, &options.input);
             let learned = predict_images(net, config.model, &batch, device);
             for (i, sample) in chunk.iter().enumerate() {
                 let px = CROP_PX * CROP_PX;

@@ -13,6 +13,7 @@ use dataset::brdf::{inverse_leaky_relu, leaky_relu, BrdfModel, LEAKY_SLOPE};
 use dataset::raster::{BandOut, BandValues, Raster, RasterLayout};
 use dataset::schema::CROP_PX;
 
+use crate::data::InputNormalisation;
 use crate::model::UNet;
 
 /// Default overlap between neighbouring crops, pixels (a quarter crop).
@@ -22,8 +23,8 @@ pub const DEFAULT_OVERLAP: usize = 32;
 pub struct InferOptions {
     pub overlap: usize,
     pub batch_size: usize,
-    /// The training set's DEM std (network input normalisation).
-    pub dem_std_m: f64,
+    /// The run's network input normalisation (`training::run_input`).
+    pub input: InputNormalisation,
 }
 
 /// Start offsets of crops of `crop` pixels along an axis of `len` pixels (`len ≥ crop`), stride `crop − overlap`,
@@ -123,26 +124,20 @@ pub fn infer_params<B: Backend>(
         .collect();
     let npx = CROP_PX * CROP_PX;
     for (b, batch) in origins.chunks(options.batch_size.max(1)).enumerate() {
-        let mut input = Vec::with_capacity(batch.len() * npx);
+        let mut input = Vec::with_capacity(batch.len() * options.input.channels() * npx);
         for &(c0, r0) in batch {
             let crop: Vec<f64> = (0..npx)
                 .map(|k| height_at(c0 + (k % CROP_PX) as isize, r0 + (k / CROP_PX) as isize))
                 .collect();
-            let finite: Vec<f64> = crop.iter().copied().filter(|z| z.is_finite()).collect();
-            let mean = finite.iter().sum::<f64>() / finite.len().max(1) as f64;
-            // Holes sit at the crop's mean height for the network (a function of the crop alone, so the same
-            // terrain gives the same parameters whatever the DEM's extent); their outputs become NaN below.
-            input.extend(crop.iter().map(|z| {
-                if z.is_finite() {
-                    (z - mean) / options.dem_std_m
-                } else {
-                    0.0
-                }
-            }));
+            // Holes are fed at the crop's mean height (see `push_planes`); their outputs become NaN below.
+            options.input.push_planes(&crop, &mut input);
         }
         let raw = net
             .forward(Tensor::<B, 4>::from_data(
-                TensorData::new(input, [batch.len(), 1, CROP_PX, CROP_PX]),
+                TensorData::new(
+                    input,
+                    [batch.len(), options.input.channels(), CROP_PX, CROP_PX],
+                ),
                 device,
             ))
             .into_data()

@@ -76,6 +76,12 @@ struct TrainArgs {
     /// starts at the honest uniform baseline) or zero (black first renderings).
     #[arg(long, value_enum, default_value = "uniform")]
     init: train::training::HeadInit,
+    /// Add absolute elevation as a second input plane (normalised by the mean and std of 256 spread train
+    /// crops). The paper's input is relief only (crop mean removed), which hides whether a crop lies on a crater
+    /// floor, a mare plain or a highland rim; at the crop scale that explains much of the albedo. Meaningful
+    /// within one region: a DEM from elsewhere on the Moon has other absolute heights.
+    #[arg(long)]
+    elevation_input: bool,
 }
 
 impl TrainArgs {
@@ -96,6 +102,7 @@ impl TrainArgs {
             max_val_samples: self.max_val_samples,
             lr_schedule: self.lr_schedule,
             head_init: self.init,
+            elevation_input: self.elevation_input,
         }
     }
 }
@@ -191,7 +198,7 @@ enum Command {
         overlap: usize,
         #[arg(long, default_value_t = 8)]
         batch: usize,
-        /// Override the input normalisation (default: the run's normalisation.json).
+        /// Override the relief plane's DEM std (default: the run's normalisation.json).
         #[arg(long)]
         dem_std_m: Option<f64>,
         #[arg(long, value_enum, default_value = "flex")]
@@ -357,13 +364,6 @@ fn run(cli: Cli) -> Result<()> {
             let out = out.unwrap_or_else(|| run.join(format!("eval-{split}")));
             let panel_dir = out.join("panels");
             std::fs::create_dir_all(&panel_dir)?;
-            let options = train::evaluation::EvalOptions {
-                split,
-                max_samples,
-                batch_size: batch.max(1),
-                calibration_samples,
-                panels,
-            };
             let truth = world
                 .as_deref()
                 .map(train::evaluation::TruthMaps::open)
@@ -371,7 +371,16 @@ fn run(cli: Cli) -> Result<()> {
             let report = with_backend!(backend, B => {
                 type Inner = <B as burn::tensor::backend::AutodiffBackend>::InnerBackend;
                 let device = Default::default();
-                let (config, net) = train::training::load_trained::<Inner>(&run, &device)?;
+                let train::training::TrainedRun { config, input, net } =
+                    train::training::load_trained::<Inner>(&run, &device)?;
+                let options = train::evaluation::EvalOptions {
+                    split: split.clone(),
+                    max_samples,
+                    batch_size: batch.max(1),
+                    calibration_samples,
+                    panels,
+                    input,
+                };
                 let calibration =
                     train::evaluation::calibrate(source.as_ref(), calibration_samples, config.model)?;
                 train::evaluation::evaluate::<Inner>(
@@ -401,36 +410,29 @@ fn run(cli: Cli) -> Result<()> {
             dem_std_m,
             backend,
         } => {
-            let dem_std_m = match dem_std_m {
-                Some(v) => v,
-                None => {
-                    train::training::load_normalisation(&run)
-                        .map_err(|e| anyhow::anyhow!("{e:#}; or pass --dem-std-m"))?
-                        .dem_std_m
-                }
-            };
-            let raster = dataset::raster::read_raster(&dem)?;
-            let options = train::inference::InferOptions {
-                overlap,
-                batch_size: batch,
-                dem_std_m,
-            };
             let progress = indicatif::ProgressBar::new(0).with_style(
                 indicatif::ProgressStyle::with_template(
                     "infer {bar:40} {pos}/{len} batches {elapsed}",
                 )
                 .expect("valid template"),
             );
+            let raster = dataset::raster::read_raster(&dem)?;
             let maps = with_backend!(backend, B => {
                 type Inner = <B as burn::tensor::backend::AutodiffBackend>::InnerBackend;
                 let device = Default::default();
-                let (config, net) = train::training::load_trained::<Inner>(&run, &device)?;
-                train::inference::infer_params::<Inner>(&net, config.model, &raster, &options, &device, |done, total| {
+                let trained = train::training::load_trained::<Inner>(&run, &device)?;
+                let mut input = trained.input;
+                if let Some(dem_std_m) = dem_std_m {
+                    input.dem_std_m = dem_std_m;
+                }
+                let options = train::inference::InferOptions { overlap, batch_size: batch, input };
+                let maps = train::inference::infer_params::<Inner>(&trained.net, trained.config.model, &raster, &options, &device, |done, total| {
                     progress.set_length(total as u64);
                     progress.set_position(done as u64);
                 })
-            })
-            .map_err(|e| anyhow::anyhow!("{}: {e:#}", dem.display()))?;
+                .map_err(|e| anyhow::anyhow!("{}: {e:#}", dem.display()))?;
+                Ok::<_, anyhow::Error>(maps)
+            })?;
             progress.finish_and_clear();
             train::inference::write_params_geotiff(&maps, &raster, overlap, &out)?;
             println!(
@@ -474,15 +476,12 @@ fn run(cli: Cli) -> Result<()> {
                 .transpose()?
                 .unwrap_or_default();
             let inference_overlap = match (run, raster.as_ref()) {
-                (Some(run), Some(raster)) => {
-                    let dem_std_m = source.manifest().dem_std_m;
-                    with_backend!(backend, B => {
-                        type Inner = <B as burn::tensor::backend::AutodiffBackend>::InnerBackend;
-                        let device = Default::default();
-                        let (config, net) = train::training::load_trained::<Inner>(&run, &device)?;
-                        train::report::overlap_rows::<Inner>(&net, config.model, raster, dem_std_m, &overlaps, &device)
-                    })?
-                }
+                (Some(run), Some(raster)) => with_backend!(backend, B => {
+                    type Inner = <B as burn::tensor::backend::AutodiffBackend>::InnerBackend;
+                    let device = Default::default();
+                    let trained = train::training::load_trained::<Inner>(&run, &device)?;
+                    train::report::overlap_rows::<Inner>(&trained.net, trained.config.model, raster, &trained.input, &overlaps, &device)
+                })?,
                 _ => Vec::new(),
             };
             let resampling = match (ortho, raster.as_ref()) {

@@ -20,6 +20,9 @@ const DROPOUT_BY_DEPTH: [f64; 5] = [0.0, 0.1, 0.2, 0.3, 0.3];
 pub struct UNetConfig {
     /// Output channels = the BRDF model's parameter count.
     pub out_channels: usize,
+    /// Input planes: relief, plus absolute elevation when the run uses it (`data::InputNormalisation`).
+    #[config(default = 1)]
+    pub in_channels: usize,
     /// Channels of the first stage; the others double per stage.
     #[config(default = 16)]
     pub base_width: usize,
@@ -85,7 +88,7 @@ impl UNetConfig {
             }
         };
         let mut down = Vec::new();
-        let mut c_in = 1;
+        let mut c_in = self.in_channels;
         for (depth, &c) in widths.iter().enumerate() {
             down.push(ConvBlock::new(c_in, c, p(depth), device));
             c_in = c;
@@ -140,7 +143,7 @@ impl<B: Backend> UNet<B> {
         self
     }
 
-    /// `[N, 1, 128, 128]` normalised heights → `[N, P, 128, 128]` raw BRDF parameters.
+    /// `[N, C, 128, 128]` input planes → `[N, P, 128, 128]` raw BRDF parameters.
     pub fn forward(&self, x: Tensor<B, 4>) -> Tensor<B, 4> {
         let mut skips = Vec::new();
         let mut x = x;

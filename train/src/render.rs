@@ -386,6 +386,7 @@ pub fn host_pixel_geometry(batch: &HostBatch, i: usize) -> Vec<dataset::geometry
 mod tests {
     use super::*;
     use crate::bench::{hard_case_samples, synthetic_samples, test_params};
+    use crate::data::InputNormalisation;
 
     type Cpu = burn::backend::Flex;
 
@@ -394,7 +395,7 @@ mod tests {
         let device = Default::default();
         let mut samples = synthetic_samples(2, 3);
         samples.extend(hard_case_samples());
-        let batch = HostBatch::from_samples(&samples, 20.0);
+        let batch = HostBatch::from_samples(&samples, &InputNormalisation::relief(20.0));
         for model in BrdfModel::ALL {
             let geometry = scene_geometry(&SceneInputs::<Cpu>::from_host(&batch, model, &device));
             let params = test_params(model, batch.len(), 5);

@@ -24,7 +24,7 @@ use dataset::raster::Raster;
 use dataset::schema::Sample;
 
 use crate::baseline::hapke_from_geometry;
-use crate::data::{for_each_sample_group, SampleSource};
+use crate::data::{for_each_sample_group, InputNormalisation, SampleSource};
 use crate::evaluation::{calibrate, lunar_lambert_from_geometry, model_uniform_from_geometry};
 use crate::inference::{infer_params, render_maps, seam_score, InferOptions};
 use crate::model::UNet;
@@ -179,7 +179,7 @@ pub fn overlap_rows<B: Backend>(
     net: &UNet<B>,
     model: BrdfModel,
     dem: &Raster,
-    dem_std_m: f64,
+    input: &InputNormalisation,
     overlaps: &[usize],
     device: &B::Device,
 ) -> Result<Vec<OverlapRow>> {
@@ -189,7 +189,7 @@ pub fn overlap_rows<B: Backend>(
             let options = InferOptions {
                 overlap,
                 batch_size: 8,
-                dem_std_m,
+                input: *input,
             };
             let t0 = Instant::now();
             let maps = infer_params(net, model, dem, &options, device, |_, _| {})?;

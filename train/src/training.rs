@@ -22,7 +22,10 @@ use dataset::rng::keyed_u64;
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::data::for_each_sample_group;
-use crate::data::{EpochStream, HostBatch, SampleSource, StreamConfig};
+use crate::data::{
+    crop_interior_m, ElevationNormalisation, EpochStream, HostBatch, InputNormalisation,
+    SampleSource, StreamConfig,
+};
 use crate::metrics::{AggregateMetrics, MetricsAccumulator};
 use crate::model::{UNet, UNetConfig};
 use crate::render::{masked_mse, render, scene_geometry, SceneGeometry, SceneInputs};
@@ -45,6 +48,46 @@ pub struct FitConfig {
     /// How the head starts; runs written before this field existed started at zero.
     #[serde(default)]
     pub head_init: HeadInit,
+    /// Feed absolute elevation as a second input plane ([`InputNormalisation`]); runs written before this field
+    /// existed had relief only.
+    #[serde(default)]
+    pub elevation_input: bool,
+}
+
+impl FitConfig {
+    /// The network this run trains.
+    pub fn net_config(&self) -> UNetConfig {
+        UNetConfig::new(self.model.param_count())
+            .with_in_channels(1 + usize::from(self.elevation_input))
+            .with_base_width(self.base_width)
+            .with_dropout(self.dropout)
+    }
+}
+
+/// Train crops the elevation input's mean and std are taken over (spread over the split).
+pub const ELEVATION_NORMALISATION_SAMPLES: usize = 256;
+
+/// The input normalisation a new run trains with: the manifest's train-split DEM std, plus absolute-elevation
+/// statistics over spread train crops when `config.elevation_input`.
+pub fn input_normalisation(
+    source: &dyn SampleSource,
+    config: &FitConfig,
+) -> Result<InputNormalisation> {
+    let mut input = InputNormalisation::relief(source.manifest().dem_std_m);
+    if config.elevation_input {
+        let mut crops = Vec::new();
+        for_each_sample_group(
+            source,
+            "train",
+            Some(ELEVATION_NORMALISATION_SAMPLES),
+            |samples| crops.extend(samples.iter().map(crop_interior_m)),
+        )?;
+        input.elevation = Some(
+            ElevationNormalisation::of_crops(crops.iter().map(Vec::as_slice))
+                .with_context(|| format!("{}: train split", source.describe()))?,
+        );
+    }
+    Ok(input)
 }
 
 /// Where the network's output starts.
@@ -172,7 +215,10 @@ fn render_batch<B: Backend>(
 ) -> (Tensor<B, 4>, SceneGeometry<B>) {
     let geometry = scene_geometry(&SceneInputs::<B>::from_host(batch, model, device));
     let input = Tensor::<B, 4>::from_data(
-        TensorData::new(batch.net_input.clone(), [batch.len(), 1, 128, 128]),
+        TensorData::new(
+            batch.net_input.clone(),
+            [batch.len(), batch.input_channels, 128, 128],
+        ),
         device,
     );
     (render(model, net.forward(input), &geometry), geometry)
@@ -212,16 +258,16 @@ pub fn predict_images<B: Backend>(
 pub fn validate<B: Backend>(
     net: &UNet<B>,
     model: BrdfModel,
+    input: &InputNormalisation,
     source: &dyn SampleSource,
     max: Option<usize>,
     batch_size: usize,
     device: &B::Device,
 ) -> Result<AggregateMetrics> {
-    let dem_std = source.manifest().dem_std_m;
     let mut metrics = MetricsAccumulator::default();
     for_each_sample_group(source, "val", max, |samples| {
         for chunk in samples.chunks(batch_size) {
-            let batch = HostBatch::from_samples(chunk, dem_std);
+            let batch = HostBatch::from_samples(chunk, input);
             let rendered = predict_images(net, model, &batch, device);
             let px = CROP_PX * CROP_PX;
             for i in 0..batch.len() {
@@ -256,13 +302,11 @@ pub fn fit<B: AutodiffBackend>(
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let config_path = out.join("config.json");
     let last = out.join("last");
-    let net_config = UNetConfig::new(config.model.param_count())
-        .with_base_width(config.base_width)
-        .with_dropout(config.dropout);
+    let net_config = config.net_config();
     let recorder = Rec::new();
     let seed = config.stream.seed;
 
-    let (mut net, mut optim, mut cursor, mut history) = if resume {
+    let (mut net, mut optim, mut cursor, mut history, input) = if resume {
         let saved: FitConfig = read_json(&config_path)?;
         if saved.model != config.model {
             bail!(
@@ -292,7 +336,8 @@ pub fn fit<B: AutodiffBackend>(
                     format!("{}: cannot load the optimizer state", last.display())
                 })?);
         let history = read_history(&out.join("metrics.jsonl"))?;
-        (net, optim, cursor, history)
+        let input = load_normalisation(out)?.input;
+        (net, optim, cursor, history, input)
     } else {
         if last.exists() {
             bail!(
@@ -304,11 +349,15 @@ pub fn fit<B: AutodiffBackend>(
         let _ = std::fs::remove_file(out.join("metrics.jsonl"));
         let _ = std::fs::remove_dir_all(out.join("best"));
         write_json(&config_path, config)?;
-        // What inference on a new DEM needs from the training data: the network's input normalisation.
+        // What evaluation and inference on a new DEM need from the training data: the input normalisation.
+        let input = input_normalisation(&*source, config)?;
+        if let Some(e) = input.elevation {
+            tracing::info!(mean_m = e.mean_m, std_m = e.std_m, "elevation input plane");
+        }
         write_json(
             &out.join("normalisation.json"),
             &Normalisation {
-                dem_std_m: source.manifest().dem_std_m,
+                input,
                 dataset: source.manifest().name.clone(),
             },
         )?;
@@ -326,7 +375,7 @@ pub fn fit<B: AutodiffBackend>(
             net = net.with_head_bias(&raw, device);
         }
         let optim = AdamConfig::new().with_epsilon(1e-8).init::<B, UNet<B>>();
-        (net, optim, Cursor::start(), Vec::new())
+        (net, optim, Cursor::start(), Vec::new(), input)
     };
     let trainable = trainable_params(&net, &net_config);
     tracing::info!(
@@ -344,6 +393,7 @@ pub fn fit<B: AutodiffBackend>(
             source.clone(),
             "train",
             config.stream,
+            input,
             epoch as u64,
             cursor.next_batch,
         )?;
@@ -406,6 +456,7 @@ pub fn fit<B: AutodiffBackend>(
         let val = validate(
             &inference,
             config.model,
+            &input,
             source.as_ref(),
             config.max_val_samples,
             config.stream.batch_size,
@@ -545,8 +596,9 @@ fn read_history(path: &Path) -> Result<Vec<EpochMetrics>> {
 /// The training data's input normalisation, saved with a run (`normalisation.json`).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Normalisation {
-    /// Train-split DEM std the network's input was divided by.
-    pub dem_std_m: f64,
+    /// How heights became the network's input.
+    #[serde(flatten)]
+    pub input: InputNormalisation,
     pub dataset: String,
 }
 
@@ -555,14 +607,36 @@ pub fn load_normalisation(run: &Path) -> Result<Normalisation> {
     read_json(&run.join("normalisation.json"))
 }
 
+/// The input normalisation a run's network was trained with, checked against its config (planes it expects).
+pub fn run_input(run: &Path, config: &FitConfig) -> Result<InputNormalisation> {
+    let input = load_normalisation(run)?.input;
+    if input.channels() != config.net_config().in_channels {
+        bail!(
+            "{}: normalisation.json describes {} input plane(s) but config.json a network with {}: the run directory is inconsistent",
+            run.display(),
+            input.channels(),
+            config.net_config().in_channels
+        );
+    }
+    Ok(input)
+}
+
 /// Paths of a run directory's checkpoints.
 pub fn best_model_path(run: &Path) -> PathBuf {
     run.join("best").join("model")
 }
 
-/// A finished (or interrupted) run's config and network in inference mode: the best-val checkpoint, or the last
-/// one when no validation has run yet.
-pub fn load_trained<B: Backend>(run: &Path, device: &B::Device) -> Result<(FitConfig, UNet<B>)> {
+/// A trained run, loaded for evaluation or inference.
+pub struct TrainedRun<B: Backend> {
+    pub config: FitConfig,
+    /// How heights become the network's input (`normalisation.json`).
+    pub input: InputNormalisation,
+    pub net: UNet<B>,
+}
+
+/// A finished (or interrupted) run's config, input normalisation and network in inference mode: the best-val
+/// checkpoint, or the last one when no validation has run yet.
+pub fn load_trained<B: Backend>(run: &Path, device: &B::Device) -> Result<TrainedRun<B>> {
     let config_path = run.join("config.json");
     if !config_path.exists() {
         bail!(
@@ -580,13 +654,13 @@ pub fn load_trained<B: Backend>(run: &Path, device: &B::Device) -> Result<(FitCo
                 run.display()
             )
         })?;
-    let net = UNetConfig::new(config.model.param_count())
-        .with_base_width(config.base_width)
-        .with_dropout(config.dropout)
+    let net = config
+        .net_config()
         .init::<B>(device)
         .load_file(checkpoint.clone(), &Rec::new(), device)
         .with_context(|| format!("{}: cannot load the checkpoint", checkpoint.display()))?;
-    Ok((config, net))
+    let input = run_input(run, &config)?;
+    Ok(TrainedRun { config, input, net })
 }
 
 #[cfg(test)]

@@ -58,6 +58,14 @@ fn bad_inputs_fail_with_one_line_naming_the_file_and_the_fix() {
     )
     .unwrap();
     std::fs::write(d.join("not-a-dem.tif"), b"not a tiff").unwrap();
+    let dem = dataset::raster::Raster::new(
+        4,
+        4,
+        dataset::raster::GeoTransform::north_up(0.0, 0.0, 5.0),
+        dataset::crs::LunarCrs::equirectangular(-43.31, -11.36),
+        -1200.0,
+    );
+    dataset::raster::write_raster(&d.join("dem.tif"), &dem, &[]).unwrap();
     let cases: Vec<(Vec<String>, Vec<&str>)> = vec![
         (
             vec![
@@ -75,11 +83,11 @@ fn bad_inputs_fail_with_one_line_naming_the_file_and_the_fix() {
                 "--run".into(),
                 path("no-run"),
                 "--dem".into(),
-                path("x.tif"),
+                path("dem.tif"),
                 "--out".into(),
                 path("p.tif"),
             ],
-            vec!["normalisation.json", "--dem-std-m"],
+            vec!["no-run", "config.json", "g2r-train fit --out"],
         ),
         (
             vec![

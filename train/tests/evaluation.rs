@@ -10,7 +10,7 @@ use dataset::hapke::HapkeParams;
 use dataset::schema::CROP_PX;
 use train::baseline::{hapke_render, normalise_like_paper};
 use train::bench::{synthetic_samples, write_synthetic_dataset};
-use train::data::{HostBatch, LocalSource, SampleSource, StreamConfig};
+use train::data::{HostBatch, InputNormalisation, LocalSource, SampleSource, StreamConfig};
 use train::evaluation::{calibrate, evaluate, panel_png, write_report, EvalOptions};
 use train::metrics::image_metrics;
 use train::model::UNetConfig;
@@ -45,6 +45,7 @@ fn eval_rows_equal_validation_and_direct_baselines() {
         max_val_samples: None,
         lr_schedule: train::training::LrSchedule::Constant,
         head_init: train::training::HeadInit::Zero,
+        elevation_input: false,
     };
     let options = EvalOptions {
         split: "val".into(),
@@ -52,6 +53,7 @@ fn eval_rows_equal_validation_and_direct_baselines() {
         batch_size: 2,
         calibration_samples: 6,
         panels: 2,
+        input: InputNormalisation::relief(source.manifest().dem_std_m),
     };
     let calibration = calibrate(&source, 6, BrdfModel::M2).unwrap();
     // The honest scale is Σxt / Σx² over the train crops' valid pixels.
@@ -123,7 +125,16 @@ fn eval_rows_equal_validation_and_direct_baselines() {
             "model_uniform"
         ]
     );
-    let validation = validate(&net, BrdfModel::M2, &source, None, 2, &device).unwrap();
+    let validation = validate(
+        &net,
+        BrdfModel::M2,
+        &options.input,
+        &source,
+        None,
+        2,
+        &device,
+    )
+    .unwrap();
     assert_eq!(
         report.methods[0].aggregate, validation,
         "learned row = validation"
@@ -157,7 +168,10 @@ fn eval_rows_equal_validation_and_direct_baselines() {
     let learned = predict_images(
         &net,
         BrdfModel::M2,
-        &HostBatch::from_samples(&val[..1], source.manifest().dem_std_m),
+        &HostBatch::from_samples(
+            &val[..1],
+            &InputNormalisation::relief(source.manifest().dem_std_m),
+        ),
         &device,
     );
     let direct = image_metrics(

@@ -6,6 +6,7 @@ use burn::prelude::*;
 use dataset::brdf::BrdfModel;
 use dataset::crs::LunarCrs;
 use dataset::raster::{read_bands, write_raster, GeoTransform, Raster};
+use train::data::{ElevationNormalisation, InputNormalisation};
 use train::inference::{
     infer_params, render_maps, seam_score, write_params_geotiff, InferOptions, ParamMaps,
     DEFAULT_OVERLAP,
@@ -53,12 +54,17 @@ fn dem(width: usize, height: usize, col0: usize) -> Raster {
 
 /// A width-4 U-Net with a random head (a zero head would output constants and hide any seam).
 fn random_net() -> UNet<B> {
+    random_net_with_inputs(1)
+}
+
+fn random_net_with_inputs(in_channels: usize) -> UNet<B> {
     // The backend RNG is process-wide: seeding and initialising under one lock keeps parallel tests apart.
     static INIT: std::sync::Mutex<()> = std::sync::Mutex::new(());
     let _guard = INIT.lock().unwrap_or_else(|e| e.into_inner());
     let device = Default::default();
     B::seed(&device, 7);
     let net = UNetConfig::new(BrdfModel::M2.param_count())
+        .with_in_channels(in_channels)
         .with_base_width(4)
         .with_zero_head(false)
         .init::<B>(&device);
@@ -67,10 +73,14 @@ fn random_net() -> UNet<B> {
 }
 
 fn infer(net: &UNet<B>, dem: &Raster, overlap: usize) -> ParamMaps {
+    infer_with(net, dem, overlap, InputNormalisation::relief(20.0))
+}
+
+fn infer_with(net: &UNet<B>, dem: &Raster, overlap: usize, input: InputNormalisation) -> ParamMaps {
     let options = InferOptions {
         overlap,
         batch_size: 4,
-        dem_std_m: 20.0,
+        input,
     };
     infer_params(
         net,
@@ -186,4 +196,56 @@ fn parameter_geotiff_sits_on_the_dem_grid_to_the_pixel() {
         shifted_rms > 20.0 * worst_aligned.max(1e-9) as f64,
         "a one-pixel shift must be visible above the aligned difference ({shifted_rms} vs {worst_aligned})"
     );
+}
+
+/// Relief alone is blind to where a crop sits: lifting the whole DEM changes nothing. The elevation plane sees it,
+/// so the same lift changes the parameters; and a hole stays nodata either way.
+#[test]
+fn elevation_plane_makes_parameters_depend_on_absolute_height_and_relief_alone_does_not() {
+    let low = dem(320, 240, 0);
+    let mut high = low.clone();
+    // +64 m keeps every height in the same f32 binade (|h| in 1024..2048), so the lift is exact.
+    for z in high.data.iter_mut() {
+        *z += 64.0;
+    }
+    let max_abs_diff = |a: &ParamMaps, b: &ParamMaps| {
+        a.bands
+            .iter()
+            .zip(&b.bands)
+            .flat_map(|(x, y)| x.iter().zip(y))
+            .filter(|(x, y)| x.is_finite() || y.is_finite())
+            .map(|(x, y)| f64::from((x - y).abs()))
+            .fold(0f64, f64::max)
+    };
+    let relief = random_net();
+    let (a, b) = (infer(&relief, &low, 32), infer(&relief, &high, 32));
+    assert_eq!(
+        max_abs_diff(&a, &b),
+        0.0,
+        "relief input moved with a uniform lift"
+    );
+
+    let input = InputNormalisation {
+        dem_std_m: 20.0,
+        elevation: Some(ElevationNormalisation {
+            mean_m: -1200.0,
+            std_m: 50.0,
+        }),
+    };
+    let both = random_net_with_inputs(2);
+    let (a, b) = (
+        infer_with(&both, &low, 32, input),
+        infer_with(&both, &high, 32, input),
+    );
+    let moved = max_abs_diff(&a, &b);
+    assert!(
+        moved > 1e-3,
+        "the elevation plane did not reach the network: max change {moved:e}"
+    );
+    let hole = 203 * 320 + 302;
+    assert!(a
+        .bands
+        .iter()
+        .chain(&b.bands)
+        .all(|band| band[hole].is_nan()));
 }

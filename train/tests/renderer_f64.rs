@@ -8,7 +8,7 @@ use burn::tensor::{set_default_dtypes, FloatDType, IntDType};
 use dataset::brdf::BrdfModel;
 use dataset::schema::CROP_PX;
 use train::bench::{hard_case_samples, synthetic_samples, test_params};
-use train::data::HostBatch;
+use train::data::{HostBatch, InputNormalisation};
 use train::render::{
     masked_mse, reference_render, render, scene_geometry, SceneGeometry, SceneInputs,
 };
@@ -35,7 +35,7 @@ fn to_f64(t: Tensor<impl Backend, 4>) -> Vec<f64> {
 fn batch() -> HostBatch {
     let mut samples = synthetic_samples(1, 4);
     samples.extend(hard_case_samples());
-    HostBatch::from_samples(&samples, 20.0)
+    HostBatch::from_samples(&samples, &InputNormalisation::relief(20.0))
 }
 
 fn params_tensor(model: BrdfModel, values: Vec<f64>, n: usize) -> Tensor<Ad, 4> {

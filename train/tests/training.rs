@@ -11,7 +11,7 @@ use burn::record::{FullPrecisionSettings, NamedMpkFileRecorder};
 use dataset::brdf::{inverse_leaky_relu, BrdfModel};
 use dataset::schema::CROP_PX;
 use train::bench::synthetic_samples;
-use train::data::{HostBatch, LocalSource, SampleSource, StreamConfig};
+use train::data::{HostBatch, InputNormalisation, LocalSource, SampleSource, StreamConfig};
 use train::model::UNetConfig;
 use train::render::reference_render;
 use train::training::{fit, predict_images, FitConfig};
@@ -44,6 +44,7 @@ fn config(
         max_val_samples: Some(4),
         lr_schedule: train::training::LrSchedule::Constant,
         head_init: train::training::HeadInit::Zero,
+        elevation_input: false,
     }
 }
 
@@ -52,7 +53,8 @@ fn config(
 #[test]
 fn a_head_bias_renders_the_uniform_model_before_any_step() {
     let device = Default::default();
-    let batch = HostBatch::from_samples(&synthetic_samples(2, 11), 20.0);
+    let batch =
+        HostBatch::from_samples(&synthetic_samples(2, 11), &InputNormalisation::relief(20.0));
     let npx = CROP_PX * CROP_PX;
     for model in [BrdfModel::M2, BrdfModel::L3, BrdfModel::H1] {
         let coefficients: Vec<f64> = (0..model.param_count())
@@ -128,10 +130,10 @@ fn overfitting_a_handful_of_samples_drops_the_loss_tenfold() {
 }
 
 /// The network's inference output on fixed samples: weights and BatchNorm running stats in one vector.
-fn fingerprint(run: &Path, model: BrdfModel) -> Vec<f64> {
+fn fingerprint(run: &Path, cfg: &FitConfig) -> Vec<f64> {
     let device = Default::default();
-    let net = UNetConfig::new(model.param_count())
-        .with_base_width(4)
+    let net = cfg
+        .net_config()
         .init::<Flex>(&device)
         .load_file(
             run.join("last/model"),
@@ -139,10 +141,11 @@ fn fingerprint(run: &Path, model: BrdfModel) -> Vec<f64> {
             &device,
         )
         .unwrap();
+    let input = train::training::run_input(run, cfg).unwrap();
     predict_images(
         &net,
-        model,
-        &HostBatch::from_samples(&synthetic_samples(2, 77), 20.0),
+        cfg.model,
+        &HostBatch::from_samples(&synthetic_samples(2, 77), &input),
         &device,
     )
 }
@@ -158,10 +161,12 @@ fn stopping_and_resuming_gives_the_same_network_as_an_uninterrupted_run() {
         synthetic_samples(4, 6),
     );
     let source: Arc<dyn SampleSource> = Arc::new(LocalSource::open(tmp.path()).unwrap());
-    // Cosine schedule: the resumed half must continue the decay from the saved step, not restart it.
+    // Cosine schedule: the resumed half must continue the decay from the saved step, not restart it. With the
+    // elevation plane, the resumed half must feed the network what the first half did.
     let cfg = FitConfig {
         lr_schedule: train::training::LrSchedule::Cosine,
         head_init: train::training::HeadInit::Uniform,
+        elevation_input: true,
         ..config(BrdfModel::M2, 2, 1e-3, 12, true)
     };
     let device = Default::default();
@@ -182,10 +187,7 @@ fn stopping_and_resuming_gives_the_same_network_as_an_uninterrupted_run() {
     // Byte-equal metrics files: serde_json prints f64 exactly (shortest round trip), so this is bit equality.
     let metrics = |run: &Path| std::fs::read_to_string(run.join("metrics.jsonl")).unwrap();
     assert_eq!(metrics(&straight), metrics(&split));
-    assert_eq!(
-        fingerprint(&straight, cfg.model),
-        fingerprint(&split, cfg.model)
-    );
+    assert_eq!(fingerprint(&straight, &cfg), fingerprint(&split, &cfg));
 
     // Resuming with another BRDF model is refused with the fix in the message.
     let other = FitConfig {
