@@ -168,7 +168,7 @@ pub fn open_source(data: &str) -> Result<Arc<dyn SampleSource>> {
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct HostBatch {
     pub sample_ids: Vec<String>,
-    /// Network input `N × C × 128²` ([`InputNormalisation::planes`]): interior heights minus the crop mean over
+    /// Network input `N × C × 128²` ([`InputNormalisation::push_planes`]): interior heights minus the crop mean over
     /// the train-split std, then (when the run uses it) absolute elevation.
     pub net_input: Vec<f64>,
     /// Input planes per sample (`C`).

@@ -336,7 +336,8 @@ pub fn fit<B: AutodiffBackend>(
                     format!("{}: cannot load the optimizer state", last.display())
                 })?);
         let history = read_history(&out.join("metrics.jsonl"))?;
-        let input = load_normalisation(out)?.input;
+        // Checked against the config: a resumed run must feed the network the planes it started with.
+        let input = run_input(out, config)?;
         (net, optim, cursor, history, input)
     } else {
         if last.exists() {
