@@ -14,8 +14,8 @@ use dataset::planner::plan_epoch;
 use dataset::schema::{Sample, CROP_PX, SCHEMA_VERSION};
 use dataset::shard::read_shard;
 use train::data::{
-    ElevationNormalisation, EpochStream, HttpSource, InputNormalisation, LocalSource, SampleSource,
-    StreamConfig,
+    ContextNormalisation, ElevationNormalisation, EpochStream, HttpSource, InputNormalisation,
+    LocalSource, SampleSource, StreamConfig,
 };
 
 const TILE_M: f64 = 2560.0;
@@ -562,12 +562,16 @@ fn trainer_over_http_gets_the_same_first_epoch_batches_as_from_local_files() {
         local.row_groups("train").unwrap(),
         remote.row_groups("train").unwrap()
     );
-    // Both input planes, so the elevation plane is carried over HTTP too.
+    // Every input: the elevation plane and the context window are carried over HTTP too.
     let input = InputNormalisation {
         dem_std_m: local.manifest().dem_std_m,
         elevation: Some(ElevationNormalisation {
             mean_m: -1000.0,
             std_m: 100.0,
+        }),
+        context: Some(ContextNormalisation {
+            gsd_m: 512.0,
+            std_m: 150.0,
         }),
     };
     let from_local: Vec<_> = EpochStream::start(local, "train", config, input, 0, 0)
@@ -579,6 +583,9 @@ fn trainer_over_http_gets_the_same_first_epoch_batches_as_from_local_files() {
         .map(Result::unwrap)
         .collect();
     assert_eq!(from_local.len(), 340usize.div_ceil(8));
+    assert!(from_local
+        .iter()
+        .all(|b| b.context_input.len() == b.len() * 2 * 32 * 32));
     assert!(
         from_local == from_http,
         "HTTP batches differ from local batches"

@@ -2,7 +2,7 @@
 
 use std::process::Command;
 
-use dataset::schema::{Sample, CROP_PX, DEM_PX};
+use dataset::schema::{ContextWindow, Sample, CONTEXT_PX, CROP_PX, DEM_PX};
 use dataset::shard::ShardWriter;
 
 fn sample(i: usize) -> Sample {
@@ -39,6 +39,13 @@ fn sample(i: usize) -> Sample {
         phase_deg: 36.86,
         acq_time: "2010-01-01T00:00:00.000Z".into(),
         provenance: "interop-test".into(),
+        // Cell 0 is off the DEM (NaN): NaN must survive as NaN, not become a null or a number.
+        context: Some(ContextWindow {
+            gsd_m: 512.0,
+            heights_m: (0..CONTEXT_PX * CONTEXT_PX)
+                .map(|k| if k == 0 { f32::NAN } else { k as f32 - 1500.0 })
+                .collect(),
+        }),
     }
 }
 
@@ -57,7 +64,7 @@ f = pq.ParquetFile(sys.argv[1])
 t = pq.read_table(sys.argv[1])
 assert t.num_rows == 300, t.num_rows
 assert f.metadata.num_row_groups == 2, f.metadata.num_row_groups
-assert f.schema_arrow.metadata[b"g2r.schema_version"] == b"1.1.0", f.schema_arrow.metadata
+assert f.schema_arrow.metadata[b"g2r.schema_version"] == b"1.2.0", f.schema_arrow.metadata
 assert t.column("map_to_en")[0].values.to_pylist() == [1.0, 0.0, 0.0, 1.0]
 assert t.column("enu_origin_height_m").to_pylist()[0] == 0.0
 dem = t.column("dem")[3].values.to_numpy()
@@ -68,6 +75,9 @@ assert abs(float(img[0, 5]) - (5 + 7) / 16384) < 1e-7
 assert t.column("valid")[0].values.to_numpy().sum() == 16384 - 16384 // 5 - 1
 assert t.column("split").to_pylist()[:2] == ["train", "val"]
 assert t.schema.field("dem").metadata[b"unit"] == b"m"
+ctx = t.column("context_dem")[2].values.to_numpy().reshape(32, 32)
+assert ctx[0, 0] != ctx[0, 0] and ctx[1, 3] == 35 - 1500.0, ctx[:2, :4]
+assert t.column("context_gsd_m").to_pylist()[0] == 512.0
 encodings = f.metadata.row_group(0).column(t.schema.get_field_index("dem")).encodings
 print("ok", encodings)
 "#;

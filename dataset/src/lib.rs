@@ -7,6 +7,7 @@
 pub mod acquisition;
 pub mod brdf;
 pub mod client;
+pub mod context;
 pub mod crs;
 pub mod geometry;
 pub mod hapke;

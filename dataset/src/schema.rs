@@ -11,11 +11,24 @@ use arrow::array::{
 use arrow::datatypes::{DataType, Field, Schema, SchemaRef};
 
 /// Bumped on any incompatible change; readers refuse other major versions.
-pub const SCHEMA_VERSION: &str = "1.1.0";
+/// 1.2: `context_dem` + `context_gsd_m` added (readers of 1.2 still read 1.1 shards, without context).
+pub const SCHEMA_VERSION: &str = "1.2.0";
 /// Crop edge in pixels (the network's input/output size).
 pub const CROP_PX: usize = 128;
 /// DEM edge in pixels: the crop plus a 1-pixel apron on every side, so border normals are exact.
 pub const DEM_PX: usize = CROP_PX + 2;
+/// Context window edge in cells ([`crate::context`]).
+pub const CONTEXT_PX: usize = 32;
+
+/// A coarse, wide DEM window around the crop ([`crate::context`]): what lies kilometres around it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ContextWindow {
+    /// Cell size, metres.
+    pub gsd_m: f64,
+    /// CONTEXT_PX² area-mean heights above the sphere, metres, row-major north first, centred on the crop centre;
+    /// NaN where less than half a cell has DEM.
+    pub heights_m: Vec<f32>,
+}
 
 /// One training sample. Tensors are row-major, north row first.
 #[derive(Debug, Clone, PartialEq)]
@@ -58,6 +71,9 @@ pub struct Sample {
     pub acq_time: String,
     /// Pipeline code version and params hash that produced the row.
     pub provenance: String,
+    /// The terrain around the crop. Always written; `None` when read from a schema 1.1 shard (or when only the
+    /// metadata columns were read).
+    pub context: Option<ContextWindow>,
 }
 
 impl Sample {
@@ -99,7 +115,7 @@ fn fixed_list(item: DataType, len: usize) -> DataType {
 }
 
 /// Float tensor columns (written with BYTE_STREAM_SPLIT).
-pub const FLOAT_TENSOR_COLUMNS: [&str; 3] = ["dem", "image", "sun_lit"];
+pub const FLOAT_TENSOR_COLUMNS: [&str; 4] = ["dem", "image", "sun_lit", "context_dem"];
 
 pub fn sample_schema() -> SchemaRef {
     let fields = vec![
@@ -233,11 +249,24 @@ pub fn sample_schema() -> SchemaRef {
             "pipeline code version and params hash",
             "",
         ),
+        field(
+            "context_dem",
+            fixed_list(DataType::Float32, CONTEXT_PX * CONTEXT_PX),
+            "32x32 area-mean heights above the 1737400 m sphere around the crop centre, context_gsd_m cells, row-major north first, NaN where under half a cell has DEM",
+            "m",
+        ),
+        field(
+            "context_gsd_m",
+            DataType::Float64,
+            "context_dem cell size",
+            "m",
+        ),
     ];
     let metadata = HashMap::from([
         ("g2r.schema_version".to_string(), SCHEMA_VERSION.to_string()),
         ("g2r.crop_px".to_string(), CROP_PX.to_string()),
         ("g2r.dem_px".to_string(), DEM_PX.to_string()),
+        ("g2r.context_px".to_string(), CONTEXT_PX.to_string()),
     ]);
     Arc::new(Schema::new_with_metadata(fields, metadata))
 }
@@ -252,6 +281,10 @@ pub enum SchemaError {
         got: usize,
         expected: usize,
     },
+    #[error(
+        "sample '{0}' has no context window; every written sample carries one (dataset::context)"
+    )]
+    MissingContext(String),
     #[error(transparent)]
     Arrow(#[from] arrow::error::ArrowError),
 }
@@ -290,7 +323,17 @@ pub fn samples_to_batch(samples: &[Sample]) -> Result<RecordBatch, SchemaError> 
         check_len("image", s.image.len(), CROP_PX * CROP_PX)?;
         check_len("valid", s.valid.len(), CROP_PX * CROP_PX)?;
         check_len("sun_lit", s.sun_lit.len(), CROP_PX * CROP_PX)?;
+        let context = s
+            .context
+            .as_ref()
+            .ok_or_else(|| SchemaError::MissingContext(s.sample_id.clone()))?;
+        check_len(
+            "context_dem",
+            context.heights_m.len(),
+            CONTEXT_PX * CONTEXT_PX,
+        )?;
     }
+    let contexts = || samples.iter().filter_map(|s| s.context.as_ref());
     let f32_list = |get: fn(&Sample) -> &[f32], len: usize| {
         let flat: Vec<f32> = samples
             .iter()
@@ -339,6 +382,16 @@ pub fn samples_to_batch(samples: &[Sample]) -> Result<RecordBatch, SchemaError> 
         f64s(samples.iter().map(|s| s.phase_deg)),
         strings(samples.iter().map(|s| s.acq_time.as_str())),
         strings(samples.iter().map(|s| s.provenance.as_str())),
+        list_of(
+            Arc::new(Float32Array::from(
+                contexts()
+                    .flat_map(|c| c.heights_m.iter().copied())
+                    .collect::<Vec<f32>>(),
+            )),
+            CONTEXT_PX * CONTEXT_PX,
+            DataType::Float32,
+        ),
+        f64s(contexts().map(|c| c.gsd_m)),
     ];
     Ok(RecordBatch::try_new(sample_schema(), columns)?)
 }
@@ -378,7 +431,7 @@ pub fn batch_to_sample_metadata(batch: &RecordBatch) -> Result<Vec<Sample>, Sche
 }
 
 /// Every per-pixel column; everything else is per-sample metadata.
-pub const TENSOR_COLUMNS: [&str; 4] = ["dem", "image", "valid", "sun_lit"];
+pub const TENSOR_COLUMNS: [&str; 5] = ["dem", "image", "valid", "sun_lit", "context_dem"];
 
 fn decode(batch: &RecordBatch, tensors: bool) -> Result<Vec<Sample>, SchemaError> {
     let s = |name| column::<StringArray>(batch, name);
@@ -419,6 +472,15 @@ fn decode(batch: &RecordBatch, tensors: bool) -> Result<Vec<Sample>, SchemaError
     } else {
         None
     };
+    // Absent from schema 1.1 shards (and from metadata-only reads): those samples have no context.
+    let context = match (tensors, batch.column_by_name("context_dem")) {
+        (true, Some(_)) => {
+            let (heights, len) = list_values::<Float32Array>(batch, "context_dem")?;
+            check_len("context_dem", len, CONTEXT_PX * CONTEXT_PX)?;
+            Some((heights, f("context_gsd_m")?))
+        }
+        _ => None,
+    };
     let (sun, _) = list_values::<Float64Array>(batch, "sun_dir_enu")?;
     let (cam, _) = list_values::<Float64Array>(batch, "camera_pos_enu")?;
     let (att, _) = list_values::<Float64Array>(batch, "camera_att")?;
@@ -454,6 +516,10 @@ fn decode(batch: &RecordBatch, tensors: bool) -> Result<Vec<Sample>, SchemaError
             phase_deg: pha.value(i),
             acq_time: acq_time.value(i).to_string(),
             provenance: provenance.value(i).to_string(),
+            context: context.map(|(heights, gsd)| ContextWindow {
+                gsd_m: gsd.value(i),
+                heights_m: slice_row(heights.values(), i, CONTEXT_PX * CONTEXT_PX),
+            }),
         })
         .collect())
 }
@@ -477,4 +543,53 @@ pub fn schema_markdown() -> String {
         ));
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::testing::synthetic_sample;
+
+    #[test]
+    fn a_batch_without_context_columns_reads_as_schema_1_1_samples_without_context() {
+        let samples = vec![synthetic_sample(1), synthetic_sample(2)];
+        let batch = samples_to_batch(&samples).unwrap();
+        assert_eq!(batch_to_samples(&batch).unwrap(), samples);
+        // Schema 1.1 had every column but the two context ones.
+        let old_columns: Vec<usize> = (0..batch.num_columns())
+            .filter(|&k| !batch.schema().field(k).name().starts_with("context_"))
+            .collect();
+        assert_eq!(old_columns.len(), batch.num_columns() - 2);
+        let old = batch_to_samples(&batch.project(&old_columns).unwrap()).unwrap();
+        for (read, written) in old.iter().zip(&samples) {
+            assert_eq!(read.context, None);
+            assert_eq!(
+                *read,
+                Sample {
+                    context: None,
+                    ..written.clone()
+                }
+            );
+        }
+    }
+
+    #[test]
+    fn writing_a_sample_without_context_or_with_a_wrong_size_window_is_refused() {
+        let mut missing = synthetic_sample(3);
+        missing.context = None;
+        let err = samples_to_batch(&[synthetic_sample(1), missing]).unwrap_err();
+        assert!(
+            matches!(&err, SchemaError::MissingContext(id) if id == "ortho_3:103:203"),
+            "{err}"
+        );
+        let mut short = synthetic_sample(4);
+        short.context.as_mut().unwrap().heights_m.pop();
+        assert!(matches!(
+            samples_to_batch(&[short]).unwrap_err(),
+            SchemaError::TensorLength {
+                name: "context_dem",
+                ..
+            }
+        ));
+    }
 }

@@ -5,7 +5,7 @@ use std::collections::BTreeMap;
 use std::path::Path;
 
 use crate::manifest::{write_json_atomic, DatasetManifest};
-use crate::schema::{Sample, CROP_PX, DEM_PX, SCHEMA_VERSION};
+use crate::schema::{ContextWindow, Sample, CONTEXT_PX, CROP_PX, DEM_PX, SCHEMA_VERSION};
 use crate::shard::{shard_name, ShardWriter};
 
 /// Sample `i`: every field set, rasters varying with `i` (split "train", tile "t_3_4").
@@ -39,6 +39,12 @@ pub fn synthetic_sample(i: usize) -> Sample {
         phase_deg: 59.0,
         acq_time: "2011-05-01T12:00:00Z".into(),
         provenance: "test".into(),
+        context: Some(ContextWindow {
+            gsd_m: 512.0,
+            heights_m: (0..CONTEXT_PX * CONTEXT_PX)
+                .map(|k| (k as f32 * 0.05 + i as f32).cos() * 200.0 - 1400.0)
+                .collect(),
+        }),
     }
 }
 

@@ -124,6 +124,14 @@ impl PipelineManifest {
                 path.display()
             );
         }
+        let context_gsd_m = manifest.project.context_gsd_m;
+        if !(context_gsd_m.is_finite() && context_gsd_m > 0.0) {
+            anyhow::bail!(
+                "{}: project.context_gsd_m = {context_gsd_m}: use a positive cell size in metres (default {})",
+                path.display(),
+                crate::stages::project::DEFAULT_CONTEXT_GSD_M
+            );
+        }
         Ok(manifest)
     }
 

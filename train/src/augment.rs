@@ -7,7 +7,7 @@
 //! its ground geometry and `render(augment(s)) = augment(render(s))` (tested against the scalar reference).
 //! Caveat: M6's φh is measured from local east, which a rotation moves: that one term is not rotation-invariant.
 
-use dataset::schema::{Sample, CROP_PX, DEM_PX};
+use dataset::schema::{ContextWindow, Sample, CONTEXT_PX, CROP_PX, DEM_PX};
 
 /// One of the 8 symmetries of the square: `mirror` (east↔west) first, then `quarter_turns` × 90° counter-clockwise.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -96,6 +96,11 @@ impl Dihedral {
             sun_dir_enu: self.apply_enu(sample.sun_dir_enu),
             camera_pos_enu_m: self.apply_enu(sample.camera_pos_enu_m),
             map_to_en,
+            // The context window is centred on the crop centre too: the same transform keeps it aligned.
+            context: sample.context.as_ref().map(|c| ContextWindow {
+                gsd_m: c.gsd_m,
+                heights_m: self.apply_raster(&c.heights_m, CONTEXT_PX),
+            }),
             ..sample.clone()
         }
     }
@@ -130,6 +135,55 @@ mod tests {
             // Every mirrored element of the group is a reflection, hence an involution.
             assert_eq!(x, data, "{d:?}");
         }
+    }
+
+    /// Cut the DEM and the context window from one plane z = a·x + b·y (map metres from the crop centre), then
+    /// transform: both must still be cut from one plane, so their finite-difference gradients agree.
+    #[test]
+    fn the_context_window_turns_and_mirrors_with_the_crop() {
+        let (a, b, g) = (0.3, -0.7, 512.0);
+        let mut sample = crate::bench::synthetic_samples(1, 3).remove(0);
+        // DEM pixel (c, r) centre: ((c − 64.5)·5, (64.5 − r)·5); context cell (i, j): ((j − 15.5)·g, (15.5 − i)·g).
+        sample.dem_m = (0..DEM_PX * DEM_PX)
+            .map(|k| {
+                let (c, r) = ((k % DEM_PX) as f64, (k / DEM_PX) as f64);
+                (a * (c - 64.5) * 5.0 + b * (64.5 - r) * 5.0) as f32
+            })
+            .collect();
+        sample.context = Some(ContextWindow {
+            gsd_m: g,
+            heights_m: (0..CONTEXT_PX * CONTEXT_PX)
+                .map(|k| {
+                    let (j, i) = ((k % CONTEXT_PX) as f64, (k / CONTEXT_PX) as f64);
+                    (a * (j - 15.5) * g + b * (15.5 - i) * g) as f32
+                })
+                .collect(),
+        });
+        // (east, north) gradient of a row-major north-first raster of cell size `cell`, from two differences.
+        let gradient = |z: &[f32], n: usize, cell: f64| {
+            let at = |r: usize, c: usize| z[r * n + c] as f64;
+            ((at(5, 6) - at(5, 5)) / cell, (at(5, 5) - at(6, 5)) / cell)
+        };
+        let mut distinct = Vec::new();
+        for index in 0..8 {
+            let d = Dihedral::from_index(index);
+            let turned = d.apply(&sample);
+            let dem = gradient(&turned.dem_m, DEM_PX, 5.0);
+            let context = gradient(&turned.context.unwrap().heights_m, CONTEXT_PX, g);
+            assert!(
+                (dem.0 - context.0).abs() < 1e-4 && (dem.1 - context.1).abs() < 1e-4,
+                "{d:?}: DEM gradient {dem:?}, context gradient {context:?}"
+            );
+            let key = ((dem.0 * 1e3).round() as i64, (dem.1 * 1e3).round() as i64);
+            if !distinct.contains(&key) {
+                distinct.push(key);
+            }
+        }
+        assert_eq!(
+            distinct.len(),
+            8,
+            "each symmetry moves the plane its own way: {distinct:?}"
+        );
     }
 
     #[test]

@@ -8,7 +8,7 @@ use burn::prelude::*;
 use burn::tensor::backend::AutodiffBackend;
 use dataset::brdf::{render_crop, BrdfModel};
 use dataset::geometry::{crop_pixel_geometry, CropGrid};
-use dataset::schema::{Sample, CROP_PX, DEM_PX};
+use dataset::schema::{ContextWindow, Sample, CONTEXT_PX, CROP_PX, DEM_PX};
 use rand::Rng;
 
 use crate::data::{HostBatch, InputNormalisation};
@@ -96,6 +96,10 @@ pub fn synthetic_samples(n: usize, seed: u64) -> Vec<Sample> {
                 phase_deg: 60.0,
                 acq_time: "2026-01-01T00:00:00Z".into(),
                 provenance: "synthetic".into(),
+                context: Some(ContextWindow {
+                    gsd_m: 512.0,
+                    heights_m: vec![origin_height_m as f32; CONTEXT_PX * CONTEXT_PX],
+                }),
             }
         })
         .collect()

@@ -12,7 +12,7 @@ use anyhow::{bail, Context, Result};
 use dataset::manifest::DatasetManifest;
 use dataset::planner::{plan_epoch, RowGroupRef};
 use dataset::rng::keyed_rng;
-use dataset::schema::{Sample, CROP_PX, DEM_PX};
+use dataset::schema::{Sample, CONTEXT_PX, CROP_PX, DEM_PX};
 use rand::Rng;
 
 use crate::augment::Dihedral;
@@ -173,6 +173,8 @@ pub struct HostBatch {
     pub net_input: Vec<f64>,
     /// Input planes per sample (`C`).
     pub input_channels: usize,
+    /// Context input `N × 2 × 32²` ([`InputNormalisation::push_context`]); empty when the run has none.
+    pub context_input: Vec<f64>,
     /// `N × 130²` heights relative to each crop's ENU origin (with apron), metres.
     pub relative_heights_m: Vec<f64>,
     pub image: Vec<f64>,
@@ -202,7 +204,17 @@ impl HostBatch {
         };
         for s in samples {
             b.sample_ids.push(s.sample_id.clone());
-            input.push_planes(&crop_interior_m(s), &mut b.net_input);
+            let crop = crop_interior_m(s);
+            input.push_planes(&crop, &mut b.net_input);
+            if input.context.is_some() {
+                let context = s.context.as_ref().unwrap_or_else(|| {
+                    panic!(
+                        "sample {} has no context window, but the run feeds one (checked when a run starts)",
+                        s.sample_id
+                    )
+                });
+                input.push_context(&crop, &context.heights_m, &mut b.context_input);
+            }
             b.relative_heights_m
                 .extend(s.dem_m.iter().map(|&h| h as f64 - s.enu_origin_height_m));
             b.image.extend(s.image.iter().map(|&v| v as f64));
@@ -236,6 +248,66 @@ pub struct InputNormalisation {
     /// albedo (`--elevation-input`); runs written before it existed have none.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub elevation: Option<ElevationNormalisation>,
+    /// Context input, when the run uses one (`--context-input`): the sample's wide coarse DEM window
+    /// (`dataset::context`) relative to the crop's mean height, so the network sees whether the crop lies in a
+    /// crater, on its wall or on a plain kilometres across.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub context: Option<ContextNormalisation>,
+}
+
+/// The context window's cell size (the one the training data was cut with; inference cuts the same) and the std
+/// its heights relative to the crop mean are divided by.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ContextNormalisation {
+    pub gsd_m: f64,
+    pub std_m: f64,
+}
+
+/// Planes of the context input: relative height, then a mask (1 where the cell has DEM).
+pub const CONTEXT_CHANNELS: usize = 2;
+
+impl ContextNormalisation {
+    /// From train samples' context windows: their common cell size, and the pooled std of every finite cell's
+    /// height relative to its crop's mean.
+    pub fn of_samples<'a>(samples: impl IntoIterator<Item = &'a Sample>) -> Result<Self> {
+        let (mut gsd_m, mut n, mut sum_sq) = (None::<f64>, 0usize, 0f64);
+        for s in samples {
+            let Some(context) = &s.context else {
+                bail!(
+                    "sample {} has no context window: the dataset predates schema 1.2; re-run `g2r-pipeline run` to publish one with context_dem",
+                    s.sample_id
+                );
+            };
+            match gsd_m {
+                Some(g) if g != context.gsd_m => bail!(
+                    "samples' context windows have different cell sizes ({g} m and {} m at {})",
+                    context.gsd_m,
+                    s.sample_id
+                ),
+                _ => gsd_m = Some(context.gsd_m),
+            }
+            let mean = crop_mean(&crop_interior_m(s));
+            for &z in context.heights_m.iter().filter(|z| z.is_finite()) {
+                n += 1;
+                sum_sq += (z as f64 - mean).powi(2);
+            }
+        }
+        let (Some(gsd_m), true) = (gsd_m, n >= 2) else {
+            bail!("no finite context heights to normalise the context input with");
+        };
+        let std_m = (sum_sq / n as f64).sqrt();
+        if std_m <= 0.0 {
+            bail!("every context window is flat at its crop's height: the context input would divide by zero");
+        }
+        Ok(Self { gsd_m, std_m })
+    }
+}
+
+/// Mean of the finite heights (0 when there are none).
+fn crop_mean(heights_m: &[f64]) -> f64 {
+    let finite = heights_m.iter().filter(|z| z.is_finite());
+    let count = finite.clone().count();
+    finite.sum::<f64>() / count.max(1) as f64
 }
 
 /// Mean and std of absolute heights over train crops' pixels.
@@ -275,6 +347,7 @@ impl InputNormalisation {
         Self {
             dem_std_m,
             elevation: None,
+            context: None,
         }
     }
 
@@ -282,13 +355,36 @@ impl InputNormalisation {
         1 + usize::from(self.elevation.is_some())
     }
 
+    /// Refuse a dataset that cannot feed this input: a context input needs schema 1.2 or later (`context_dem`).
+    pub fn check_dataset(&self, source: &dyn SampleSource) -> Result<()> {
+        let version = &source.manifest().schema_version;
+        let minor = version
+            .split('.')
+            .nth(1)
+            .and_then(|m| m.parse::<u32>().ok());
+        if self.context.is_some() && minor.is_none_or(|m| m < 2) {
+            bail!(
+                "{}: dataset schema {version} has no context windows, but the run feeds one (--context-input): re-run `g2r-pipeline run` to publish schema 1.2",
+                source.describe()
+            );
+        }
+        Ok(())
+    }
+
+    /// Context planes per sample (0 without a context input).
+    pub fn context_channels(&self) -> usize {
+        if self.context.is_some() {
+            CONTEXT_CHANNELS
+        } else {
+            0
+        }
+    }
+
     /// Append one crop's planes (`CROP_PX²` heights, row-major, metres) channel after channel. A non-finite height
     /// (a DEM hole at inference) is fed as the crop's mean height in every plane: a function of the crop alone,
     /// so the same terrain gives the same input whatever the DEM's extent.
     pub fn push_planes(&self, heights_m: &[f64], out: &mut Vec<f64>) {
-        let finite = heights_m.iter().filter(|z| z.is_finite());
-        let count = finite.clone().count();
-        let mean = finite.sum::<f64>() / count.max(1) as f64;
+        let mean = crop_mean(heights_m);
         let filled = |z: f64| if z.is_finite() { z } else { mean };
         out.extend(
             heights_m
@@ -298,6 +394,29 @@ impl InputNormalisation {
         if let Some(e) = self.elevation {
             out.extend(heights_m.iter().map(|&z| (filled(z) - e.mean_m) / e.std_m));
         }
+    }
+
+    /// Append one crop's context planes (`CONTEXT_PX²` each): the window's heights minus the crop's mean height
+    /// (`heights_m`, as in [`Self::push_planes`]) over the context std, 0 where a cell has no DEM; then the mask.
+    /// Panics when the run has no context input.
+    pub fn push_context(&self, heights_m: &[f64], context_m: &[f32], out: &mut Vec<f64>) {
+        let c = self
+            .context
+            .expect("push_context on a run without context input");
+        assert_eq!(
+            context_m.len(),
+            CONTEXT_PX * CONTEXT_PX,
+            "context window size"
+        );
+        let mean = crop_mean(heights_m);
+        out.extend(context_m.iter().map(|&z| {
+            if z.is_finite() {
+                (z as f64 - mean) / c.std_m
+            } else {
+                0.0
+            }
+        }));
+        out.extend(context_m.iter().map(|z| f64::from(u8::from(z.is_finite()))));
     }
 }
 
@@ -463,6 +582,7 @@ mod tests {
                 mean_m: 10.0,
                 std_m: 4.0,
             }),
+            context: None,
         };
         // Crop mean over the finite heights: (10 + 12 + 20) / 3 = 14.
         let mut out = Vec::new();
@@ -493,5 +613,69 @@ mod tests {
         assert!(err.to_string().contains("same height"), "{err}");
         let empty: [Vec<f64>; 0] = [];
         assert!(ElevationNormalisation::of_crops(empty.iter().map(Vec::as_slice)).is_err());
+    }
+
+    /// A sample whose crop heights are all `crop_m` and whose context is `context_m` (cells beyond those given
+    /// are NaN: off the DEM).
+    fn sample_with_context(crop_m: f32, context_m: &[f32], gsd_m: f64) -> Sample {
+        let mut s = dataset::testing::synthetic_sample(0);
+        s.dem_m = vec![crop_m; DEM_PX * DEM_PX];
+        let mut heights_m = vec![f32::NAN; CONTEXT_PX * CONTEXT_PX];
+        heights_m[..context_m.len()].copy_from_slice(context_m);
+        s.context = Some(dataset::schema::ContextWindow { gsd_m, heights_m });
+        s
+    }
+
+    #[test]
+    fn context_planes_are_height_above_the_crop_mean_then_the_mask() {
+        let input = InputNormalisation {
+            context: Some(ContextNormalisation {
+                gsd_m: 512.0,
+                std_m: 4.0,
+            }),
+            ..InputNormalisation::relief(2.0)
+        };
+        let mut context = vec![f32::NAN; CONTEXT_PX * CONTEXT_PX];
+        context[..3].copy_from_slice(&[-1190.0, -1210.0, -1202.0]);
+        // Crop mean over the finite heights: (−1200 − 1204) / 2 = −1202.
+        let mut out = Vec::new();
+        input.push_context(&[-1200.0, f64::NAN, -1204.0], &context, &mut out);
+        let n = CONTEXT_PX * CONTEXT_PX;
+        assert_eq!(out.len(), 2 * n);
+        assert_eq!(out[..4], [3.0, -2.0, 0.0, 0.0]);
+        assert!(out[3..n].iter().all(|&v| v == 0.0), "holes are fed as 0");
+        assert_eq!(out[n..n + 4], [1.0, 1.0, 1.0, 0.0]);
+        assert_eq!(out[n..].iter().sum::<f64>(), 3.0);
+        assert_eq!((input.channels(), input.context_channels()), (1, 2));
+        assert_eq!(InputNormalisation::relief(2.0).context_channels(), 0);
+    }
+
+    #[test]
+    fn context_statistics_pool_cells_relative_to_their_own_crop() {
+        // Crop at −1000 with cells −1003, −997; crop at −2000 with cell −1996: deviations −3, 3, 4 → std √(34/3).
+        let samples = [
+            sample_with_context(-1000.0, &[-1003.0, -997.0], 512.0),
+            sample_with_context(-2000.0, &[-1996.0], 512.0),
+        ];
+        let c = ContextNormalisation::of_samples(&samples).unwrap();
+        assert_eq!(c.gsd_m, 512.0);
+        assert!(
+            (c.std_m - (34.0f64 / 3.0).sqrt()).abs() < 1e-12,
+            "{}",
+            c.std_m
+        );
+
+        let mixed = [
+            samples[0].clone(),
+            sample_with_context(-1000.0, &[-990.0], 256.0),
+        ];
+        let err = ContextNormalisation::of_samples(&mixed).unwrap_err();
+        assert!(err.to_string().contains("cell sizes"), "{err}");
+        let mut old = samples[0].clone();
+        old.context = None;
+        let err = ContextNormalisation::of_samples(&[old]).unwrap_err();
+        assert!(err.to_string().contains("schema 1.2"), "{err}");
+        let flat = [sample_with_context(-1000.0, &[-1000.0, -1000.0], 512.0)];
+        assert!(ContextNormalisation::of_samples(&flat).is_err());
     }
 }

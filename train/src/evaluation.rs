@@ -436,6 +436,7 @@ pub fn evaluate<B: Backend>(
     device: &B::Device,
     mut on_image: impl FnMut(usize, &Sample, &[(&'static str, Vec<f64>)]) -> Result<()>,
 ) -> Result<EvalReport> {
+    options.input.check_dataset(source)?;
     let mut accumulators: BTreeMap<&str, MetricsAccumulator> = BTreeMap::new();
     let matcher = FeatureMatcher::default();
     let mut matches: BTreeMap<&str, MatchStats> = BTreeMap::new();

@@ -11,9 +11,9 @@ use anyhow::{bail, Result};
 use burn::prelude::*;
 use dataset::brdf::{inverse_leaky_relu, leaky_relu, BrdfModel, LEAKY_SLOPE};
 use dataset::raster::{BandOut, BandValues, Raster, RasterLayout};
-use dataset::schema::CROP_PX;
+use dataset::schema::{CONTEXT_PX, CROP_PX};
 
-use crate::data::InputNormalisation;
+use crate::data::{InputNormalisation, CONTEXT_CHANNELS};
 use crate::model::UNet;
 
 /// Default overlap between neighbouring crops, pixels (a quarter crop).
@@ -123,23 +123,51 @@ pub fn infer_params<B: Backend>(
         .map(|i| taper(i, CROP_PX, options.overlap))
         .collect();
     let npx = CROP_PX * CROP_PX;
+    // The context windows are cut from the whole DEM, as the project stage cut the training samples'.
+    let context = options
+        .input
+        .context
+        .is_some()
+        .then(|| dataset::context::ContextSampler::new(dem));
     for (b, batch) in origins.chunks(options.batch_size.max(1)).enumerate() {
         let mut input = Vec::with_capacity(batch.len() * options.input.channels() * npx);
+        let mut context_input = Vec::new();
         for &(c0, r0) in batch {
             let crop: Vec<f64> = (0..npx)
                 .map(|k| height_at(c0 + (k % CROP_PX) as isize, r0 + (k / CROP_PX) as isize))
                 .collect();
             // Holes are fed at the crop's mean height (see `push_planes`); their outputs become NaN below.
             options.input.push_planes(&crop, &mut input);
+            if let (Some(sampler), Some(c)) = (&context, options.input.context) {
+                // The crop centre is the corner shared by its four middle pixels, as in the project stage.
+                let half = (CROP_PX / 2) as f64;
+                let (x, y) = dem.transform.pixel_edge(c0 as f64 + half, r0 as f64 + half);
+                let window = sampler.window(x, y, c.gsd_m);
+                options
+                    .input
+                    .push_context(&crop, &window, &mut context_input);
+            }
         }
-        let raw = net
-            .forward(Tensor::<B, 4>::from_data(
+        let context_tensor = context.is_some().then(|| {
+            Tensor::<B, 4>::from_data(
                 TensorData::new(
-                    input,
-                    [batch.len(), options.input.channels(), CROP_PX, CROP_PX],
+                    context_input,
+                    [batch.len(), CONTEXT_CHANNELS, CONTEXT_PX, CONTEXT_PX],
                 ),
                 device,
-            ))
+            )
+        });
+        let raw = net
+            .forward(
+                Tensor::<B, 4>::from_data(
+                    TensorData::new(
+                        input,
+                        [batch.len(), options.input.channels(), CROP_PX, CROP_PX],
+                    ),
+                    device,
+                ),
+                context_tensor,
+            )
             .into_data()
             .convert::<f64>()
             .into_vec::<f64>()

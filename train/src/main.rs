@@ -82,6 +82,11 @@ struct TrainArgs {
     /// within one region: a DEM from elsewhere on the Moon has other absolute heights.
     #[arg(long)]
     elevation_input: bool,
+    /// Feed each sample's context window (32 × 32 cells of the dataset's context_gsd_m, 16 km at the default
+    /// 512 m: dataset schema 1.2) through a small encoder into the U-Net's bottleneck. A 640 m crop cannot tell a
+    /// crater floor or wall from a plain; kilometres of surrounding terrain can.
+    #[arg(long)]
+    context_input: bool,
 }
 
 impl TrainArgs {
@@ -103,6 +108,7 @@ impl TrainArgs {
             lr_schedule: self.lr_schedule,
             head_init: self.init,
             elevation_input: self.elevation_input,
+            context_input: self.context_input,
         }
     }
 }

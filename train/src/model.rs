@@ -5,7 +5,10 @@
 
 use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::pool::{MaxPool2d, MaxPool2dConfig};
-use burn::nn::{BatchNorm, BatchNormConfig, Dropout, DropoutConfig, Initializer, PaddingConfig2d};
+use burn::nn::{
+    BatchNorm, BatchNormConfig, Dropout, DropoutConfig, Initializer, Linear, LinearConfig,
+    PaddingConfig2d,
+};
 use burn::prelude::*;
 use burn::tensor::activation::leaky_relu;
 use burn::tensor::module::interpolate;
@@ -23,6 +26,12 @@ pub struct UNetConfig {
     /// Input planes: relief, plus absolute elevation when the run uses it (`data::InputNormalisation`).
     #[config(default = 1)]
     pub in_channels: usize,
+    /// Planes of the context input (`data::CONTEXT_CHANNELS`), or 0 for none: a small encoder turns the
+    /// 32 × 32 window into features concatenated, at every position, to the bottleneck's input (where they can
+    /// interact with the crop's own terrain) and to the head's (where they reach the parameters directly: through
+    /// four up stages a bottleneck change is attenuated ~30× per stage at initialisation, measured).
+    #[config(default = 0)]
+    pub context_channels: usize,
     /// Channels of the first stage; the others double per stage.
     #[config(default = 16)]
     pub base_width: usize,
@@ -66,9 +75,55 @@ impl<B: Backend> ConvBlock<B> {
     }
 }
 
+/// The context encoder: three (conv3×3 → BatchNorm → LeakyReLU → max-pool) stages take the 32 × 32 window to
+/// 4 × 4, then a linear layer to a feature vector. Flattening (not global pooling) keeps *where* the terrain
+/// lies relative to the crop (a rim to the north, a floor underfoot); augmentation turns the window with the crop.
+#[derive(Module, Debug)]
+pub struct ContextEncoder<B: Backend> {
+    convs: Vec<Conv2d<B>>,
+    norms: Vec<BatchNorm<B>>,
+    linear: Linear<B>,
+    pool: MaxPool2d,
+}
+
+impl<B: Backend> ContextEncoder<B> {
+    fn new(c_in: usize, w: usize, features: usize, device: &B::Device) -> Self {
+        let widths = [2 * w, 4 * w, 8 * w];
+        let (mut convs, mut norms, mut c) = (Vec::new(), Vec::new(), c_in);
+        for &c_out in &widths {
+            convs.push(conv3(c, c_out, device));
+            norms.push(BatchNormConfig::new(c_out).init(device));
+            c = c_out;
+        }
+        let cells = (dataset::schema::CONTEXT_PX / 8).pow(2);
+        Self {
+            convs,
+            norms,
+            linear: LinearConfig::new(c * cells, features).init(device),
+            pool: MaxPool2dConfig::new([2, 2]).init(),
+        }
+    }
+
+    /// `[N, C, 32, 32]` → `[N, features]`.
+    fn forward(&self, x: Tensor<B, 4>) -> Tensor<B, 2> {
+        let mut x = x;
+        for (conv, norm) in self.convs.iter().zip(&self.norms) {
+            x = self
+                .pool
+                .forward(leaky_relu(norm.forward(conv.forward(x)), ACTIVATION_SLOPE));
+        }
+        let [n, c, h, w] = x.dims();
+        leaky_relu(
+            self.linear.forward(x.reshape([n, c * h * w])),
+            ACTIVATION_SLOPE,
+        )
+    }
+}
+
 #[derive(Module, Debug)]
 pub struct UNet<B: Backend> {
     down: Vec<ConvBlock<B>>,
+    context: Option<ContextEncoder<B>>,
     bottleneck: ConvBlock<B>,
     up_convs: Vec<Conv2d<B>>,
     up_blocks: Vec<ConvBlock<B>>,
@@ -93,7 +148,10 @@ impl UNetConfig {
             down.push(ConvBlock::new(c_in, c, p(depth), device));
             c_in = c;
         }
-        let bottleneck = ConvBlock::new(c_in, 16 * w, p(4), device);
+        let context = (self.context_channels > 0).then(|| {
+            ContextEncoder::new(self.context_channels, w, self.context_features(), device)
+        });
+        let bottleneck = ConvBlock::new(c_in + self.context_features(), 16 * w, p(4), device);
         let (mut up_convs, mut up_blocks) = (Vec::new(), Vec::new());
         let mut c_up = 16 * w;
         for (depth, &c) in widths.iter().enumerate().rev() {
@@ -103,17 +161,19 @@ impl UNetConfig {
         }
         UNet {
             down,
+            context,
             bottleneck,
             up_convs,
             up_blocks,
             // Zero head: the first renderings are black instead of O(1) I/F against targets of ~0.03, which the
             // default init made the first epochs spend on shrinking the output scale (measured in the README).
             head: if self.zero_head {
-                Conv2dConfig::new([w, self.out_channels], [1, 1])
+                Conv2dConfig::new([w + self.context_features(), self.out_channels], [1, 1])
                     .with_initializer(Initializer::Zeros)
                     .init(device)
             } else {
-                Conv2dConfig::new([w, self.out_channels], [1, 1]).init(device)
+                Conv2dConfig::new([w + self.context_features(), self.out_channels], [1, 1])
+                    .init(device)
             },
             pool: MaxPool2dConfig::new([2, 2]).init(),
         }
@@ -123,8 +183,22 @@ impl UNetConfig {
     pub fn running_stat_count(&self) -> usize {
         let w = self.base_width;
         let block_channels: usize = [w, 2 * w, 4 * w, 8 * w].iter().sum::<usize>() * 2 + 16 * w;
-        // Two BatchNorms per block, each with a running mean and a running variance.
-        2 * 2 * block_channels
+        let context_channels = if self.context_channels > 0 {
+            2 * w + 4 * w + 8 * w
+        } else {
+            0
+        };
+        // Two BatchNorms per U-Net block and one per context stage, each with a running mean and variance.
+        2 * (2 * block_channels + context_channels)
+    }
+
+    /// Context features joined to the bottleneck input (0 without a context input).
+    pub fn context_features(&self) -> usize {
+        if self.context_channels > 0 {
+            4 * self.base_width
+        } else {
+            0
+        }
     }
 }
 
@@ -143,8 +217,9 @@ impl<B: Backend> UNet<B> {
         self
     }
 
-    /// `[N, C, 128, 128]` input planes → `[N, P, 128, 128]` raw BRDF parameters.
-    pub fn forward(&self, x: Tensor<B, 4>) -> Tensor<B, 4> {
+    /// `[N, C, 128, 128]` input planes (and `[N, C', 32, 32]` context planes when the network has a context
+    /// encoder) → `[N, P, 128, 128]` raw BRDF parameters. Panics when `context` does not match the network.
+    pub fn forward(&self, x: Tensor<B, 4>, context: Option<Tensor<B, 4>>) -> Tensor<B, 4> {
         let mut skips = Vec::new();
         let mut x = x;
         for block in &self.down {
@@ -152,7 +227,30 @@ impl<B: Backend> UNet<B> {
             x = self.pool.forward(y.clone());
             skips.push(y);
         }
-        x = self.bottleneck.forward(x);
+        let features = match (&self.context, context) {
+            (Some(encoder), Some(context)) => Some(encoder.forward(context)),
+            (None, None) => None,
+            (encoder, given) => panic!(
+                "network has {} context encoder but {} context input was given",
+                if encoder.is_some() { "a" } else { "no" },
+                if given.is_some() { "a" } else { "no" }
+            ),
+        };
+        // Context features, the same at every position of a `[N, C, h, w]` map, joined as extra channels.
+        let join = |x: Tensor<B, 4>| match &features {
+            Some(f) => {
+                let [n, k] = f.dims();
+                let [_, _, h, w] = x.dims();
+                let planes = f
+                    .clone()
+                    .reshape([n, k, 1, 1])
+                    .repeat_dim(2, h)
+                    .repeat_dim(3, w);
+                Tensor::cat(vec![x, planes], 1)
+            }
+            None => x,
+        };
+        x = self.bottleneck.forward(join(x));
         for (conv, block) in self.up_convs.iter().zip(&self.up_blocks) {
             let skip = skips.pop().expect("one skip per stage");
             let [_, _, h, w] = skip.dims();
@@ -160,6 +258,6 @@ impl<B: Backend> UNet<B> {
             let up = leaky_relu(conv.forward(up), ACTIVATION_SLOPE);
             x = block.forward(Tensor::cat(vec![up, skip], 1));
         }
-        self.head.forward(x)
+        self.head.forward(join(x))
     }
 }

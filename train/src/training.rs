@@ -23,13 +23,13 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::data::for_each_sample_group;
 use crate::data::{
-    crop_interior_m, ElevationNormalisation, EpochStream, HostBatch, InputNormalisation,
-    SampleSource, StreamConfig,
+    crop_interior_m, ContextNormalisation, ElevationNormalisation, EpochStream, HostBatch,
+    InputNormalisation, SampleSource, StreamConfig, CONTEXT_CHANNELS,
 };
 use crate::metrics::{AggregateMetrics, MetricsAccumulator};
 use crate::model::{UNet, UNetConfig};
 use crate::render::{masked_mse, render, scene_geometry, SceneGeometry, SceneInputs};
-use dataset::schema::CROP_PX;
+use dataset::schema::{CONTEXT_PX, CROP_PX};
 
 /// Everything that defines a run (saved as `config.json`; a resume must match it).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -52,6 +52,10 @@ pub struct FitConfig {
     /// existed had relief only.
     #[serde(default)]
     pub elevation_input: bool,
+    /// Feed each sample's wide context window through a context encoder ([`InputNormalisation`]); runs written
+    /// before this field existed had none.
+    #[serde(default)]
+    pub context_input: bool,
 }
 
 impl FitConfig {
@@ -59,6 +63,11 @@ impl FitConfig {
     pub fn net_config(&self) -> UNetConfig {
         UNetConfig::new(self.model.param_count())
             .with_in_channels(1 + usize::from(self.elevation_input))
+            .with_context_channels(if self.context_input {
+                CONTEXT_CHANNELS
+            } else {
+                0
+            })
             .with_base_width(self.base_width)
             .with_dropout(self.dropout)
     }
@@ -68,24 +77,33 @@ impl FitConfig {
 pub const ELEVATION_NORMALISATION_SAMPLES: usize = 256;
 
 /// The input normalisation a new run trains with: the manifest's train-split DEM std, plus absolute-elevation
-/// statistics over spread train crops when `config.elevation_input`.
+/// statistics (`config.elevation_input`) and context statistics (`config.context_input`) over the same spread
+/// train crops.
 pub fn input_normalisation(
     source: &dyn SampleSource,
     config: &FitConfig,
 ) -> Result<InputNormalisation> {
     let mut input = InputNormalisation::relief(source.manifest().dem_std_m);
+    if !(config.elevation_input || config.context_input) {
+        return Ok(input);
+    }
+    let mut samples = Vec::new();
+    for_each_sample_group(
+        source,
+        "train",
+        Some(ELEVATION_NORMALISATION_SAMPLES),
+        |group| samples.extend(group.iter().cloned()),
+    )?;
+    let on_train = || format!("{}: train split", source.describe());
     if config.elevation_input {
-        let mut crops = Vec::new();
-        for_each_sample_group(
-            source,
-            "train",
-            Some(ELEVATION_NORMALISATION_SAMPLES),
-            |samples| crops.extend(samples.iter().map(crop_interior_m)),
-        )?;
+        let crops: Vec<Vec<f64>> = samples.iter().map(crop_interior_m).collect();
         input.elevation = Some(
             ElevationNormalisation::of_crops(crops.iter().map(Vec::as_slice))
-                .with_context(|| format!("{}: train split", source.describe()))?,
+                .with_context(on_train)?,
         );
+    }
+    if config.context_input {
+        input.context = Some(ContextNormalisation::of_samples(&samples).with_context(on_train)?);
     }
     Ok(input)
 }
@@ -221,7 +239,19 @@ fn render_batch<B: Backend>(
         ),
         device,
     );
-    (render(model, net.forward(input), &geometry), geometry)
+    let context = (!batch.context_input.is_empty()).then(|| {
+        Tensor::<B, 4>::from_data(
+            TensorData::new(
+                batch.context_input.clone(),
+                [batch.len(), CONTEXT_CHANNELS, CONTEXT_PX, CONTEXT_PX],
+            ),
+            device,
+        )
+    });
+    (
+        render(model, net.forward(input, context), &geometry),
+        geometry,
+    )
 }
 
 /// One optimisation step's loss (masked MSE through the renderer layer).
@@ -264,6 +294,7 @@ pub fn validate<B: Backend>(
     batch_size: usize,
     device: &B::Device,
 ) -> Result<AggregateMetrics> {
+    input.check_dataset(source)?;
     let mut metrics = MetricsAccumulator::default();
     for_each_sample_group(source, "val", max, |samples| {
         for chunk in samples.chunks(batch_size) {
@@ -355,6 +386,9 @@ pub fn fit<B: AutodiffBackend>(
         if let Some(e) = input.elevation {
             tracing::info!(mean_m = e.mean_m, std_m = e.std_m, "elevation input plane");
         }
+        if let Some(c) = input.context {
+            tracing::info!(gsd_m = c.gsd_m, std_m = c.std_m, "context input");
+        }
         write_json(
             &out.join("normalisation.json"),
             &Normalisation {
@@ -378,6 +412,7 @@ pub fn fit<B: AutodiffBackend>(
         let optim = AdamConfig::new().with_epsilon(1e-8).init::<B, UNet<B>>();
         (net, optim, Cursor::start(), Vec::new(), input)
     };
+    input.check_dataset(&*source)?;
     let trainable = trainable_params(&net, &net_config);
     tracing::info!(
         model = config.model.name(),
@@ -611,12 +646,15 @@ pub fn load_normalisation(run: &Path) -> Result<Normalisation> {
 /// The input normalisation a run's network was trained with, checked against its config (planes it expects).
 pub fn run_input(run: &Path, config: &FitConfig) -> Result<InputNormalisation> {
     let input = load_normalisation(run)?.input;
-    if input.channels() != config.net_config().in_channels {
+    let net = config.net_config();
+    if input.channels() != net.in_channels || input.context_channels() != net.context_channels {
         bail!(
-            "{}: normalisation.json describes {} input plane(s) but config.json a network with {}: the run directory is inconsistent",
+            "{}: normalisation.json describes {} input plane(s) and {} context plane(s) but config.json a network with {} and {}: the run directory is inconsistent",
             run.display(),
             input.channels(),
-            config.net_config().in_channels
+            input.context_channels(),
+            net.in_channels,
+            net.context_channels
         );
     }
     Ok(input)

@@ -46,6 +46,7 @@ fn eval_rows_equal_validation_and_direct_baselines() {
         lr_schedule: train::training::LrSchedule::Constant,
         head_init: train::training::HeadInit::Zero,
         elevation_input: false,
+        context_input: false,
     };
     let options = EvalOptions {
         split: "val".into(),

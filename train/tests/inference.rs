@@ -6,7 +6,9 @@ use burn::prelude::*;
 use dataset::brdf::BrdfModel;
 use dataset::crs::LunarCrs;
 use dataset::raster::{read_bands, write_raster, GeoTransform, Raster};
-use train::data::{ElevationNormalisation, InputNormalisation};
+use train::data::{
+    ContextNormalisation, ElevationNormalisation, InputNormalisation, CONTEXT_CHANNELS,
+};
 use train::inference::{
     infer_params, render_maps, seam_score, write_params_geotiff, InferOptions, ParamMaps,
     DEFAULT_OVERLAP,
@@ -58,6 +60,10 @@ fn random_net() -> UNet<B> {
 }
 
 fn random_net_with_inputs(in_channels: usize) -> UNet<B> {
+    random_net_with(in_channels, 0)
+}
+
+fn random_net_with(in_channels: usize, context_channels: usize) -> UNet<B> {
     // The backend RNG is process-wide: seeding and initialising under one lock keeps parallel tests apart.
     static INIT: std::sync::Mutex<()> = std::sync::Mutex::new(());
     let _guard = INIT.lock().unwrap_or_else(|e| e.into_inner());
@@ -65,6 +71,7 @@ fn random_net_with_inputs(in_channels: usize) -> UNet<B> {
     B::seed(&device, 7);
     let net = UNetConfig::new(BrdfModel::M2.param_count())
         .with_in_channels(in_channels)
+        .with_context_channels(context_channels)
         .with_base_width(4)
         .with_zero_head(false)
         .init::<B>(&device);
@@ -231,6 +238,7 @@ fn elevation_plane_makes_parameters_depend_on_absolute_height_and_relief_alone_d
             mean_m: -1200.0,
             std_m: 50.0,
         }),
+        context: None,
     };
     let both = random_net_with_inputs(2);
     let (a, b) = (
@@ -248,4 +256,58 @@ fn elevation_plane_makes_parameters_depend_on_absolute_height_and_relief_alone_d
         .iter()
         .chain(&b.bands)
         .all(|band| band[hole].is_nan()));
+}
+
+/// Terrain beyond a crop but inside its context window reaches a context network's parameters there, and not a
+/// network without context: a +30 m mound at columns 180–239 is outside every crop that covers columns 0–63, but
+/// inside their 32 × 60 m = 1.9 km context windows.
+#[test]
+fn context_input_makes_parameters_depend_on_terrain_beyond_the_crop() {
+    let plain = dem(320, 240, 0);
+    let mut mound = plain.clone();
+    for row in 0..100 {
+        for col in 180..240 {
+            mound.data[row * 320 + col] += 30.0;
+        }
+    }
+    // Pixels the mound's crops never cover: columns 0–63 (crops there span at most columns −64…127).
+    let max_abs_diff_left = |a: &ParamMaps, b: &ParamMaps| {
+        a.bands
+            .iter()
+            .zip(&b.bands)
+            .flat_map(|(x, y)| {
+                (0..240 * 320)
+                    .filter(|k| k % 320 < 64)
+                    .map(move |k| (x[k], y[k]))
+            })
+            .filter(|(x, y)| x.is_finite() || y.is_finite())
+            .map(|(x, y)| f64::from((x - y).abs()))
+            .fold(0f64, f64::max)
+    };
+    let relief = random_net();
+    let (a, b) = (infer(&relief, &plain, 32), infer(&relief, &mound, 32));
+    assert_eq!(
+        max_abs_diff_left(&a, &b),
+        0.0,
+        "relief input saw beyond its crop"
+    );
+
+    let input = InputNormalisation {
+        dem_std_m: 20.0,
+        elevation: None,
+        context: Some(ContextNormalisation {
+            gsd_m: 60.0,
+            std_m: 25.0,
+        }),
+    };
+    let with_context = random_net_with(1, CONTEXT_CHANNELS);
+    let (a, b) = (
+        infer_with(&with_context, &plain, 32, input),
+        infer_with(&with_context, &mound, 32, input),
+    );
+    let moved = max_abs_diff_left(&a, &b);
+    assert!(
+        moved > 1e-3,
+        "the context window did not reach the network: max change {moved:e}"
+    );
 }

@@ -45,6 +45,7 @@ fn config(
         lr_schedule: train::training::LrSchedule::Constant,
         head_init: train::training::HeadInit::Zero,
         elevation_input: false,
+        context_input: false,
     }
 }
 
@@ -162,11 +163,12 @@ fn stopping_and_resuming_gives_the_same_network_as_an_uninterrupted_run() {
     );
     let source: Arc<dyn SampleSource> = Arc::new(LocalSource::open(tmp.path()).unwrap());
     // Cosine schedule: the resumed half must continue the decay from the saved step, not restart it. With the
-    // elevation plane, the resumed half must feed the network what the first half did.
+    // elevation plane and the context input, the resumed half must feed the network what the first half did.
     let cfg = FitConfig {
         lr_schedule: train::training::LrSchedule::Cosine,
         head_init: train::training::HeadInit::Uniform,
         elevation_input: true,
+        context_input: true,
         ..config(BrdfModel::M2, 2, 1e-3, 12, true)
     };
     let device = Default::default();

@@ -7,11 +7,12 @@
 //! corner shared by the four middle cells, i.e. the geotransform at (c, r) in pixel-edge coordinates.
 
 use dataset::acquisition::AcquisitionMetadata;
+use dataset::context::ContextSampler;
 use dataset::crs::{CrsError, LocalFrame};
 use dataset::horizon::{visibility_window, HeightField, VisibilityWindow, SUN_ANGULAR_RADIUS_RAD};
 use dataset::raster::Raster;
 use dataset::resample::{resample_cells, ResampleKernel};
-use dataset::schema::{Sample, CROP_PX, DEM_PX};
+use dataset::schema::{ContextWindow, Sample, CROP_PX, DEM_PX};
 
 /// Rejection thresholds and shadow sampling, from the pipeline manifest.
 #[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
@@ -25,6 +26,17 @@ pub struct ProjectParams {
     pub max_occluded_fraction: f64,
     /// Elevation samples across the sun disk for soft shadows on the 5 m DEM.
     pub sun_disk_samples: usize,
+    /// Cell size of each sample's context window (`dataset::context`): 32 cells of 512 m see 16 km around the
+    /// crop, enough to hold a crater of ~10–20 km across and its ejecta.
+    #[serde(default = "default_context_gsd_m")]
+    pub context_gsd_m: f64,
+}
+
+/// See [`ProjectParams::context_gsd_m`].
+pub const DEFAULT_CONTEXT_GSD_M: f64 = 512.0;
+
+fn default_context_gsd_m() -> f64 {
+    DEFAULT_CONTEXT_GSD_M
 }
 
 /// Why a crop was not published. Every rejection is counted by reason.
@@ -223,6 +235,7 @@ impl<'a> OrthoProjector<'a> {
             phase_deg: sun_dir.dot(view_dir).clamp(-1.0, 1.0).acos().to_degrees(),
             acq_time: self.meta.start_time_utc.clone(),
             provenance: self.provenance.clone(),
+            context: None, // cut by `run` from the whole DEM (one `ContextSampler` per stage)
         })
     }
 }
@@ -317,6 +330,7 @@ pub fn run(
     // split writers buffering partial row groups, took peak RSS past 2 GiB on tycho-full.
     let (send, receive) = std::sync::mpsc::sync_channel::<Vec<(usize, Sample)>>(0);
     let field = &HeightField::new(&dem.data, dem.width, dem.height, dem.transform);
+    let context = &ContextSampler::new(dem);
     std::thread::scope(|scope| -> anyhow::Result<()> {
         let writer_thread = scope.spawn(move || -> anyhow::Result<TrainDemStatistic> {
             let mut writers = out
@@ -398,6 +412,14 @@ pub fn run(
                         .map(|&i| {
                             let mut sample =
                                 projector.project(cols[i] as usize, rows[i] as usize, params)?;
+                            sample.context = Some(ContextWindow {
+                                gsd_m: params.context_gsd_m,
+                                heights_m: context.window(
+                                    sample.center_x_m,
+                                    sample.center_y_m,
+                                    params.context_gsd_m,
+                                ),
+                            });
                             sample.split = splits[i].clone();
                             sample.tile_id = tiles[i].clone();
                             Ok((split_of[i], sample))
@@ -510,6 +532,7 @@ mod tests {
             max_shadowed_fraction: 0.2,
             max_occluded_fraction: 0.01,
             sun_disk_samples: 4,
+            context_gsd_m: DEFAULT_CONTEXT_GSD_M,
         }
     }
 
