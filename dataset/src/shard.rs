@@ -817,6 +817,7 @@ mod tests {
                 image: vec![],
                 valid: vec![],
                 sun_lit: vec![],
+                context: None,
                 ..s.clone()
             };
             assert_eq!(m, &stripped);

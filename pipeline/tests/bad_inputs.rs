@@ -327,6 +327,21 @@ fn shard_size_that_cuts_a_row_group() {
 }
 
 #[test]
+fn context_cell_size_that_is_not_positive() {
+    let (tmp, m) = case();
+    edit_text(
+        &m,
+        "sun_disk_samples = 2\n",
+        "sun_disk_samples = 2\ncontext_gsd_m = 0.0\n",
+    );
+    assert_refused(
+        tmp.path(),
+        &m,
+        &["m.toml", "context_gsd_m = 0", "positive cell size"],
+    );
+}
+
+#[test]
 fn duplicate_ortho_id() {
     let (tmp, m) = case();
     let (_, json) = first_ortho(tmp.path());
