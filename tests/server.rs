@@ -732,3 +732,56 @@ fn a_split_without_rows_answers_empty_not_an_error() {
         .unwrap();
     assert_eq!(too_wide.status, 400);
 }
+
+/// A dataset published before schema 1.2 (no context columns) still loads, streams and reads: its samples come
+/// back whole, without context.
+#[test]
+fn a_schema_1_1_dataset_serves_and_streams_its_rows_without_context() {
+    let root = tempfile::tempdir().unwrap();
+    let dir = root.path().join("dataset");
+    let rows: Vec<Sample> = (0..5).map(|i| sample(0, "train", i)).collect();
+    let split_summary = serde_json::json!({ "tile_size_m": TILE_M });
+    dataset::testing::write_dataset(&dir, "old", &[("train", vec![rows.clone()])], split_summary)
+        .unwrap();
+    dataset::testing::downgrade_to_schema_1_1(&dir).unwrap();
+    let without_context: Vec<Sample> = rows
+        .iter()
+        .map(|s| Sample {
+            context: None,
+            ..s.clone()
+        })
+        .collect();
+    let local = LocalSource::open(&dir).unwrap();
+    assert_eq!(local.manifest().schema_version, "1.1.0");
+    let groups = local.row_groups("train").unwrap();
+    assert_eq!(local.read_row_group(&groups[0]).unwrap(), without_context);
+
+    let serve_dir = dir.clone();
+    let (send, receive) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        tokio::runtime::Runtime::new()
+            .unwrap()
+            .block_on(dataset::server::serve(
+                &serve_dir,
+                "127.0.0.1:0".parse().unwrap(),
+                true,
+                |a| send.send(a).unwrap(),
+            ))
+            .unwrap();
+    });
+    let url = format!("http://{}", receive.recv().unwrap());
+    let remote = HttpSource::open(&url).unwrap();
+    assert_eq!(remote.read_row_group(&groups[0]).unwrap(), without_context);
+    let stream = HttpClient::new(&url)
+        .unwrap()
+        .get_ok(
+            "/v1/stream?split=train&seed=1&epoch=0",
+            &[("Accept", dataset::server::ARROW_STREAM)],
+        )
+        .unwrap();
+    let mut streamed = dataset::shard::samples_from_ipc_stream(&stream.body).unwrap();
+    streamed.sort_by(|a, b| a.sample_id.cmp(&b.sample_id));
+    let mut expected = without_context;
+    expected.sort_by(|a, b| a.sample_id.cmp(&b.sample_id));
+    assert_eq!(streamed, expected);
+}

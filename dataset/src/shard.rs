@@ -440,6 +440,12 @@ pub struct ShardFile {
 }
 
 impl ShardFile {
+    /// The file's own Arrow schema: a schema 1.1 shard has no context columns, unlike this build's
+    /// [`crate::schema::sample_schema`].
+    pub fn schema(&self) -> arrow::datatypes::SchemaRef {
+        self.metadata.schema().clone()
+    }
+
     /// Open and parse the footer; refuses a shard written with another major schema version.
     pub fn open(path: &Path) -> Result<Self, ShardError> {
         let file = File::open(path).map_err(|source| ShardError::Io {

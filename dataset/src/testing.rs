@@ -88,3 +88,42 @@ pub fn write_dataset(
     write_json_atomic(&dir.join("manifest.json"), &manifest)?;
     Ok(manifest)
 }
+
+/// Rewrite a dataset written by [`write_dataset`] as schema 1.1 wrote it: shards without the context columns and
+/// with version 1.1.0 in their metadata, and the manifest updated (version, sizes, blake3). For tests that old
+/// datasets still read and serve.
+pub fn downgrade_to_schema_1_1(dir: &Path) -> anyhow::Result<()> {
+    use std::sync::Arc;
+    let mut manifest = DatasetManifest::load_dir(dir)?;
+    for shard in &mut manifest.shards {
+        let path = dir.join(&shard.path);
+        let file = crate::shard::ShardFile::open(&path)?;
+        let schema = file.schema();
+        let keep: Vec<usize> = (0..schema.fields().len())
+            .filter(|&k| !schema.field(k).name().starts_with("context_"))
+            .collect();
+        let mut metadata = schema.metadata().clone();
+        metadata.insert("g2r.schema_version".to_string(), "1.1.0".to_string());
+        let old_schema = Arc::new(schema.project(&keep)?.with_metadata(metadata));
+        let mut batches = Vec::new();
+        for group in 0..file.row_group_sizes().len() {
+            for batch in file.read_batches(group, None, true)? {
+                batches.push(arrow::array::RecordBatch::try_new(
+                    old_schema.clone(),
+                    batch.project(&keep)?.columns().to_vec(),
+                )?);
+            }
+        }
+        let mut writer =
+            parquet::arrow::ArrowWriter::try_new(std::fs::File::create(&path)?, old_schema, None)?;
+        for batch in &batches {
+            writer.write(batch)?;
+        }
+        writer.close()?;
+        shard.bytes = std::fs::metadata(&path)?.len();
+        shard.blake3 = crate::manifest::hash_file(&path)?;
+    }
+    manifest.schema_version = "1.1.0".into();
+    write_json_atomic(&dir.join("manifest.json"), &manifest)?;
+    Ok(())
+}

@@ -79,14 +79,21 @@ fn random_net_with(in_channels: usize, context_channels: usize) -> UNet<B> {
     net
 }
 
-/// Largest change of any parameter at the pixels `keep` selects (by index), where either map has a value.
+/// Largest change of any parameter at the pixels `keep` selects (by index); a pixel with a value in one map and
+/// NaN (nodata) in the other counts as an infinite change.
 fn max_abs_diff_where(a: &ParamMaps, b: &ParamMaps, keep: impl Fn(usize) -> bool) -> f64 {
     a.bands
         .iter()
         .zip(&b.bands)
         .flat_map(|(x, y)| x.iter().zip(y).enumerate())
-        .filter(|&(k, (x, y))| keep(k) && (x.is_finite() || y.is_finite()))
-        .map(|(_, (x, y))| f64::from((x - y).abs()))
+        .filter(|&(k, (x, y))| keep(k) && !(x.is_nan() && y.is_nan()))
+        .map(|(_, (x, y))| {
+            if x.is_nan() || y.is_nan() {
+                f64::INFINITY
+            } else {
+                f64::from((x - y).abs())
+            }
+        })
         .fold(0f64, f64::max)
 }
 
@@ -273,7 +280,7 @@ fn context_input_makes_parameters_depend_on_terrain_beyond_the_crop() {
             mound.data[row * 320 + col] += 30.0;
         }
     }
-    // Pixels the mound's crops never cover: columns 0–63 (crops there span at most columns −64…127).
+    // Pixels the mound's crops never cover: columns 0–63 (crops there span columns −32…95).
     let max_abs_diff_left =
         |a: &ParamMaps, b: &ParamMaps| max_abs_diff_where(a, b, |k| k % 320 < 64);
     let relief = random_net();

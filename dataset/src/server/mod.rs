@@ -499,10 +499,12 @@ async fn epoch_stream(
         let plan = plan_epoch(groups, seed, epoch, window, rank, world);
         let send = |item| sender.blocking_send(item).is_ok();
         let result = (|| -> anyhow::Result<()> {
-            let mut writer = arrow::ipc::writer::StreamWriter::try_new(
-                Vec::new(),
-                &crate::schema::sample_schema(),
-            )?;
+            // The dataset's own schema (a 1.1 dataset has no context columns), not this build's.
+            let schema = index
+                .shards
+                .first()
+                .map_or_else(crate::schema::sample_schema, |shard| shard.schema());
+            let mut writer = arrow::ipc::writer::StreamWriter::try_new(Vec::new(), &schema)?;
             let mut start = 0;
             for (w, window_groups) in plan.windows.iter().enumerate() {
                 let end = start
@@ -524,8 +526,7 @@ async fn epoch_stream(
                         batches.push(batch);
                     }
                 }
-                let all =
-                    arrow::compute::concat_batches(&crate::schema::sample_schema(), &batches)?;
+                let all = arrow::compute::concat_batches(&schema, &batches)?;
                 let take: Vec<u32> = plan.rows[start..end]
                     .iter()
                     .map(|r| (offsets[&r.group] + r.row) as u32)

@@ -186,8 +186,9 @@ pub fn pipeline(
     let progress5 = progress.clone();
     let project = Stage {
         name: "project",
-        // 2: projects assigned positions only, into one file per split.
-        code_version: "2",
+        // 2: projects assigned positions only, into one file per split. 3: every sample carries its context
+        // window (schema 1.2).
+        code_version: "3",
         // Everything projection reads: assigned positions, the DEM, and each ortho's image and metadata.
         inputs: [
             layout.assignment.clone(),
