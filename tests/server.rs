@@ -684,6 +684,23 @@ fn viewer_renders_samples_and_the_tile_map_in_headless_chromium() {
     );
 }
 
+/// Serve `dir` on a free loopback port from a runtime thread of its own; the server's base URL.
+fn serve_in_background(dir: PathBuf) -> String {
+    let (send, receive) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        tokio::runtime::Runtime::new()
+            .unwrap()
+            .block_on(dataset::server::serve(
+                &dir,
+                "127.0.0.1:0".parse().unwrap(),
+                true,
+                |a| send.send(a).unwrap(),
+            ))
+            .unwrap();
+    });
+    format!("http://{}", receive.recv().expect("server started"))
+}
+
 #[test]
 fn a_split_without_rows_answers_empty_not_an_error() {
     // Publish lists every split, with count 0 when the tiles gave it none: the server must answer, not panic.
@@ -698,19 +715,7 @@ fn a_split_without_rows_answers_empty_not_an_error() {
         split_summary,
     )
     .unwrap();
-    let (send, receive) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        tokio::runtime::Runtime::new()
-            .unwrap()
-            .block_on(dataset::server::serve(
-                &dir,
-                "127.0.0.1:0".parse().unwrap(),
-                true,
-                |a| send.send(a).unwrap(),
-            ))
-            .unwrap();
-    });
-    let c = HttpClient::new(&format!("http://{}", receive.recv().unwrap())).unwrap();
+    let c = HttpClient::new(&serve_in_background(dir)).unwrap();
     let groups: serde_json::Value = c.get_json("/v1/row-groups?split=test").unwrap();
     assert_eq!(groups["row_groups"].as_array().unwrap().len(), 0);
     let page: serde_json::Value = c.get_json("/v1/rows?split=test").unwrap();
@@ -756,20 +761,7 @@ fn a_schema_1_1_dataset_serves_and_streams_its_rows_without_context() {
     let groups = local.row_groups("train").unwrap();
     assert_eq!(local.read_row_group(&groups[0]).unwrap(), without_context);
 
-    let serve_dir = dir.clone();
-    let (send, receive) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        tokio::runtime::Runtime::new()
-            .unwrap()
-            .block_on(dataset::server::serve(
-                &serve_dir,
-                "127.0.0.1:0".parse().unwrap(),
-                true,
-                |a| send.send(a).unwrap(),
-            ))
-            .unwrap();
-    });
-    let url = format!("http://{}", receive.recv().unwrap());
+    let url = serve_in_background(dir.clone());
     let remote = HttpSource::open(&url).unwrap();
     assert_eq!(remote.read_row_group(&groups[0]).unwrap(), without_context);
     let stream = HttpClient::new(&url)
