@@ -29,7 +29,7 @@ pub struct UNetConfig {
     /// Planes of the context input (`data::CONTEXT_CHANNELS`), or 0 for none: a small encoder turns the
     /// 32 × 32 window into features concatenated, at every position, to the bottleneck's input (where they can
     /// interact with the crop's own terrain) and to the head's (where they reach the parameters directly: through
-    /// four up stages a bottleneck change is attenuated ~30× per stage at initialisation, measured).
+    /// four up stages a bottleneck change is attenuated 18–41× per stage at initialisation, measured: 3.5e-2 in, 6e-8 out).
     #[config(default = 0)]
     pub context_channels: usize,
     /// Channels of the first stage; the others double per stage.
