@@ -259,7 +259,7 @@ fn every_endpoint_answers_with_its_documented_shape() {
     let s = &f.samples["val"][7];
     let one: serde_json::Value = c.get_json(&format!("/v1/samples/{}", s.sample_id)).unwrap();
     assert_eq!(one["incidence_deg"].as_f64(), Some(s.incidence_deg));
-    for file in ["dem.png", "image.png", "lit.png"] {
+    for file in ["dem.png", "image.png", "lit.png", "context.png"] {
         let png = c
             .get_ok(&format!("/v1/samples/{}/{file}", s.sample_id), &[])
             .unwrap();
@@ -358,6 +358,11 @@ for k, row in enumerate(body["rows"]):
         got = np.frombuffer(base64.b64decode(t["base64"]), dtype=dtype).reshape(t["shape"])
         want = np.asarray(table.column(col)[i].values.to_numpy(zero_copy_only=False), dtype=dtype).reshape(t["shape"])
         assert t["dtype"] == np.dtype(dtype).name and np.array_equal(got, want), col
+    ctx = row["tensors"]["context_dem"]
+    got = np.frombuffer(base64.b64decode(ctx["base64"]), dtype=np.float32).reshape(ctx["shape"])
+    want = np.asarray(table.column("context_dem")[i].values.to_numpy(zero_copy_only=False), dtype=np.float32)
+    assert ctx["shape"] == [32, 32] and np.array_equal(got, want.reshape(32, 32), equal_nan=True), "context_dem"
+    assert ctx["gsd_m"] == table.column("context_gsd_m")[i].as_py()
 # Remote reads through HTTP Range requests, with no custom code.
 remote = pl.read_parquet(f"{url}/v1/shards/{name}", columns=["sample_id", "incidence_deg", "dem"])
 local = pl.read_parquet(f"{shard_dir}/{name}", columns=["sample_id", "incidence_deg", "dem"])
@@ -776,4 +781,37 @@ fn a_schema_1_1_dataset_serves_and_streams_its_rows_without_context() {
     let mut expected = without_context;
     expected.sort_by(|a, b| a.sample_id.cmp(&b.sample_id));
     assert_eq!(streamed, expected);
+
+    // The JSON views describe the dataset as it is: its own schema, no context tensor, no context preview.
+    let client = HttpClient::new(&url).unwrap();
+    let info: serde_json::Value = client.get_json("/v1/info").unwrap();
+    let columns: Vec<&str> = info["schema"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| f["name"].as_str().unwrap())
+        .collect();
+    assert_eq!(
+        columns.len(),
+        dataset::schema::sample_schema().fields().len() - 2
+    );
+    assert!(columns.contains(&"dem") && !columns.iter().any(|c| c.starts_with("context_")));
+    let page: serde_json::Value = client
+        .get_json("/v1/rows?split=train&length=1&tensors=base64")
+        .unwrap();
+    assert!(page["rows"][0]["tensors"]["dem"].is_object());
+    assert!(page["rows"][0]["tensors"]["context_dem"].is_null());
+    let id = &expected[0].sample_id;
+    let png = client
+        .get(&format!("/v1/samples/{id}/context.png"), &[])
+        .unwrap();
+    assert_eq!(png.status, 404);
+    assert!(String::from_utf8_lossy(&png.body).contains("predates schema 1.2"));
+    assert_eq!(
+        client
+            .get(&format!("/v1/samples/{id}/dem.png"), &[])
+            .unwrap()
+            .status,
+        200
+    );
 }

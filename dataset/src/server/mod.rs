@@ -12,7 +12,7 @@
 //! | `GET /v1/rows?split=&offset=&length=[&tensors=base64]` | rows in the split's order (length ≤ 100) |
 //! | `GET /v1/filter?[split=][&tile=][&bbox=lon0,lat0,lon1,lat1][&limit=]` | matching rows' metadata |
 //! | `GET /v1/tiles` | split tiles with counts and bounds |
-//! | `GET /v1/samples/{id}` and `/v1/samples/{id}/{dem,image,lit}.png` | one row, previews |
+//! | `GET /v1/samples/{id}` and `/v1/samples/{id}/{dem,image,lit,context}.png` | one row, previews |
 //! | `GET /v1/shards/{name}` | the shard's bytes, HTTP Range supported (pyarrow/polars/DuckDB remote reads) |
 //! | `GET /v1/shards/{name}/row-groups/{i}` | one row group as an Arrow IPC stream |
 //! | `GET /v1/row-groups?split=` | the split's row groups in order (what the trainer's planner shuffles) |
@@ -37,7 +37,7 @@ use base64::Engine;
 use tower::ServiceExt;
 
 use crate::planner::plan_epoch;
-use crate::schema::{Sample, CROP_PX, DEM_PX};
+use crate::schema::{Sample, CONTEXT_PX, CROP_PX, DEM_PX};
 use index::DatasetIndex;
 use preview::Preview;
 
@@ -209,6 +209,10 @@ fn tensors_json(s: &Sample) -> serde_json::Value {
         "image": { "dtype": "float32", "shape": [CROP_PX, CROP_PX], "base64": b64(&f32s(&s.image)) },
         "valid": { "dtype": "uint8", "shape": [CROP_PX, CROP_PX], "base64": b64(&s.valid) },
         "sun_lit": { "dtype": "float32", "shape": [CROP_PX, CROP_PX], "base64": b64(&f32s(&s.sun_lit)) },
+        // null for a schema 1.1 dataset, which has no context window.
+        "context_dem": s.context.as_ref().map(|c| serde_json::json!({
+            "dtype": "float32", "shape": [CONTEXT_PX, CONTEXT_PX], "base64": b64(&f32s(&c.heights_m)), "gsd_m": c.gsd_m,
+        })),
     })
 }
 
@@ -217,7 +221,13 @@ async fn viewer() -> Html<&'static str> {
 }
 
 async fn info(State(index): Shared) -> Json<serde_json::Value> {
-    let schema: Vec<serde_json::Value> = crate::schema::sample_schema()
+    // The dataset's own schema (an older minor version lacks columns this build writes); this build's for a
+    // dataset without shards.
+    let dataset_schema = index
+        .shards
+        .first()
+        .map_or_else(crate::schema::sample_schema, |s| s.schema());
+    let schema: Vec<serde_json::Value> = dataset_schema
         .fields()
         .iter()
         .map(|f| {
@@ -361,7 +371,7 @@ async fn sample_preview(
 ) -> ApiResult<Response> {
     let preview = Preview::from_file_name(&file).ok_or_else(|| {
         ApiError::not_found(format!(
-            "no preview '{file}'; use dem.png, image.png or lit.png"
+            "no preview '{file}'; use dem.png, image.png, lit.png or context.png"
         ))
     })?;
     let row = row_of(&index, &id)?;
@@ -369,7 +379,12 @@ async fn sample_preview(
         let sample = index.read_full(&[row])?.pop().expect("one row");
         Ok(preview::render_png(&sample, preview))
     })
-    .await?;
+    .await?
+    .ok_or_else(|| {
+        ApiError::not_found(format!(
+            "sample '{id}' has no context window: the dataset predates schema 1.2; re-publish it for context"
+        ))
+    })?;
     Ok((
         [
             (header::CONTENT_TYPE, "image/png"),

@@ -1,9 +1,10 @@
-//! PNG previews of one sample for the viewer: a hillshaded DEM, a percentile-stretched image, the lit fraction.
+//! PNG previews of one sample for the viewer: a hillshaded DEM, a percentile-stretched image, the lit fraction,
+//! and the context window with the crop's footprint marked.
 //! Previews are for eyes only; the tensors themselves are served unaltered by `/v1/rows` and the shards.
 
 use image::{ImageEncoder, Rgb, RgbImage};
 
-use crate::schema::{Sample, CROP_PX, DEM_PX};
+use crate::schema::{ContextWindow, Sample, CONTEXT_PX, CROP_PX, DEM_PX};
 
 /// Which preview.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -11,6 +12,7 @@ pub enum Preview {
     Dem,
     Image,
     Lit,
+    Context,
 }
 
 impl Preview {
@@ -19,6 +21,7 @@ impl Preview {
             "dem.png" => Some(Self::Dem),
             "image.png" => Some(Self::Image),
             "lit.png" => Some(Self::Lit),
+            "context.png" => Some(Self::Context),
             _ => None,
         }
     }
@@ -44,6 +47,10 @@ fn hillshade(sample: &Sample) -> RgbImage {
         Rgb([v, v, v])
     })
 }
+
+/// Every preview is this many pixels square: the crop's previews pixel for pixel, the context window's cells
+/// magnified `PREVIEW_PX / CONTEXT_PX` times (nearest neighbour, so cells stay visible as cells).
+const PREVIEW_PX: usize = CROP_PX;
 
 /// Value at quantile `q` of `values` (sorted copy; NaN-free input).
 fn quantile(values: &[f32], q: f64) -> f32 {
@@ -85,12 +92,52 @@ fn lit_fraction(sample: &Sample) -> RgbImage {
     })
 }
 
-/// Encode the preview as PNG bytes.
-pub fn render_png(sample: &Sample, preview: Preview) -> Vec<u8> {
+/// The context window's heights stretched from their 2nd to 98th percentile (cells without DEM in dark red), with
+/// the crop's footprint outlined in yellow at the centre, so the viewer shows where the crop sits in its terrain.
+fn context_image(context: &ContextWindow, crop_gsd_m: f64) -> RgbImage {
+    let scale = PREVIEW_PX / CONTEXT_PX;
+    let finite: Vec<f32> = context
+        .heights_m
+        .iter()
+        .copied()
+        .filter(|h| h.is_finite())
+        .collect();
+    let (lo, hi) = if finite.is_empty() {
+        (0.0, 1.0)
+    } else {
+        (quantile(&finite, 0.02), quantile(&finite, 0.98))
+    };
+    let span = (hi - lo).max(f32::EPSILON);
+    // The window is centred on the crop centre, which is the corner shared by the four middle cells.
+    let centre = PREVIEW_PX as f64 / 2.0;
+    let half_side = (CROP_PX as f64 * crop_gsd_m / context.gsd_m * scale as f64 / 2.0).max(1.0);
+    let (near, far) = (
+        (centre - half_side).round() as i64,
+        (centre + half_side).round() as i64 - 1,
+    );
+    RgbImage::from_fn(PREVIEW_PX as u32, PREVIEW_PX as u32, |x, y| {
+        let (x, y) = (x as i64, y as i64);
+        let inside = |v: i64| (near..=far).contains(&v);
+        if (inside(x) && (y == near || y == far)) || (inside(y) && (x == near || x == far)) {
+            return Rgb([255, 220, 0]);
+        }
+        let h = context.heights_m[y as usize / scale * CONTEXT_PX + x as usize / scale];
+        if !h.is_finite() {
+            return Rgb([90, 0, 0]);
+        }
+        let v = (((h - lo) / span).clamp(0.0, 1.0) * 255.0).round() as u8;
+        Rgb([v, v, v])
+    })
+}
+
+/// Encode the preview as PNG bytes; `None` when the sample lacks what the preview shows (a schema 1.1 sample has no
+/// context window).
+pub fn render_png(sample: &Sample, preview: Preview) -> Option<Vec<u8>> {
     let img = match preview {
         Preview::Dem => hillshade(sample),
         Preview::Image => stretched_image(sample),
         Preview::Lit => lit_fraction(sample),
+        Preview::Context => context_image(sample.context.as_ref()?, sample.gsd_m),
     };
     let mut bytes = Vec::new();
     image::codecs::png::PngEncoder::new(&mut bytes)
@@ -101,7 +148,7 @@ pub fn render_png(sample: &Sample, preview: Preview) -> Vec<u8> {
             image::ExtendedColorType::Rgb8,
         )
         .expect("encoding an in-memory RGB image cannot fail");
-    bytes
+    Some(bytes)
 }
 
 #[cfg(test)]
@@ -149,7 +196,52 @@ mod tests {
         assert_eq!(img.get_pixel(5, 0).0, [90, 0, 0]); // first row invalid
         assert_eq!(img.get_pixel(0, 2).0[0], 0); // below the 2nd percentile
         assert_eq!(img.get_pixel(127, 127).0[0], 255);
-        let png = render_png(&sample_with_dem(|_, _| 0.0), Preview::Lit);
+        let png = render_png(&sample_with_dem(|_, _| 0.0), Preview::Lit).unwrap();
         assert_eq!(&png[1..4], b"PNG");
+    }
+
+    #[test]
+    fn context_preview_magnifies_cells_marks_holes_and_outlines_the_crop() {
+        // Heights rise west to east by column; the last row has no DEM.
+        let heights_m = (0..CONTEXT_PX * CONTEXT_PX)
+            .map(|k| {
+                if k / CONTEXT_PX == CONTEXT_PX - 1 {
+                    f32::NAN
+                } else {
+                    (k % CONTEXT_PX) as f32 * 10.0
+                }
+            })
+            .collect();
+        // 128 px × 5 m = 640 m crop in 160 m cells: 4 cells = 16 preview pixels, centred.
+        let context = ContextWindow {
+            gsd_m: 160.0,
+            heights_m,
+        };
+        let img = context_image(&context, 5.0);
+        assert_eq!((img.width(), img.height()), (128, 128));
+        let yellow = [255, 220, 0];
+        for k in 56..=71 {
+            for (x, y) in [(k, 56), (k, 71), (56, k), (71, k)] {
+                assert_eq!(img.get_pixel(x, y).0, yellow, "outline at ({x}, {y})");
+            }
+        }
+        assert_ne!(img.get_pixel(55, 60).0, yellow);
+        assert_ne!(img.get_pixel(60, 60).0, yellow);
+        assert_ne!(img.get_pixel(72, 60).0, yellow);
+        // Cells are 4 × 4 blocks of one grey; grey rises eastwards; 2-98 % stretch clips the ends.
+        assert_eq!(img.get_pixel(8, 3).0, img.get_pixel(11, 0).0);
+        assert!(img.get_pixel(40, 10).0[0] > img.get_pixel(36, 10).0[0]);
+        assert_eq!(img.get_pixel(0, 0).0, [0, 0, 0]);
+        assert_eq!(img.get_pixel(127, 0).0, [255, 255, 255]);
+        assert_eq!(img.get_pixel(30, 125).0, [90, 0, 0]);
+        // A sample without a window has no context preview; with one, a PNG.
+        let mut sample = sample_with_dem(|_, _| 0.0);
+        sample.context = None;
+        assert_eq!(render_png(&sample, Preview::Context), None);
+        sample.context = Some(context);
+        assert_eq!(
+            &render_png(&sample, Preview::Context).unwrap()[1..4],
+            b"PNG"
+        );
     }
 }
