@@ -29,6 +29,24 @@ impl Dihedral {
         }
     }
 
+    /// All 8 symmetries, identity first.
+    pub fn all() -> impl Iterator<Item = Self> {
+        (0..8).map(Self::from_index)
+    }
+
+    /// The symmetry that undoes this one. A mirror followed by turns is a reflection, its own inverse; turns alone
+    /// are undone by the remaining turns to a full circle.
+    pub fn inverse(self) -> Self {
+        if self.mirror {
+            self
+        } else {
+            Self {
+                quarter_turns: (4 - self.quarter_turns) % 4,
+                mirror: false,
+            }
+        }
+    }
+
     /// Apply to a square row-major raster of edge `n` (north row first).
     pub fn apply_raster<T: Copy>(self, data: &[T], n: usize) -> Vec<T> {
         assert_eq!(data.len(), n * n);
@@ -184,6 +202,28 @@ mod tests {
             8,
             "each symmetry moves the plane its own way: {distinct:?}"
         );
+    }
+
+    #[test]
+    fn inverse_undoes_every_symmetry_on_rasters_and_vectors() {
+        let raster: Vec<u32> = (0..25).collect();
+        let v = [0.3, -1.7, 0.2];
+        for d in Dihedral::all() {
+            let back = d.inverse();
+            assert_eq!(
+                back.apply_raster(&d.apply_raster(&raster, 5), 5),
+                raster,
+                "{d:?}"
+            );
+            assert_eq!(
+                d.apply_raster(&back.apply_raster(&raster, 5), 5),
+                raster,
+                "{d:?}"
+            );
+            assert_eq!(back.apply_enu(d.apply_enu(v)), v, "{d:?}");
+        }
+        assert_eq!(Dihedral::all().count(), 8);
+        assert_eq!(Dihedral::all().next(), Some(Dihedral::IDENTITY));
     }
 
     #[test]

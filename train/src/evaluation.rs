@@ -25,7 +25,7 @@ use crate::data::{for_each_sample_group, HostBatch, InputNormalisation, SampleSo
 use crate::features::{FeatureMatcher, MatchStats, MatchSummary};
 use crate::metrics::{image_metrics, AggregateMetrics, ImageMetrics, MetricsAccumulator};
 use crate::model::UNet;
-use crate::training::{predict_images, FitConfig};
+use crate::training::{predict_images, predict_images_symmetry_mean, FitConfig};
 
 /// The methods, in report order.
 pub const METHODS: [(&str, &str); 7] = [
@@ -60,6 +60,9 @@ pub struct EvalOptions {
     pub panels: usize,
     /// The run's network input normalisation (`training::run_input`).
     pub input: InputNormalisation,
+    /// Render "learned" as the mean of the network's 8 dihedral views
+    /// ([`crate::training::predict_images_symmetry_mean`]): 8× the network and renderer time.
+    pub symmetry_mean: bool,
 }
 
 /// The world's true Hapke parameter maps (`truth/hapke_params.tif`: w, b, c, B_S0, h_S, θ̄ in degrees).
@@ -367,6 +370,8 @@ pub struct EvalReport {
     pub split: String,
     pub run_model: String,
     pub images: usize,
+    /// "learned" is the mean of the network's 8 dihedral views (`--symmetry-mean`).
+    pub learned_symmetry_mean: bool,
     pub calibration: Calibration,
     pub methods: Vec<MethodResult>,
     /// Mean per-image SSE of learned over hapke_paper (the paper's −38 % is 0.62).
@@ -444,8 +449,12 @@ pub fn evaluate<B: Backend>(
     let mut failure: Option<anyhow::Error> = None;
     for_each_sample_group(source, &options.split, options.max_samples, |samples| {
         for chunk in samples.chunks(options.batch_size) {
-            let batch = HostBatch::from_samples(chunk, &options.input);
-            let learned = predict_images(net, config.model, &batch, device);
+            let learned = if options.symmetry_mean {
+                predict_images_symmetry_mean(net, config.model, chunk, &options.input, device)
+            } else {
+                let batch = HostBatch::from_samples(chunk, &options.input);
+                predict_images(net, config.model, &batch, device)
+            };
             for (i, sample) in chunk.iter().enumerate() {
                 let px = CROP_PX * CROP_PX;
                 let renderings = method_renderings(
@@ -522,6 +531,7 @@ pub fn evaluate<B: Backend>(
         split: options.split.clone(),
         run_model: config.model.name().to_string(),
         images: per_image.len(),
+        learned_symmetry_mean: options.symmetry_mean,
         calibration: calibration.clone(),
         methods: methods.clone(),
         learned_over_hapke_paper_sse: learned / paper,
@@ -547,6 +557,12 @@ pub fn markdown(report: &EvalReport) -> String {
          | method | per-image SSE (paper's \"MSE\") | pixel MSE | PSNR dB | SSIM | what it is |\n|---|---|---|---|---|---|\n",
         report.split, report.images, report.run_model
     );
+    if report.learned_symmetry_mean {
+        text.push_str(
+            "learned: mean of the network's 8 dihedral views (turns and mirrors of the terrain, maps turned back, \
+             renderings averaged; --symmetry-mean).\n\n",
+        );
+    }
     for m in &report.methods {
         let a = &m.aggregate;
         text.push_str(&format!(

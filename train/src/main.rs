@@ -185,6 +185,11 @@ enum Command {
         /// PNG panels for the first N images.
         #[arg(long, default_value_t = 8)]
         panels: usize,
+        /// Render "learned" as the mean of the network's 8 dihedral views: the terrain (and context window) turned
+        /// and mirrored with its geometry, each parameter map turned back, the 8 renderings averaged. An 8-member
+        /// ensemble from one network: its error is at most the members' mean; costs 8× network and renderer time.
+        #[arg(long)]
+        symmetry_mean: bool,
         #[arg(long, value_enum, default_value = "flex")]
         backend: BackendKind,
     },
@@ -364,6 +369,7 @@ fn run(cli: Cli) -> Result<()> {
             batch,
             calibration_samples,
             panels,
+            symmetry_mean,
             backend,
         } => {
             let source = open_source(&data)?;
@@ -386,6 +392,7 @@ fn run(cli: Cli) -> Result<()> {
                     calibration_samples,
                     panels,
                     input,
+                    symmetry_mean,
                 };
                 let calibration =
                     train::evaluation::calibrate(source.as_ref(), calibration_samples, config.model)?;

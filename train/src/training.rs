@@ -21,6 +21,7 @@ use dataset::brdf::BrdfModel;
 use dataset::rng::keyed_u64;
 use indicatif::{ProgressBar, ProgressStyle};
 
+use crate::augment::Dihedral;
 use crate::data::for_each_sample_group;
 use crate::data::{
     crop_interior_m, ContextNormalisation, ElevationNormalisation, EpochStream, HostBatch,
@@ -29,7 +30,7 @@ use crate::data::{
 use crate::metrics::{AggregateMetrics, MetricsAccumulator};
 use crate::model::{UNet, UNetConfig};
 use crate::render::{masked_mse, render, scene_geometry, SceneGeometry, SceneInputs};
-use dataset::schema::{CONTEXT_PX, CROP_PX};
+use dataset::schema::{Sample, CONTEXT_PX, CROP_PX};
 
 /// Everything that defines a run (saved as `config.json`; a resume must match it).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -224,14 +225,8 @@ pub fn trainable_params<B: Backend>(net: &UNet<B>, config: &UNetConfig) -> usize
     net.num_params() - config.running_stat_count()
 }
 
-/// Network → renderer for one host batch: the rendered image `[N, 1, 128, 128]` and the batch's geometry.
-fn render_batch<B: Backend>(
-    net: &UNet<B>,
-    model: BrdfModel,
-    batch: &HostBatch,
-    device: &B::Device,
-) -> (Tensor<B, 4>, SceneGeometry<B>) {
-    let geometry = scene_geometry(&SceneInputs::<B>::from_host(batch, model, device));
+/// The network's raw parameter maps for one host batch: `[N, P, 128, 128]` (the renderer applies the activation).
+fn net_outputs<B: Backend>(net: &UNet<B>, batch: &HostBatch, device: &B::Device) -> Tensor<B, 4> {
     let input = Tensor::<B, 4>::from_data(
         TensorData::new(
             batch.net_input.clone(),
@@ -248,8 +243,19 @@ fn render_batch<B: Backend>(
             device,
         )
     });
+    net.forward(input, context)
+}
+
+/// Network → renderer for one host batch: the rendered image `[N, 1, 128, 128]` and the batch's geometry.
+fn render_batch<B: Backend>(
+    net: &UNet<B>,
+    model: BrdfModel,
+    batch: &HostBatch,
+    device: &B::Device,
+) -> (Tensor<B, 4>, SceneGeometry<B>) {
+    let geometry = scene_geometry(&SceneInputs::<B>::from_host(batch, model, device));
     (
-        render(model, net.forward(input, context), &geometry),
+        render(model, net_outputs(net, batch, device), &geometry),
         geometry,
     )
 }
@@ -278,6 +284,51 @@ pub fn predict_images<B: Backend>(
 ) -> Vec<f64> {
     render_batch(net, model, batch, device)
         .0
+        .into_data()
+        .convert::<f64>()
+        .into_vec::<f64>()
+        .expect("f64 after convert")
+}
+
+/// Render samples as the mean of the network's 8 dihedral views (test-time augmentation): the network sees each
+/// turn and mirror of the terrain and context (with the geometry turned alike, as in training), its parameter maps
+/// are turned back and rendered with the samples' own geometry, and the 8 renderings are averaged. The mean of
+/// the renderings (not of the raw maps, which the activation would bend) makes this exactly an 8-member ensemble:
+/// its squared error is at most the members' mean squared error, and the averaged predictor is equivariant under
+/// the 8 symmetries, which a single pass of a trained network is only approximately. Cost: 8 network passes and 8
+/// renders. `N × 128²` f64, as [`predict_images`].
+pub fn predict_images_symmetry_mean<B: Backend>(
+    net: &UNet<B>,
+    model: BrdfModel,
+    samples: &[Sample],
+    input: &InputNormalisation,
+    device: &B::Device,
+) -> Vec<f64> {
+    let batch = HostBatch::from_samples(samples, input);
+    let geometry = scene_geometry(&SceneInputs::<B>::from_host(&batch, model, device));
+    let npx = CROP_PX * CROP_PX;
+    let shape = [samples.len(), model.param_count(), CROP_PX, CROP_PX];
+    let mut sum: Option<Tensor<B, 4>> = None;
+    for d in Dihedral::all() {
+        let turned: Vec<Sample> = samples.iter().map(|s| d.apply(s)).collect();
+        let raw = net_outputs(net, &HostBatch::from_samples(&turned, input), device)
+            .into_data()
+            .convert::<f32>()
+            .into_vec::<f32>()
+            .expect("f32 after convert");
+        let back = d.inverse();
+        let raw_back: Vec<f32> = raw
+            .chunks(npx)
+            .flat_map(|plane| back.apply_raster(plane, CROP_PX))
+            .collect();
+        let raw_back = Tensor::<B, 4>::from_data(TensorData::new(raw_back, shape), device);
+        let rendered = render(model, raw_back, &geometry);
+        sum = Some(match sum {
+            None => rendered,
+            Some(total) => total + rendered,
+        });
+    }
+    (sum.expect("8 symmetries") / 8.0)
         .into_data()
         .convert::<f64>()
         .into_vec::<f64>()

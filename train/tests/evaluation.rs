@@ -55,6 +55,7 @@ fn eval_rows_equal_validation_and_direct_baselines() {
         calibration_samples: 6,
         panels: 2,
         input: InputNormalisation::relief(source.manifest().dem_std_m),
+        symmetry_mean: false,
     };
     let calibration = calibrate(&source, 6, BrdfModel::M2).unwrap();
     // The honest scale is Σxt / Σx² over the train crops' valid pixels.

@@ -6,6 +6,10 @@ use burn::prelude::*;
 use dataset::brdf::BrdfModel;
 use dataset::crs::LunarCrs;
 use dataset::raster::{read_bands, write_raster, GeoTransform, Raster};
+use dataset::schema::{Sample, CROP_PX};
+use train::augment::Dihedral;
+use train::bench::synthetic_samples;
+use train::data::HostBatch;
 use train::data::{
     ContextNormalisation, ElevationNormalisation, InputNormalisation, CONTEXT_CHANNELS,
 };
@@ -14,6 +18,7 @@ use train::inference::{
     DEFAULT_OVERLAP,
 };
 use train::model::{UNet, UNetConfig};
+use train::training::{predict_images, predict_images_symmetry_mean};
 
 type B = Flex;
 
@@ -308,5 +313,84 @@ fn context_input_makes_parameters_depend_on_terrain_beyond_the_crop() {
     assert!(
         moved > 1e-3,
         "the context window did not reach the network: max change {moved:e}"
+    );
+}
+
+/// Largest absolute difference between two equally long renderings.
+fn max_abs_diff(a: &[f64], b: &[f64]) -> f64 {
+    assert_eq!(a.len(), b.len());
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f64::max)
+}
+
+/// Every image of a batch turned by `d`.
+fn turn_images(images: &[f64], d: Dihedral) -> Vec<f64> {
+    images
+        .chunks(CROP_PX * CROP_PX)
+        .flat_map(|image| d.apply_raster(image, CROP_PX))
+        .collect()
+}
+
+/// Test-time symmetry averaging is the 8-member ensemble it claims: it equals the mean of the 8 single passes on
+/// turned samples, turned back (an independent path through the renderer's own equivariance, M2), and it is
+/// equivariant: turning the samples turns its renderings. A single pass of the random network is far from
+/// equivariant, so the second check can fail.
+#[test]
+fn symmetry_mean_is_an_equivariant_ensemble_of_the_eight_views() {
+    let samples = synthetic_samples(2, 5);
+    let input = InputNormalisation {
+        dem_std_m: 20.0,
+        elevation: None,
+        context: Some(ContextNormalisation {
+            gsd_m: 512.0,
+            std_m: 150.0,
+        }),
+    };
+    let net = random_net_with(1, CONTEXT_CHANNELS);
+    let device = Default::default();
+    let model = BrdfModel::M2;
+    let single =
+        |s: &[Sample]| predict_images(&net, model, &HostBatch::from_samples(s, &input), &device);
+    let averaged = |s: &[Sample]| predict_images_symmetry_mean(&net, model, s, &input, &device);
+    let turned = |d: Dihedral| -> Vec<Sample> { samples.iter().map(|s| d.apply(s)).collect() };
+
+    let mean = averaged(&samples);
+    let scale = mean.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    assert!(scale > 0.0 && mean.iter().all(|v| v.is_finite()));
+    let mut ensemble = vec![0.0; mean.len()];
+    for d in Dihedral::all() {
+        for (e, b) in ensemble
+            .iter_mut()
+            .zip(turn_images(&single(&turned(d)), d.inverse()))
+        {
+            *e += b / 8.0;
+        }
+    }
+    let off = max_abs_diff(&mean, &ensemble);
+    assert!(
+        off <= 1e-6 * scale,
+        "not the 8-view mean: {off:e} of {scale:e}"
+    );
+
+    let plain = single(&samples);
+    let (mut averaged_worst, mut single_worst) = (0.0f64, 0.0f64);
+    for d in Dihedral::all().skip(1) {
+        averaged_worst =
+            averaged_worst.max(max_abs_diff(&averaged(&turned(d)), &turn_images(&mean, d)));
+        single_worst = single_worst.max(max_abs_diff(&single(&turned(d)), &turn_images(&plain, d)));
+    }
+    eprintln!(
+        "ensemble {off:e} averaged {averaged_worst:e} single {single_worst:e} scale {scale:e}"
+    );
+    assert!(
+        averaged_worst <= 1e-6 * scale,
+        "averaged predictor not equivariant: {averaged_worst:e} of {scale:e}"
+    );
+    // The network's own asymmetry must dwarf what the check lets through, or the check proves nothing.
+    assert!(
+        single_worst > 100.0 * averaged_worst.max(1e-7 * scale),
+        "a single pass is about as equivariant ({single_worst:e}) as the averaged one ({averaged_worst:e})"
     );
 }
