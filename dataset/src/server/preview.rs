@@ -59,6 +59,18 @@ fn quantile(values: &[f32], q: f64) -> f32 {
     sorted[((sorted.len() - 1) as f64 * q).round() as usize]
 }
 
+/// The grey level of a value under a linear stretch from the 2nd to the 98th percentile of `values` (NaN-free;
+/// 0 to 1 when empty), clipped at both ends.
+fn stretch_2_98(values: &[f32]) -> impl Fn(f32) -> u8 {
+    let (lo, hi) = if values.is_empty() {
+        (0.0, 1.0)
+    } else {
+        (quantile(values, 0.02), quantile(values, 0.98))
+    };
+    let span = (hi - lo).max(f32::EPSILON);
+    move |v| (((v - lo) / span).clamp(0.0, 1.0) * 255.0).round() as u8
+}
+
 /// Image stretched from its 2nd to 98th percentile over valid pixels; invalid pixels in dark red.
 fn stretched_image(sample: &Sample) -> RgbImage {
     let valid: Vec<f32> = sample
@@ -68,18 +80,13 @@ fn stretched_image(sample: &Sample) -> RgbImage {
         .filter(|(_, &v)| v != 0)
         .map(|(&i, _)| i)
         .collect();
-    let (lo, hi) = if valid.is_empty() {
-        (0.0, 1.0)
-    } else {
-        (quantile(&valid, 0.02), quantile(&valid, 0.98))
-    };
-    let span = (hi - lo).max(f32::EPSILON);
+    let grey = stretch_2_98(&valid);
     RgbImage::from_fn(CROP_PX as u32, CROP_PX as u32, |x, y| {
         let k = y as usize * CROP_PX + x as usize;
         if sample.valid[k] == 0 {
             return Rgb([90, 0, 0]);
         }
-        let v = (((sample.image[k] - lo) / span).clamp(0.0, 1.0) * 255.0).round() as u8;
+        let v = grey(sample.image[k]);
         Rgb([v, v, v])
     })
 }
@@ -102,12 +109,7 @@ fn context_image(context: &ContextWindow, crop_gsd_m: f64) -> RgbImage {
         .copied()
         .filter(|h| h.is_finite())
         .collect();
-    let (lo, hi) = if finite.is_empty() {
-        (0.0, 1.0)
-    } else {
-        (quantile(&finite, 0.02), quantile(&finite, 0.98))
-    };
-    let span = (hi - lo).max(f32::EPSILON);
+    let grey = stretch_2_98(&finite);
     // The window is centred on the crop centre, which is the corner shared by the four middle cells.
     let centre = PREVIEW_PX as f64 / 2.0;
     let half_side = (CROP_PX as f64 * crop_gsd_m / context.gsd_m * scale as f64 / 2.0).max(1.0);
@@ -125,7 +127,7 @@ fn context_image(context: &ContextWindow, crop_gsd_m: f64) -> RgbImage {
         if !h.is_finite() {
             return Rgb([90, 0, 0]);
         }
-        let v = (((h - lo) / span).clamp(0.0, 1.0) * 255.0).round() as u8;
+        let v = grey(h);
         Rgb([v, v, v])
     })
 }
