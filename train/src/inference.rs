@@ -127,8 +127,7 @@ pub fn infer_params<B: Backend>(
     let context = options
         .input
         .context
-        .is_some()
-        .then(|| dataset::context::ContextSampler::new(dem));
+        .map(|c| dataset::context::ContextSampler::new(dem, c.gsd_m));
     for (b, batch) in origins.chunks(options.batch_size.max(1)).enumerate() {
         let mut input = Vec::with_capacity(batch.len() * options.input.channels() * npx);
         let mut context_input = Vec::new();
@@ -138,11 +137,11 @@ pub fn infer_params<B: Backend>(
                 .collect();
             // Holes are fed at the crop's mean height (see `push_planes`); their outputs become NaN below.
             options.input.push_planes(&crop, &mut input);
-            if let (Some(sampler), Some(c)) = (&context, options.input.context) {
+            if let Some(sampler) = &context {
                 // The crop centre is the corner shared by its four middle pixels, as in the project stage.
                 let half = (CROP_PX / 2) as f64;
                 let (x, y) = dem.transform.pixel_edge(c0 as f64 + half, r0 as f64 + half);
-                let window = sampler.window(x, y, c.gsd_m);
+                let window = sampler.window(x, y);
                 options
                     .input
                     .push_context(&crop, &window, &mut context_input);

@@ -187,8 +187,8 @@ pub fn pipeline(
     let project = Stage {
         name: "project",
         // 2: projects assigned positions only, into one file per split. 3: every sample carries its context
-        // window (schema 1.2).
-        code_version: "3",
+        // window (schema 1.2). 4: context cells average blocks of pixels (dataset::context), not single pixels.
+        code_version: "4",
         // Everything projection reads: assigned positions, the DEM, and each ortho's image and metadata.
         inputs: [
             layout.assignment.clone(),

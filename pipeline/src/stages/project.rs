@@ -330,7 +330,7 @@ pub fn run(
     // split writers buffering partial row groups, took peak RSS past 2 GiB on tycho-full.
     let (send, receive) = std::sync::mpsc::sync_channel::<Vec<(usize, Sample)>>(0);
     let field = &HeightField::new(&dem.data, dem.width, dem.height, dem.transform);
-    let context = &ContextSampler::new(dem);
+    let context = &ContextSampler::new(dem, params.context_gsd_m);
     std::thread::scope(|scope| -> anyhow::Result<()> {
         let writer_thread = scope.spawn(move || -> anyhow::Result<TrainDemStatistic> {
             let mut writers = out
@@ -414,11 +414,7 @@ pub fn run(
                                 projector.project(cols[i] as usize, rows[i] as usize, params)?;
                             sample.context = Some(ContextWindow {
                                 gsd_m: params.context_gsd_m,
-                                heights_m: context.window(
-                                    sample.center_x_m,
-                                    sample.center_y_m,
-                                    params.context_gsd_m,
-                                ),
+                                heights_m: context.window(sample.center_x_m, sample.center_y_m),
                             });
                             sample.split = splits[i].clone();
                             sample.tile_id = tiles[i].clone();
