@@ -21,11 +21,10 @@ use dataset::raster::{read_bands, Raster};
 use dataset::schema::{Sample, CROP_PX};
 
 use crate::baseline::{hapke_render, normalise_like_paper, truth_and_valid};
-use crate::data::{for_each_sample_group, HostBatch, InputNormalisation, SampleSource};
+use crate::data::{for_each_sample_group, SampleSource};
 use crate::features::{FeatureMatcher, MatchStats, MatchSummary};
 use crate::metrics::{image_metrics, AggregateMetrics, ImageMetrics, MetricsAccumulator};
-use crate::model::UNet;
-use crate::training::{predict_images, predict_images_symmetry_mean, FitConfig};
+use crate::training::{predict_ensemble, TrainedRun};
 
 /// The methods, in report order.
 pub const METHODS: [(&str, &str); 7] = [
@@ -58,9 +57,7 @@ pub struct EvalOptions {
     pub calibration_samples: usize,
     /// PNG panels written for the first images.
     pub panels: usize,
-    /// The run's network input normalisation (`training::run_input`).
-    pub input: InputNormalisation,
-    /// Render "learned" as the mean of the network's 8 dihedral views
+    /// Render "learned" (in every ensemble member) as the mean of the network's 8 dihedral views
     /// ([`crate::training::predict_images_symmetry_mean`]): 8× the network and renderer time.
     pub symmetry_mean: bool,
 }
@@ -372,6 +369,8 @@ pub struct EvalReport {
     pub images: usize,
     /// "learned" is the mean of the network's 8 dihedral views (`--symmetry-mean`).
     pub learned_symmetry_mean: bool,
+    /// Runs whose renderings "learned" averages (1: a single run; more: `--ensemble`).
+    pub learned_ensemble_runs: usize,
     pub calibration: Calibration,
     pub methods: Vec<MethodResult>,
     /// Mean per-image SSE of learned over hapke_paper (the paper's −38 % is 0.62).
@@ -428,12 +427,11 @@ fn method_renderings(
     out
 }
 
-/// Evaluate `net` (trained as `config`) on a split; writes nothing (see [`write_report`]). `on_image` sees every
-/// image's renderings (for panels).
-#[allow(clippy::too_many_arguments)]
+/// Evaluate trained `runs` on a split; writes nothing (see [`write_report`]). One run is the usual case; with
+/// several, "learned" is the mean of their renderings ([`predict_ensemble`]) and the first run names the model.
+/// `on_image` sees every image's renderings (for panels).
 pub fn evaluate<B: Backend>(
-    net: &UNet<B>,
-    config: &FitConfig,
+    runs: &[TrainedRun<B>],
     source: &dyn SampleSource,
     options: &EvalOptions,
     calibration: Calibration,
@@ -441,7 +439,13 @@ pub fn evaluate<B: Backend>(
     device: &B::Device,
     mut on_image: impl FnMut(usize, &Sample, &[(&'static str, Vec<f64>)]) -> Result<()>,
 ) -> Result<EvalReport> {
-    options.input.check_dataset(source)?;
+    let config = &runs
+        .first()
+        .context("evaluate needs at least one trained run")?
+        .config;
+    for run in runs {
+        run.input.check_dataset(source)?;
+    }
     let mut accumulators: BTreeMap<&str, MetricsAccumulator> = BTreeMap::new();
     let matcher = FeatureMatcher::default();
     let mut matches: BTreeMap<&str, MatchStats> = BTreeMap::new();
@@ -449,12 +453,7 @@ pub fn evaluate<B: Backend>(
     let mut failure: Option<anyhow::Error> = None;
     for_each_sample_group(source, &options.split, options.max_samples, |samples| {
         for chunk in samples.chunks(options.batch_size) {
-            let learned = if options.symmetry_mean {
-                predict_images_symmetry_mean(net, config.model, chunk, &options.input, device)
-            } else {
-                let batch = HostBatch::from_samples(chunk, &options.input);
-                predict_images(net, config.model, &batch, device)
-            };
+            let learned = predict_ensemble(runs, chunk, options.symmetry_mean, device);
             for (i, sample) in chunk.iter().enumerate() {
                 let px = CROP_PX * CROP_PX;
                 let renderings = method_renderings(
@@ -532,6 +531,7 @@ pub fn evaluate<B: Backend>(
         run_model: config.model.name().to_string(),
         images: per_image.len(),
         learned_symmetry_mean: options.symmetry_mean,
+        learned_ensemble_runs: runs.len(),
         calibration: calibration.clone(),
         methods: methods.clone(),
         learned_over_hapke_paper_sse: learned / paper,
@@ -557,6 +557,12 @@ pub fn markdown(report: &EvalReport) -> String {
          | method | per-image SSE (paper's \"MSE\") | pixel MSE | PSNR dB | SSIM | what it is |\n|---|---|---|---|---|---|\n",
         report.split, report.images, report.run_model
     );
+    if report.learned_ensemble_runs > 1 {
+        text.push_str(&format!(
+            "learned: mean of {} trained runs' renderings (--ensemble).\n\n",
+            report.learned_ensemble_runs
+        ));
+    }
     if report.learned_symmetry_mean {
         text.push_str(
             "learned: mean of the network's 8 dihedral views (turns and mirrors of the terrain, maps turned back, \

@@ -190,6 +190,11 @@ enum Command {
         /// ensemble from one network: its error is at most the members' mean; costs 8× network and renderer time.
         #[arg(long)]
         symmetry_mean: bool,
+        /// Further run directories (repeat the flag): "learned" becomes the mean of all the runs' renderings, a
+        /// seed ensemble. Its squared error on each image is at most the members' mean; each member costs one
+        /// network pass and one render. Runs may differ in model and input planes.
+        #[arg(long, value_name = "RUN")]
+        ensemble: Vec<PathBuf>,
         #[arg(long, value_enum, default_value = "flex")]
         backend: BackendKind,
     },
@@ -370,6 +375,7 @@ fn run(cli: Cli) -> Result<()> {
             calibration_samples,
             panels,
             symmetry_mean,
+            ensemble,
             backend,
         } => {
             let source = open_source(&data)?;
@@ -383,21 +389,25 @@ fn run(cli: Cli) -> Result<()> {
             let report = with_backend!(backend, B => {
                 type Inner = <B as burn::tensor::backend::AutodiffBackend>::InnerBackend;
                 let device = Default::default();
-                let train::training::TrainedRun { config, input, net } =
-                    train::training::load_trained::<Inner>(&run, &device)?;
+                let runs = std::iter::once(&run)
+                    .chain(&ensemble)
+                    .map(|r| train::training::load_trained::<Inner>(r, &device))
+                    .collect::<Result<Vec<_>>>()?;
                 let options = train::evaluation::EvalOptions {
                     split: split.clone(),
                     max_samples,
                     batch_size: batch.max(1),
                     calibration_samples,
                     panels,
-                    input,
                     symmetry_mean,
                 };
-                let calibration =
-                    train::evaluation::calibrate(source.as_ref(), calibration_samples, config.model)?;
+                let calibration = train::evaluation::calibrate(
+                    source.as_ref(),
+                    calibration_samples,
+                    runs[0].config.model,
+                )?;
                 train::evaluation::evaluate::<Inner>(
-                    &net, &config, source.as_ref(), &options, calibration, truth.as_ref(), &device,
+                    &runs, source.as_ref(), &options, calibration, truth.as_ref(), &device,
                     |i, sample, renderings| {
                         if i < options.panels {
                             let name = format!("{i:03}_{}.png", sample.sample_id.replace(':', "_"));

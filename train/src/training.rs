@@ -335,6 +335,52 @@ pub fn predict_images_symmetry_mean<B: Backend>(
         .expect("f64 after convert")
 }
 
+/// One trained run's renderings of `samples` in inference mode (`N × 128²` f64): a single pass, or with
+/// `symmetry_mean` the mean of its 8 dihedral views ([`predict_images_symmetry_mean`]). Each run uses its own input
+/// normalisation, so runs trained with different input planes can be compared or averaged.
+pub fn predict_run<B: Backend>(
+    run: &TrainedRun<B>,
+    samples: &[Sample],
+    symmetry_mean: bool,
+    device: &B::Device,
+) -> Vec<f64> {
+    if symmetry_mean {
+        predict_images_symmetry_mean(&run.net, run.config.model, samples, &run.input, device)
+    } else {
+        let batch = HostBatch::from_samples(samples, &run.input);
+        predict_images(&run.net, run.config.model, &batch, device)
+    }
+}
+
+/// The mean of several runs' renderings (a seed ensemble; one run returns its own rendering unchanged). Averaging
+/// renderings, not parameters, makes this valid for any mix of BRDF models and input planes, and by convexity its
+/// squared error on every image is at most the members' mean squared error. Cost: one network pass and one
+/// render per member.
+pub fn predict_ensemble<B: Backend>(
+    runs: &[TrainedRun<B>],
+    samples: &[Sample],
+    symmetry_mean: bool,
+    device: &B::Device,
+) -> Vec<f64> {
+    let mut runs = runs.iter();
+    let first = runs.next().expect("an ensemble has at least one run");
+    let mut sum = predict_run(first, samples, symmetry_mean, device);
+    let mut members = 1.0;
+    for run in runs {
+        for (total, x) in sum
+            .iter_mut()
+            .zip(predict_run(run, samples, symmetry_mean, device))
+        {
+            *total += x;
+        }
+        members += 1.0;
+    }
+    if members > 1.0 {
+        sum.iter_mut().for_each(|x| *x /= members);
+    }
+    sum
+}
+
 /// Validation over (up to `max`, spread evenly over the split) val samples, in inference mode, one row group in memory at a time.
 pub fn validate<B: Backend>(
     net: &UNet<B>,

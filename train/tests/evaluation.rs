@@ -14,22 +14,11 @@ use train::data::{HostBatch, InputNormalisation, LocalSource, SampleSource, Stre
 use train::evaluation::{calibrate, evaluate, panel_png, write_report, EvalOptions};
 use train::metrics::image_metrics;
 use train::model::UNetConfig;
-use train::training::{predict_images, validate, FitConfig};
+use train::training::{predict_images, validate, FitConfig, TrainedRun};
 
-#[test]
-fn eval_rows_equal_validation_and_direct_baselines() {
-    let dir = tempfile::tempdir().unwrap();
-    let val = synthetic_samples(5, 2);
-    write_synthetic_dataset(dir.path(), synthetic_samples(6, 1), val.clone());
-    let source = LocalSource::open(dir.path()).unwrap();
-    let device = Default::default();
-    Flex::seed(&device, 3);
-    let net = UNetConfig::new(BrdfModel::M2.param_count())
-        .with_base_width(4)
-        .with_zero_head(false)
-        .init::<Flex>(&device);
-    let _ = net.num_params();
-    let config = FitConfig {
+/// The FitConfig of the small untrained M2 networks these tests evaluate.
+fn m2_config() -> FitConfig {
+    FitConfig {
         model: BrdfModel::M2,
         epochs: 1,
         learning_rate: 1e-3,
@@ -47,16 +36,32 @@ fn eval_rows_equal_validation_and_direct_baselines() {
         head_init: train::training::HeadInit::Zero,
         elevation_input: false,
         context_input: false,
-    };
+    }
+}
+
+#[test]
+fn eval_rows_equal_validation_and_direct_baselines() {
+    let dir = tempfile::tempdir().unwrap();
+    let val = synthetic_samples(5, 2);
+    write_synthetic_dataset(dir.path(), synthetic_samples(6, 1), val.clone());
+    let source = LocalSource::open(dir.path()).unwrap();
+    let device = Default::default();
+    Flex::seed(&device, 3);
+    let net = UNetConfig::new(BrdfModel::M2.param_count())
+        .with_base_width(4)
+        .with_zero_head(false)
+        .init::<Flex>(&device);
+    let _ = net.num_params();
+    let config = m2_config();
     let options = EvalOptions {
         split: "val".into(),
         max_samples: None,
         batch_size: 2,
         calibration_samples: 6,
         panels: 2,
-        input: InputNormalisation::relief(source.manifest().dem_std_m),
         symmetry_mean: false,
     };
+    let input = InputNormalisation::relief(source.manifest().dem_std_m);
     let calibration = calibrate(&source, 6, BrdfModel::M2).unwrap();
     // The honest scale is Σxt / Σx² over the train crops' valid pixels.
     let (mut xt, mut xx) = (0.0, 0.0);
@@ -76,9 +81,13 @@ fn eval_rows_equal_validation_and_direct_baselines() {
 
     let panels = dir.path().join("panels");
     std::fs::create_dir_all(&panels).unwrap();
+    let runs = [TrainedRun {
+        config,
+        input,
+        net: net.clone(),
+    }];
     let report = evaluate(
-        &net,
-        &config,
+        &runs,
         &source,
         &options,
         calibration,
@@ -127,16 +136,7 @@ fn eval_rows_equal_validation_and_direct_baselines() {
             "model_uniform"
         ]
     );
-    let validation = validate(
-        &net,
-        BrdfModel::M2,
-        &options.input,
-        &source,
-        None,
-        2,
-        &device,
-    )
-    .unwrap();
+    let validation = validate(&net, BrdfModel::M2, &input, &source, None, 2, &device).unwrap();
     assert_eq!(
         report.methods[0].aggregate, validation,
         "learned row = validation"
@@ -203,6 +203,109 @@ fn eval_rows_equal_validation_and_direct_baselines() {
     // GT, six methods, |learned − GT|: eight 128-px tiles with 4-px gaps.
     assert_eq!((panel.width(), panel.height()), (8 * 132 - 4, 128));
     assert!(!panels.join("2.png").exists());
+}
+
+/// `--ensemble`: "learned" is the pixelwise mean of the members' own renderings (each with its own network), and
+/// by convexity no image's squared error exceeds the members' mean.
+#[test]
+fn ensemble_learned_is_the_mean_of_its_members_renderings() {
+    let dir = tempfile::tempdir().unwrap();
+    let val = synthetic_samples(4, 2);
+    write_synthetic_dataset(dir.path(), synthetic_samples(6, 1), val.clone());
+    let source = LocalSource::open(dir.path()).unwrap();
+    let device = Default::default();
+    let input = InputNormalisation::relief(source.manifest().dem_std_m);
+    let runs: Vec<TrainedRun<Flex>> = [5, 6]
+        .into_iter()
+        .map(|seed| {
+            Flex::seed(&device, seed);
+            TrainedRun {
+                config: m2_config(),
+                input,
+                net: UNetConfig::new(BrdfModel::M2.param_count())
+                    .with_base_width(4)
+                    .with_zero_head(false)
+                    .init::<Flex>(&device),
+            }
+        })
+        .collect();
+    let options = EvalOptions {
+        split: "val".into(),
+        max_samples: None,
+        batch_size: 4,
+        calibration_samples: 6,
+        panels: 0,
+        symmetry_mean: false,
+    };
+    let members: Vec<Vec<f64>> = runs
+        .iter()
+        .map(|r| {
+            predict_images(
+                &r.net,
+                BrdfModel::M2,
+                &HostBatch::from_samples(&val, &input),
+                &device,
+            )
+        })
+        .collect();
+    let npx = CROP_PX * CROP_PX;
+    // The two untrained networks must render differently, or the mean would not be tested.
+    let spread = members[0]
+        .iter()
+        .zip(&members[1])
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0, f64::max);
+    assert!(
+        spread > 1e-4,
+        "members render alike: max difference {spread:e}"
+    );
+    let mut seen = 0;
+    let report = evaluate(
+        &runs,
+        &source,
+        &options,
+        calibrate(&source, 6, BrdfModel::M2).unwrap(),
+        None,
+        &device,
+        |i, sample, renderings| {
+            let learned = &renderings.iter().find(|(n, _)| *n == "learned").unwrap().1;
+            let range = i * npx..(i + 1) * npx;
+            for (k, (&a, &b)) in members[0][range.clone()]
+                .iter()
+                .zip(&members[1][range])
+                .enumerate()
+            {
+                let mean = 0.5 * (a + b);
+                assert!(
+                    (learned[k] - mean).abs() <= 1e-12 * mean.abs().max(1e-3),
+                    "image {i} pixel {k}"
+                );
+            }
+            let truth: Vec<f64> = sample.image.iter().map(|&v| v as f64).collect();
+            let valid: Vec<bool> = sample.valid.iter().map(|&v| v != 0).collect();
+            let sse = |r: &[f64]| -> f64 {
+                r.iter()
+                    .zip(&truth)
+                    .zip(&valid)
+                    .filter(|(_, &v)| v)
+                    .map(|((x, t), _)| (x - t).powi(2))
+                    .sum()
+            };
+            let members_mean = 0.5
+                * (sse(&members[0][i * npx..(i + 1) * npx])
+                    + sse(&members[1][i * npx..(i + 1) * npx]));
+            assert!(sse(learned) <= members_mean * (1.0 + 1e-12), "image {i}");
+            seen += 1;
+            Ok(())
+        },
+    )
+    .unwrap();
+    assert_eq!(
+        (seen, report.images, report.learned_ensemble_runs),
+        (4, 4, 2)
+    );
+    let md = train::evaluation::markdown(&report);
+    assert!(md.contains("mean of 2 trained runs"), "{md}");
 }
 
 #[test]
