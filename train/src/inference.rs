@@ -7,7 +7,7 @@
 //!   geotransform and CRS, crops are placed by integer pixel offsets (no half-crop shift), and borders are
 //!   reflect-padded so the first and last rows and columns get full crops.
 
-use anyhow::{bail, Result};
+use anyhow::{bail, Context, Result};
 use burn::prelude::*;
 use dataset::brdf::{inverse_leaky_relu, leaky_relu, BrdfModel, LEAKY_SLOPE};
 use dataset::raster::{BandOut, BandValues, Raster, RasterLayout};
@@ -88,6 +88,38 @@ pub struct ParamMaps {
     pub model: BrdfModel,
     pub bands: Vec<Vec<f32>>,
     pub crops: usize,
+}
+
+impl ParamMaps {
+    /// The pixelwise mean of several runs' maps over the same DEM (a seed ensemble). Every model here is linear in
+    /// its activated parameters, so rendering the mean maps gives exactly the mean of the members' renderings, which
+    /// is what `eval --ensemble` scores; that holds only when the members share one BRDF model, so mixing models is
+    /// an error. The blend weights depend on the overlap alone, so blending then averaging equals averaging then
+    /// blending.
+    pub fn mean(members: Vec<ParamMaps>) -> Result<ParamMaps> {
+        let mut members = members.into_iter();
+        let mut total = members
+            .next()
+            .context("an ensemble needs at least one run")?;
+        let mut count = 1usize;
+        for m in members {
+            if (m.model, m.width, m.height) != (total.model, total.width, total.height) {
+                bail!(
+                    "ensemble members disagree: model {} on {} x {} px against {} on {} x {} px; average runs of one BRDF model",
+                    m.model.name(), m.width, m.height, total.model.name(), total.width, total.height
+                );
+            }
+            for (sum, band) in total.bands.iter_mut().zip(&m.bands) {
+                for (s, v) in sum.iter_mut().zip(band) {
+                    *s += v;
+                }
+            }
+            count += 1;
+        }
+        let scale = 1.0 / count as f32;
+        total.bands.iter_mut().flatten().for_each(|v| *v *= scale);
+        Ok(total)
+    }
 }
 
 /// Run the network over overlapping crops of `dem` and blend.

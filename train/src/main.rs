@@ -217,6 +217,10 @@ enum Command {
         /// Override the relief plane's DEM std (default: the run's normalisation.json).
         #[arg(long)]
         dem_std_m: Option<f64>,
+        /// Further run directories of the same BRDF model (repeat the flag): the bands are the mean of all the runs'
+        /// maps, which renders exactly as `eval --ensemble` scores (every model is linear in its parameters).
+        #[arg(long, value_name = "RUN")]
+        ensemble: Vec<PathBuf>,
         #[arg(long, value_enum, default_value = "flex")]
         backend: BackendKind,
     },
@@ -431,11 +435,12 @@ fn run(cli: Cli) -> Result<()> {
             overlap,
             batch,
             dem_std_m,
+            ensemble,
             backend,
         } => {
             let progress = indicatif::ProgressBar::new(0).with_style(
                 indicatif::ProgressStyle::with_template(
-                    "infer {bar:40} {pos}/{len} batches {elapsed}",
+                    "infer {bar:40} {pos}/{len} batches {elapsed} {msg}",
                 )
                 .expect("valid template"),
             );
@@ -443,18 +448,22 @@ fn run(cli: Cli) -> Result<()> {
             let maps = with_backend!(backend, B => {
                 type Inner = <B as burn::tensor::backend::AutodiffBackend>::InnerBackend;
                 let device = Default::default();
-                let trained = train::training::load_trained::<Inner>(&run, &device)?;
-                let mut input = trained.input;
-                if let Some(dem_std_m) = dem_std_m {
-                    input.dem_std_m = dem_std_m;
+                let mut members = Vec::new();
+                for member in std::iter::once(&run).chain(&ensemble) {
+                    let trained = train::training::load_trained::<Inner>(member, &device)?;
+                    let mut input = trained.input;
+                    if let Some(dem_std_m) = dem_std_m {
+                        input.dem_std_m = dem_std_m;
+                    }
+                    let options = train::inference::InferOptions { overlap, batch_size: batch, input };
+                    progress.set_message(member.display().to_string());
+                    members.push(train::inference::infer_params::<Inner>(&trained.net, trained.config.model, &raster, &options, &device, |done, total| {
+                        progress.set_length(total as u64);
+                        progress.set_position(done as u64);
+                    })
+                    .map_err(|e| anyhow::anyhow!("{}: {e:#}", dem.display()))?);
                 }
-                let options = train::inference::InferOptions { overlap, batch_size: batch, input };
-                let maps = train::inference::infer_params::<Inner>(&trained.net, trained.config.model, &raster, &options, &device, |done, total| {
-                    progress.set_length(total as u64);
-                    progress.set_position(done as u64);
-                })
-                .map_err(|e| anyhow::anyhow!("{}: {e:#}", dem.display()))?;
-                Ok::<_, anyhow::Error>(maps)
+                train::inference::ParamMaps::mean(members)
             })?;
             progress.finish_and_clear();
             train::inference::write_params_geotiff(&maps, &raster, overlap, &out)?;

@@ -69,11 +69,15 @@ fn random_net_with_inputs(in_channels: usize) -> UNet<B> {
 }
 
 fn random_net_with(in_channels: usize, context_channels: usize) -> UNet<B> {
+    random_net_seeded(in_channels, context_channels, 7)
+}
+
+fn random_net_seeded(in_channels: usize, context_channels: usize, seed: u64) -> UNet<B> {
     // The backend RNG is process-wide: seeding and initialising under one lock keeps parallel tests apart.
     static INIT: std::sync::Mutex<()> = std::sync::Mutex::new(());
     let _guard = INIT.lock().unwrap_or_else(|e| e.into_inner());
     let device = Default::default();
-    B::seed(&device, 7);
+    B::seed(&device, seed);
     let net = UNetConfig::new(BrdfModel::M2.param_count())
         .with_in_channels(in_channels)
         .with_context_channels(context_channels)
@@ -393,4 +397,51 @@ fn symmetry_mean_is_an_equivariant_ensemble_of_the_eight_views() {
         single_worst > 100.0 * averaged_worst.max(1e-7 * scale),
         "a single pass is about as equivariant ({single_worst:e}) as the averaged one ({averaged_worst:e})"
     );
+}
+
+/// `infer --ensemble`: the mean maps render exactly as the mean of the members' renderings (what `eval --ensemble`
+/// scores), nodata stays nodata, and runs of different BRDF models are refused.
+#[test]
+fn ensemble_maps_render_as_the_mean_of_the_members_renderings() {
+    let dem = dem(320, 224, 0); // holds the 6 × 6 hole at rows 200.., columns 300..
+    let sun = [0.55, 0.25, 0.8];
+    let members: Vec<ParamMaps> = [7, 8]
+        .into_iter()
+        .map(|seed| infer(&random_net_seeded(1, 0, seed), &dem, DEFAULT_OVERLAP))
+        .collect();
+    let renders: Vec<Vec<f64>> = members.iter().map(|m| render_maps(m, &dem, sun)).collect();
+    let spread = max_abs_diff(&renders[0], &renders[1]);
+    assert!(spread > 1e-3, "members render alike: {spread:e}");
+    let mean = ParamMaps::mean(members).unwrap();
+    let rendered = render_maps(&mean, &dem, sun);
+    let scale = renders[0]
+        .iter()
+        .chain(&renders[1])
+        .filter(|v| v.is_finite())
+        .fold(0f64, |m, v| m.max(v.abs()));
+    let mut nodata = 0;
+    for (k, r) in rendered.iter().enumerate() {
+        let expected = 0.5 * (renders[0][k] + renders[1][k]);
+        if !dem.data[k].is_finite() {
+            assert!(
+                mean.bands.iter().all(|b| b[k].is_nan()),
+                "pixel {k} must stay nodata"
+            );
+            nodata += 1;
+        } else if expected.is_finite() {
+            // The maps are f32: agreement to f32 rounding of the parameters.
+            assert!(
+                (r - expected).abs() <= 1e-6 * scale,
+                "pixel {k}: {r} vs {expected}"
+            );
+        }
+    }
+    assert_eq!(nodata, 36);
+
+    let mut other = infer(&random_net(), &dem, DEFAULT_OVERLAP);
+    other.model = BrdfModel::L3;
+    let err = ParamMaps::mean(vec![mean, other])
+        .err()
+        .expect("mixed models refused");
+    assert!(err.to_string().contains("one BRDF model"), "{err}");
 }
