@@ -553,8 +553,7 @@ pub fn evaluate<B: Backend>(
 /// The Markdown table of a report.
 pub fn markdown(report: &EvalReport) -> String {
     let mut text = format!(
-        "# Evaluation on the {} split ({} images, model {})\n\n\
-         | method | per-image SSE (paper's \"MSE\") | pixel MSE | PSNR dB | SSIM | what it is |\n|---|---|---|---|---|---|\n",
+        "# Evaluation on the {} split ({} images, model {})\n\n",
         report.split, report.images, report.run_model
     );
     if report.learned_ensemble_runs > 1 {
@@ -569,6 +568,10 @@ pub fn markdown(report: &EvalReport) -> String {
              renderings averaged; --symmetry-mean).\n\n",
         );
     }
+    // The notes above go before the table: a line between its header and rows would end it.
+    text.push_str(
+        "| method | per-image SSE (paper's \"MSE\") | pixel MSE | PSNR dB | SSIM | what it is |\n|---|---|---|---|---|---|\n",
+    );
     for m in &report.methods {
         let a = &m.aggregate;
         text.push_str(&format!(

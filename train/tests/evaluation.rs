@@ -306,6 +306,11 @@ fn ensemble_learned_is_the_mean_of_its_members_renderings() {
     );
     let md = train::evaluation::markdown(&report);
     assert!(md.contains("mean of 2 trained runs"), "{md}");
+    // The note sits above the table, whose header is followed directly by its rule and rows.
+    assert!(
+        md.contains("| what it is |\n|---|---|---|---|---|---|\n| learned |"),
+        "{md}"
+    );
 }
 
 #[test]
