@@ -776,7 +776,7 @@ pub fn load_trained<B: Backend>(run: &Path, device: &B::Device) -> Result<Traine
     let config_path = run.join("config.json");
     if !config_path.exists() {
         bail!(
-            "{}: no config.json: point --run at a directory written by `g2r-train fit --out`",
+            "{}: no config.json: point --run (and --ensemble) at directories written by `g2r-train fit --out`",
             run.display()
         );
     }
