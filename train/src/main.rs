@@ -385,7 +385,6 @@ fn run(cli: Cli) -> Result<()> {
             let source = open_source(&data)?;
             let out = out.unwrap_or_else(|| run.join(format!("eval-{split}")));
             let panel_dir = out.join("panels");
-            std::fs::create_dir_all(&panel_dir)?;
             let truth = world
                 .as_deref()
                 .map(train::evaluation::TruthMaps::open)
@@ -397,6 +396,8 @@ fn run(cli: Cli) -> Result<()> {
                     .chain(&ensemble)
                     .map(|r| train::training::load_trained::<Inner>(r, &device))
                     .collect::<Result<Vec<_>>>()?;
+                // Only once every run has loaded: a mistyped run directory must not leave an empty eval folder.
+                std::fs::create_dir_all(&panel_dir)?;
                 let options = train::evaluation::EvalOptions {
                     split: split.clone(),
                     max_samples,

@@ -66,6 +66,11 @@ fn bad_inputs_fail_with_one_line_naming_the_file_and_the_fix() {
         -1200.0,
     );
     dataset::raster::write_raster(&d.join("dem.tif"), &dem, &[]).unwrap();
+    train::bench::write_synthetic_dataset(
+        &d.join("data"),
+        train::bench::synthetic_samples(2, 1),
+        train::bench::synthetic_samples(2, 2),
+    );
     let cases: Vec<(Vec<String>, Vec<&str>)> = vec![
         (
             vec![
@@ -76,6 +81,18 @@ fn bad_inputs_fail_with_one_line_naming_the_file_and_the_fix() {
                 path("no-data"),
             ],
             vec!["no-data", "manifest.json"],
+        ),
+        (
+            vec![
+                "eval".into(),
+                "--run".into(),
+                path("no-run"),
+                "--data".into(),
+                path("data"),
+                "--split".into(),
+                "val".into(),
+            ],
+            vec!["no-run", "config.json", "--ensemble", "g2r-train fit --out"],
         ),
         (
             vec![
@@ -153,7 +170,7 @@ fn bad_inputs_fail_with_one_line_naming_the_file_and_the_fix() {
         }
     }
     // Nothing finished-looking was left behind.
-    for name in ["p.tif", "views", "run/best"] {
+    for name in ["p.tif", "views", "run/best", "no-run"] {
         assert!(!Path::new(&path(name)).exists(), "{name} exists");
     }
 }
