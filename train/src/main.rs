@@ -1,7 +1,7 @@
 //! `g2r-train`: learn a spatially varying lunar BRDF from DEM geometry (Burn). Argument parsing and wiring only;
 //! the work lives in the library.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use anyhow::{bail, Result};
@@ -392,10 +392,8 @@ fn run(cli: Cli) -> Result<()> {
             let report = with_backend!(backend, B => {
                 type Inner = <B as burn::tensor::backend::AutodiffBackend>::InnerBackend;
                 let device = Default::default();
-                let runs = std::iter::once(&run)
-                    .chain(&ensemble)
-                    .map(|r| train::training::load_trained::<Inner>(r, &device))
-                    .collect::<Result<Vec<_>>>()?;
+                let paths: Vec<&Path> = std::iter::once(&run).chain(&ensemble).map(|p| p.as_path()).collect();
+                let runs = train::training::load_ensemble::<Inner>(&paths, false, &device)?;
                 // Only once every run has loaded: a mistyped run directory must not leave an empty eval folder.
                 std::fs::create_dir_all(&panel_dir)?;
                 let options = train::evaluation::EvalOptions {
@@ -449,9 +447,10 @@ fn run(cli: Cli) -> Result<()> {
             let maps = with_backend!(backend, B => {
                 type Inner = <B as burn::tensor::backend::AutodiffBackend>::InnerBackend;
                 let device = Default::default();
+                let paths: Vec<&Path> = std::iter::once(&run).chain(&ensemble).map(|p| p.as_path()).collect();
+                let runs = train::training::load_ensemble::<Inner>(&paths, true, &device)?;
                 let mut members = Vec::new();
-                for member in std::iter::once(&run).chain(&ensemble) {
-                    let trained = train::training::load_trained::<Inner>(member, &device)?;
+                for (member, trained) in paths.iter().zip(runs) {
                     let mut input = trained.input;
                     if let Some(dem_std_m) = dem_std_m {
                         input.dem_std_m = dem_std_m;

@@ -799,6 +799,38 @@ pub fn load_trained<B: Backend>(run: &Path, device: &B::Device) -> Result<Traine
     Ok(TrainedRun { config, input, net })
 }
 
+/// Several runs loaded together (`--run` then each `--ensemble`), all before any work starts, so a mistyped member
+/// or one of another BRDF model fails at once rather than after the earlier members' inference. Averaging
+/// renderings (`eval`) works across models; averaging parameter maps (`infer`) needs `one_model`: the members'
+/// maps must mean the same parameters.
+pub fn load_ensemble<B: Backend>(
+    runs: &[&Path],
+    one_model: bool,
+    device: &B::Device,
+) -> Result<Vec<TrainedRun<B>>> {
+    let loaded = runs
+        .iter()
+        .map(|run| load_trained::<B>(run, device))
+        .collect::<Result<Vec<_>>>()?;
+    if one_model {
+        let first = loaded
+            .first()
+            .context("an ensemble needs at least one run")?;
+        for (run, member) in runs.iter().zip(&loaded).skip(1) {
+            if member.config.model != first.config.model {
+                bail!(
+                    "{}: BRDF model {} but {} is {}: parameter maps average only within one BRDF model (eval --ensemble mixes models)",
+                    run.display(),
+                    member.config.model.name(),
+                    runs[0].display(),
+                    first.config.model.name()
+                );
+            }
+        }
+    }
+    Ok(loaded)
+}
+
 #[cfg(test)]
 mod schedule_tests {
     use super::*;

@@ -201,3 +201,70 @@ fn stopping_and_resuming_gives_the_same_network_as_an_uninterrupted_run() {
         .to_string();
     assert!(err.contains("m2") && err.contains("--model"), "{err}");
 }
+
+/// `--run` and `--ensemble` load together before any work: a missing member is named, and for parameter-map
+/// averaging (`infer`) a member of another BRDF model is refused naming both runs, while rendering averages
+/// (`eval`) accept the mix.
+#[test]
+fn an_ensemble_loads_every_member_first_and_map_averaging_refuses_mixed_models() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    train::bench::write_synthetic_dataset(
+        tmp.path(),
+        synthetic_samples(8, 21),
+        synthetic_samples(4, 22),
+    );
+    let source: Arc<dyn SampleSource> = Arc::new(LocalSource::open(tmp.path()).unwrap());
+    let device = Default::default();
+    let m2 = tmp.path().join("run-m2");
+    let l3 = tmp.path().join("run-l3");
+    let m2_again = tmp.path().join("run-m2-again");
+    for (model, out) in [
+        (BrdfModel::M2, &m2),
+        (BrdfModel::L3, &l3),
+        (BrdfModel::M2, &m2_again),
+    ] {
+        fit::<Ad>(
+            source.clone(),
+            &config(model, 1, 1e-3, 4, false),
+            out,
+            false,
+            Some(1),
+            &device,
+            false,
+        )
+        .unwrap();
+    }
+    let missing = tmp.path().join("no-such-run");
+    let load = |runs: &[&Path], one_model| {
+        train::training::load_ensemble::<Flex>(runs, one_model, &Default::default())
+    };
+
+    let same = load(&[&m2, &m2_again], true).unwrap();
+    assert_eq!(same.len(), 2);
+    let mixed = load(&[&m2, &l3], false).unwrap();
+    assert_eq!(
+        (mixed[0].config.model, mixed[1].config.model),
+        (BrdfModel::M2, BrdfModel::L3)
+    );
+
+    let err = format!(
+        "{:#}",
+        load(&[&m2, &l3], true).err().expect("mixed refused")
+    );
+    assert!(
+        err.contains("run-l3")
+            && err.contains("run-m2")
+            && err.contains("l3")
+            && err.contains("m2"),
+        "{err}"
+    );
+    let err = format!(
+        "{:#}",
+        load(&[&m2, &missing], true).err().expect("missing refused")
+    );
+    assert!(
+        err.contains("no-such-run") && err.contains("config.json"),
+        "{err}"
+    );
+}
