@@ -371,6 +371,8 @@ pub struct EvalReport {
     pub learned_symmetry_mean: bool,
     /// Runs whose renderings "learned" averages (1: a single run; more: `--ensemble`).
     pub learned_ensemble_runs: usize,
+    /// The checkpoint each run's network came from, relative to its run directory (`--checkpoint`).
+    pub learned_checkpoints: Vec<String>,
     pub calibration: Calibration,
     pub methods: Vec<MethodResult>,
     /// Mean per-image SSE of learned over hapke_paper (the paper's −38 % is 0.62).
@@ -532,6 +534,7 @@ pub fn evaluate<B: Backend>(
         images: per_image.len(),
         learned_symmetry_mean: options.symmetry_mean,
         learned_ensemble_runs: runs.len(),
+        learned_checkpoints: runs.iter().map(|r| r.checkpoint.clone()).collect(),
         calibration: calibration.clone(),
         methods: methods.clone(),
         learned_over_hapke_paper_sse: learned / paper,
@@ -556,6 +559,10 @@ pub fn markdown(report: &EvalReport) -> String {
         "# Evaluation on the {} split ({} images, model {})\n\n",
         report.split, report.images, report.run_model
     );
+    text.push_str(&format!(
+        "learned: checkpoint {}.\n\n",
+        report.learned_checkpoints.join(", ")
+    ));
     if report.learned_ensemble_runs > 1 {
         text.push_str(&format!(
             "learned: mean of {} trained runs' renderings (--ensemble).\n\n",

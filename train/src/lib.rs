@@ -1,8 +1,10 @@
 //! `train`: the Burn side. Read in data-flow order: [`data`] (shards → host batches, epoch order, prefetch) with
 //! [`augment`] → [`model`] (U-Net) → [`render`] (differentiable renderer layer, the batched twin of
-//! `dataset::brdf`) → [`metrics`] → [`training`] (fit loop, checkpoints, exact resume) → [`bench`].
+//! `dataset::brdf`) → [`metrics`] → [`training`] (fit loop, checkpoints, exact resume; [`averaging`]: the weight average) →
+//! [`bench`].
 
 pub mod augment;
+pub mod averaging;
 pub mod baseline;
 pub mod bench;
 pub mod data;

@@ -87,6 +87,25 @@ struct TrainArgs {
     /// crater floor or wall from a plain; kilometres of surrounding terrain can.
     #[arg(long)]
     context_input: bool,
+    /// Also keep an exponential moving average of the weights with this decay (e.g. 0.995; the first steps
+    /// average over about a ninth of the steps taken). It is validated beside the raw network every epoch
+    /// (metrics.jsonl `ema_val`) and checkpointed as ema-best/ and last/ema; eval and infer load ema-best by
+    /// default.
+    #[arg(long, value_name = "DECAY", value_parser = parse_ema_decay)]
+    ema: Option<f64>,
+}
+
+fn parse_ema_decay(text: &str) -> Result<f64, String> {
+    let decay: f64 = text
+        .parse()
+        .map_err(|e| format!("{text:?} is not a number: {e}"))?;
+    if (0.0..1.0).contains(&decay) {
+        Ok(decay)
+    } else {
+        Err(format!(
+            "{decay} is outside [0, 1): the decay weights the old average (0.99-0.999 is usual)"
+        ))
+    }
 }
 
 impl TrainArgs {
@@ -109,6 +128,7 @@ impl TrainArgs {
             head_init: self.init,
             elevation_input: self.elevation_input,
             context_input: self.context_input,
+            ema_decay: self.ema,
         }
     }
 }
@@ -195,6 +215,10 @@ enum Command {
         /// network pass and one render. Runs may differ in model and input planes.
         #[arg(long, value_name = "RUN")]
         ensemble: Vec<PathBuf>,
+        /// Which checkpoint of each run: auto (ema-best when the run kept a weight average, else best, else last),
+        /// best, last, ema-best or ema-last.
+        #[arg(long, value_enum, default_value = "auto")]
+        checkpoint: train::training::Checkpoint,
         #[arg(long, value_enum, default_value = "flex")]
         backend: BackendKind,
     },
@@ -221,6 +245,10 @@ enum Command {
         /// maps, which renders exactly as `eval --ensemble` scores (every model is linear in its parameters).
         #[arg(long, value_name = "RUN")]
         ensemble: Vec<PathBuf>,
+        /// Which checkpoint of each run: auto (ema-best when the run kept a weight average, else best, else last),
+        /// best, last, ema-best or ema-last.
+        #[arg(long, value_enum, default_value = "auto")]
+        checkpoint: train::training::Checkpoint,
         #[arg(long, value_enum, default_value = "flex")]
         backend: BackendKind,
     },
@@ -243,6 +271,10 @@ enum Command {
         /// A trained run, for the inference-overlap section (needs --dem).
         #[arg(long, requires = "dem")]
         run: Option<PathBuf>,
+        /// Which checkpoint of each run: auto (ema-best when the run kept a weight average, else best, else last),
+        /// best, last, ema-best or ema-last.
+        #[arg(long, value_enum, default_value = "auto")]
+        checkpoint: train::training::Checkpoint,
         /// DEM GeoTIFF for the renderer section (and, with --run, the inference-overlap section).
         #[arg(long)]
         dem: Option<PathBuf>,
@@ -380,6 +412,7 @@ fn run(cli: Cli) -> Result<()> {
             panels,
             symmetry_mean,
             ensemble,
+            checkpoint,
             backend,
         } => {
             let source = open_source(&data)?;
@@ -393,7 +426,7 @@ fn run(cli: Cli) -> Result<()> {
                 type Inner = <B as burn::tensor::backend::AutodiffBackend>::InnerBackend;
                 let device = Default::default();
                 let paths: Vec<&Path> = std::iter::once(&run).chain(&ensemble).map(|p| p.as_path()).collect();
-                let runs = train::training::load_ensemble::<Inner>(&paths, false, &device)?;
+                let runs = train::training::load_ensemble::<Inner>(&paths, checkpoint, false, &device)?;
                 // Only once every run has loaded: a mistyped run directory must not leave an empty eval folder.
                 std::fs::create_dir_all(&panel_dir)?;
                 let options = train::evaluation::EvalOptions {
@@ -435,6 +468,7 @@ fn run(cli: Cli) -> Result<()> {
             batch,
             dem_std_m,
             ensemble,
+            checkpoint,
             backend,
         } => {
             let progress = indicatif::ProgressBar::new(0).with_style(
@@ -448,7 +482,7 @@ fn run(cli: Cli) -> Result<()> {
                 type Inner = <B as burn::tensor::backend::AutodiffBackend>::InnerBackend;
                 let device = Default::default();
                 let paths: Vec<&Path> = std::iter::once(&run).chain(&ensemble).map(|p| p.as_path()).collect();
-                let runs = train::training::load_ensemble::<Inner>(&paths, true, &device)?;
+                let runs = train::training::load_ensemble::<Inner>(&paths, checkpoint, true, &device)?;
                 let mut members = Vec::new();
                 for (member, trained) in paths.iter().zip(runs) {
                     let mut input = trained.input;
@@ -484,6 +518,7 @@ fn run(cli: Cli) -> Result<()> {
             max_samples,
             calibration_samples,
             run,
+            checkpoint,
             dem,
             overlaps,
             ortho,
@@ -511,7 +546,7 @@ fn run(cli: Cli) -> Result<()> {
                 (Some(run), Some(raster)) => with_backend!(backend, B => {
                     type Inner = <B as burn::tensor::backend::AutodiffBackend>::InnerBackend;
                     let device = Default::default();
-                    let trained = train::training::load_trained::<Inner>(&run, &device)?;
+                    let trained = train::training::load_trained::<Inner>(&run, checkpoint, &device)?;
                     train::report::overlap_rows::<Inner>(&trained.net, trained.config.model, raster, &trained.input, &overlaps, &device)
                 })?,
                 _ => Vec::new(),

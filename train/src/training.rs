@@ -57,6 +57,10 @@ pub struct FitConfig {
     /// before this field existed had none.
     #[serde(default)]
     pub context_input: bool,
+    /// Keep an exponential moving average of the weights with this decay ([`crate::averaging`]), validated and
+    /// checkpointed beside the raw network; `None` (and runs written before this field existed): no average.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ema_decay: Option<f64>,
 }
 
 impl FitConfig {
@@ -180,6 +184,30 @@ pub struct EpochMetrics {
     /// `None` when no validation image has a fully valid 7×7 window.
     pub val_ssim: Option<f64>,
     pub val_images: usize,
+    /// The weight average's validation (runs with `ema_decay`), same crops and metrics as the raw network's.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ema_val: Option<ValMetrics>,
+}
+
+/// Validation metrics of one network at the end of an epoch.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ValMetrics {
+    /// Pooled per-pixel MSE over all valid pixels (what `best` checkpoints are chosen on).
+    pub loss: f64,
+    pub pixel_mse: f64,
+    pub psnr_db: f64,
+    pub ssim: Option<f64>,
+}
+
+impl From<&AggregateMetrics> for ValMetrics {
+    fn from(val: &AggregateMetrics) -> Self {
+        Self {
+            loss: val.pixel_mse_pooled,
+            pixel_mse: val.pixel_mse,
+            psnr_db: val.psnr_db,
+            ssim: val.ssim,
+        }
+    }
 }
 
 /// Where the next step starts (saved with the last checkpoint).
@@ -192,6 +220,9 @@ pub struct Cursor {
     pub epoch_loss_sum: f64,
     pub epoch_batches: usize,
     pub best_val_loss: Option<f64>,
+    /// Best validation loss of the weight average so far (runs with `ema_decay`).
+    #[serde(default)]
+    pub best_ema_val_loss: Option<f64>,
 }
 
 impl Cursor {
@@ -203,6 +234,7 @@ impl Cursor {
             epoch_loss_sum: 0.0,
             epoch_batches: 0,
             best_val_loss: None,
+            best_ema_val_loss: None,
         }
     }
 }
@@ -434,7 +466,7 @@ pub fn fit<B: AutodiffBackend>(
     let recorder = Rec::new();
     let seed = config.stream.seed;
 
-    let (mut net, mut optim, mut cursor, mut history, input) = if resume {
+    let (mut net, mut optim, mut cursor, mut history, input, mut average) = if resume {
         let saved: FitConfig = read_json(&config_path)?;
         if saved.model != config.model {
             bail!(
@@ -466,7 +498,18 @@ pub fn fit<B: AutodiffBackend>(
         let history = read_history(&out.join("metrics.jsonl"))?;
         // Checked against the config: a resumed run must feed the network the planes it started with.
         let input = run_input(out, config)?;
-        (net, optim, cursor, history, input)
+        let average = match config.ema_decay {
+            None => None,
+            Some(_) => Some(
+                net_config
+                    .init::<B::InnerBackend>(device)
+                    .load_file(last.join("ema"), &recorder, device)
+                    .with_context(|| {
+                        format!("{}: cannot load the weight average", last.display())
+                    })?,
+            ),
+        };
+        (net, optim, cursor, history, input, average)
     } else {
         if last.exists() {
             bail!(
@@ -507,7 +550,8 @@ pub fn fit<B: AutodiffBackend>(
             net = net.with_head_bias(&raw, device);
         }
         let optim = AdamConfig::new().with_epsilon(1e-8).init::<B, UNet<B>>();
-        (net, optim, Cursor::start(), Vec::new(), input)
+        let average = config.ema_decay.map(|_| net.valid());
+        (net, optim, Cursor::start(), Vec::new(), input, average)
     };
     input.check_dataset(&*source)?;
     let trainable = trainable_params(&net, &net_config);
@@ -568,6 +612,13 @@ pub fn fit<B: AutodiffBackend>(
                 .lr_schedule
                 .rate(config.learning_rate, cursor.step, total_steps);
             net = optim.step(rate, net, grads);
+            if let (Some(decay), Some(avg)) = (config.ema_decay, average.take()) {
+                average = Some(crate::averaging::ema_update(
+                    avg,
+                    &net.valid(),
+                    crate::averaging::ema_decay_at(decay, cursor.step),
+                ));
+            }
             step_time.add(step_started);
             cursor.step += 1;
             cursor.next_batch += 1;
@@ -579,22 +630,25 @@ pub fn fit<B: AutodiffBackend>(
                 cursor.epoch_loss_sum / cursor.epoch_batches as f64
             ));
             if stop_after_steps.is_some_and(|s| cursor.step >= s) {
-                save_last(&net, &optim, &cursor, &last, &recorder)?;
+                save_last(&net, &optim, average.as_ref(), &cursor, &last, &recorder)?;
                 bar.abandon_with_message(format!("stopped at step {} (resumable)", cursor.step));
                 return Ok(outcome(cursor, history, trainable, step_time));
             }
         }
         bar.finish();
-        let inference = net.valid();
-        let val = validate(
-            &inference,
-            config.model,
-            &input,
-            source.as_ref(),
-            config.max_val_samples,
-            config.stream.batch_size,
-            device,
-        )?;
+        let validate_net = |network: &UNet<B::InnerBackend>| {
+            validate(
+                network,
+                config.model,
+                &input,
+                source.as_ref(),
+                config.max_val_samples,
+                config.stream.batch_size,
+                device,
+            )
+        };
+        let val = validate_net(&net.valid())?;
+        let ema_val = average.as_ref().map(validate_net).transpose()?;
         let metrics = EpochMetrics {
             epoch,
             steps: cursor.step,
@@ -604,6 +658,7 @@ pub fn fit<B: AutodiffBackend>(
             val_psnr_db: val.psnr_db,
             val_ssim: val.ssim,
             val_images: val.images,
+            ema_val: ema_val.as_ref().map(ValMetrics::from),
         };
         tracing::info!(?metrics, "epoch done");
         append_jsonl(&out.join("metrics.jsonl"), &metrics)?;
@@ -613,17 +668,22 @@ pub fn fit<B: AutodiffBackend>(
             .is_none_or(|b| val.pixel_mse_pooled < b)
         {
             cursor.best_val_loss = Some(val.pixel_mse_pooled);
-            // Remove first: the recorder warns when it replaces a file, which is the normal case here.
-            let _ = std::fs::remove_file(out.join("best").join("model.mpk"));
-            net.clone()
-                .save_file(out.join("best").join("model"), &recorder)
-                .context("saving the best-val checkpoint")?;
+            save_model(&net, &Checkpoint::Best.path(out), &recorder)?;
+        }
+        if let (Some(avg), Some(val)) = (&average, &ema_val) {
+            if cursor
+                .best_ema_val_loss
+                .is_none_or(|b| val.pixel_mse_pooled < b)
+            {
+                cursor.best_ema_val_loss = Some(val.pixel_mse_pooled);
+                save_model(avg, &Checkpoint::EmaBest.path(out), &recorder)?;
+            }
         }
         cursor.epoch += 1;
         cursor.next_batch = 0;
         cursor.epoch_loss_sum = 0.0;
         cursor.epoch_batches = 0;
-        save_last(&net, &optim, &cursor, &last, &recorder)?;
+        save_last(&net, &optim, average.as_ref(), &cursor, &last, &recorder)?;
     }
     Ok(outcome(cursor, history, trainable, step_time))
 }
@@ -659,6 +719,7 @@ fn outcome(
 fn save_last<B: AutodiffBackend, O: Optimizer<UNet<B>, B>>(
     net: &UNet<B>,
     optim: &O,
+    average: Option<&UNet<B::InnerBackend>>,
     cursor: &Cursor,
     last: &Path,
     recorder: &Rec,
@@ -671,6 +732,12 @@ fn save_last<B: AutodiffBackend, O: Optimizer<UNet<B>, B>>(
     net.clone()
         .save_file(tmp.join("model"), recorder)
         .context("saving the model")?;
+    if let Some(average) = average {
+        average
+            .clone()
+            .save_file(tmp.join("ema"), recorder)
+            .context("saving the weight average")?;
+    }
     recorder
         .record(optim.to_record(), tmp.join("optim"))
         .context("saving the optimizer state")?;
@@ -683,6 +750,16 @@ fn save_last<B: AutodiffBackend, O: Optimizer<UNet<B>, B>>(
     if old.exists() {
         std::fs::remove_dir_all(&old)?;
     }
+    Ok(())
+}
+
+/// Save a network to `path` (without extension; the recorder adds `.mpk`), replacing an older checkpoint there.
+fn save_model<B: Backend>(net: &UNet<B>, path: &Path, recorder: &Rec) -> Result<()> {
+    // Remove first: the recorder warns when it replaces a file, which is the normal case here.
+    let _ = std::fs::remove_file(path.with_extension("mpk"));
+    net.clone()
+        .save_file(path.to_path_buf(), recorder)
+        .with_context(|| format!("saving the checkpoint {}", path.display()))?;
     Ok(())
 }
 
@@ -757,9 +834,59 @@ pub fn run_input(run: &Path, config: &FitConfig) -> Result<InputNormalisation> {
     Ok(input)
 }
 
-/// Paths of a run directory's checkpoints.
-pub fn best_model_path(run: &Path) -> PathBuf {
-    run.join("best").join("model")
+/// Which of a run's networks to load.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, clap::ValueEnum)]
+pub enum Checkpoint {
+    /// The weight average's best-val checkpoint when the run kept one, else `best`, else `last`.
+    #[default]
+    Auto,
+    /// The raw network at its best validation epoch (`best/`).
+    Best,
+    /// The raw network at the last checkpoint (`last/`).
+    Last,
+    /// The weight average at its best validation epoch (`ema-best/`; runs with `--ema`).
+    EmaBest,
+    /// The weight average at the last checkpoint (`last/ema`; runs with `--ema`).
+    EmaLast,
+}
+
+impl Checkpoint {
+    /// The checkpoint's path in `run` (without the `.mpk` extension); `Auto` resolves to `ema-best`.
+    pub fn path(self, run: &Path) -> PathBuf {
+        match self {
+            Self::Auto | Self::EmaBest => run.join("ema-best").join("model"),
+            Self::Best => run.join("best").join("model"),
+            Self::Last => run.join("last").join("model"),
+            Self::EmaLast => run.join("last").join("ema"),
+        }
+    }
+
+    /// The checkpoint file to load from `run`: the one asked for, or for `Auto` the first that exists of
+    /// `ema-best`, `best`, `last`.
+    pub fn resolve(self, run: &Path) -> Result<PathBuf> {
+        let candidates = match self {
+            Self::Auto => vec![Self::EmaBest, Self::Best, Self::Last],
+            other => vec![other],
+        };
+        candidates
+            .iter()
+            .map(|c| c.path(run))
+            .find(|p| p.with_extension("mpk").exists())
+            .with_context(|| match self {
+                Self::Auto => format!(
+                    "{}: no ema-best/, best/ or last/ checkpoint: train first (g2r-train fit)",
+                    run.display()
+                ),
+                other => format!(
+                    "{}: no {}.mpk: that run has no {} checkpoint (`--checkpoint ema-*` needs a run trained with --ema); omit --checkpoint to take what it has",
+                    run.display(),
+                    other.path(run).display(),
+                    clap::ValueEnum::to_possible_value(&other)
+                        .map(|v| v.get_name().to_owned())
+                        .unwrap_or_default()
+                ),
+            })
+    }
 }
 
 /// A trained run, loaded for evaluation or inference.
@@ -768,11 +895,18 @@ pub struct TrainedRun<B: Backend> {
     /// How heights become the network's input (`normalisation.json`).
     pub input: InputNormalisation,
     pub net: UNet<B>,
+    /// The checkpoint file the network came from, relative to the run directory (e.g. `ema-best/model.mpk`).
+    pub checkpoint: String,
 }
 
-/// A finished (or interrupted) run's config, input normalisation and network in inference mode: the best-val
-/// checkpoint, or the last one when no validation has run yet.
-pub fn load_trained<B: Backend>(run: &Path, device: &B::Device) -> Result<TrainedRun<B>> {
+/// A finished (or interrupted) run's config, input normalisation and network in inference mode, from the chosen
+/// checkpoint ([`Checkpoint::Auto`]: the best-val weight average, else the best-val network, else the last one
+/// when no validation has run yet).
+pub fn load_trained<B: Backend>(
+    run: &Path,
+    checkpoint: Checkpoint,
+    device: &B::Device,
+) -> Result<TrainedRun<B>> {
     let config_path = run.join("config.json");
     if !config_path.exists() {
         bail!(
@@ -781,22 +915,24 @@ pub fn load_trained<B: Backend>(run: &Path, device: &B::Device) -> Result<Traine
         );
     }
     let config: FitConfig = read_json(&config_path)?;
-    let checkpoint = [best_model_path(run), run.join("last").join("model")]
-        .into_iter()
-        .find(|p| p.with_extension("mpk").exists())
-        .with_context(|| {
-            format!(
-                "{}: no best/model.mpk or last/model.mpk: train first (g2r-train fit)",
-                run.display()
-            )
-        })?;
+    let checkpoint = checkpoint.resolve(run)?;
     let net = config
         .net_config()
         .init::<B>(device)
         .load_file(checkpoint.clone(), &Rec::new(), device)
         .with_context(|| format!("{}: cannot load the checkpoint", checkpoint.display()))?;
     let input = run_input(run, &config)?;
-    Ok(TrainedRun { config, input, net })
+    let checkpoint = checkpoint
+        .with_extension("mpk")
+        .strip_prefix(run)
+        .map(|p| p.display().to_string())
+        .unwrap_or_else(|_| checkpoint.display().to_string());
+    Ok(TrainedRun {
+        config,
+        input,
+        net,
+        checkpoint,
+    })
 }
 
 /// Several runs loaded together (`--run` then each `--ensemble`), all before any work starts, so a mistyped member
@@ -805,12 +941,13 @@ pub fn load_trained<B: Backend>(run: &Path, device: &B::Device) -> Result<Traine
 /// maps must mean the same parameters.
 pub fn load_ensemble<B: Backend>(
     runs: &[&Path],
+    checkpoint: Checkpoint,
     one_model: bool,
     device: &B::Device,
 ) -> Result<Vec<TrainedRun<B>>> {
     let loaded = runs
         .iter()
-        .map(|run| load_trained::<B>(run, device))
+        .map(|run| load_trained::<B>(run, checkpoint, device))
         .collect::<Result<Vec<_>>>()?;
     if one_model {
         let first = loaded

@@ -36,6 +36,7 @@ fn m2_config() -> FitConfig {
         head_init: train::training::HeadInit::Zero,
         elevation_input: false,
         context_input: false,
+        ema_decay: None,
     }
 }
 
@@ -85,6 +86,7 @@ fn eval_rows_equal_validation_and_direct_baselines() {
         config,
         input,
         net: net.clone(),
+        checkpoint: "best/model.mpk".into(),
     }];
     let report = evaluate(
         &runs,
@@ -226,6 +228,7 @@ fn ensemble_learned_is_the_mean_of_its_members_renderings() {
                     .with_base_width(4)
                     .with_zero_head(false)
                     .init::<Flex>(&device),
+                checkpoint: format!("seed-{seed}"),
             }
         })
         .collect();

@@ -46,6 +46,7 @@ fn config(
         head_init: train::training::HeadInit::Zero,
         elevation_input: false,
         context_input: false,
+        ema_decay: None,
     }
 }
 
@@ -132,12 +133,17 @@ fn overfitting_a_handful_of_samples_drops_the_loss_tenfold() {
 
 /// The network's inference output on fixed samples: weights and BatchNorm running stats in one vector.
 fn fingerprint(run: &Path, cfg: &FitConfig) -> Vec<f64> {
+    fingerprint_of(run, "last/model", cfg)
+}
+
+/// [`fingerprint`] of the checkpoint at `checkpoint` (relative to the run, without extension).
+fn fingerprint_of(run: &Path, checkpoint: &str, cfg: &FitConfig) -> Vec<f64> {
     let device = Default::default();
     let net = cfg
         .net_config()
         .init::<Flex>(&device)
         .load_file(
-            run.join("last/model"),
+            run.join(checkpoint),
             &NamedMpkFileRecorder::<FullPrecisionSettings>::new(),
             &device,
         )
@@ -169,6 +175,7 @@ fn stopping_and_resuming_gives_the_same_network_as_an_uninterrupted_run() {
         head_init: train::training::HeadInit::Uniform,
         elevation_input: true,
         context_input: true,
+        ema_decay: Some(0.9),
         ..config(BrdfModel::M2, 2, 1e-3, 12, true)
     };
     let device = Default::default();
@@ -190,6 +197,19 @@ fn stopping_and_resuming_gives_the_same_network_as_an_uninterrupted_run() {
     let metrics = |run: &Path| std::fs::read_to_string(run.join("metrics.jsonl")).unwrap();
     assert_eq!(metrics(&straight), metrics(&split));
     assert_eq!(fingerprint(&straight, &cfg), fingerprint(&split, &cfg));
+    // The weight average resumes too (its state is last/ema), and it is a network of its own: validated beside
+    // the raw one every epoch, different from it, and what eval and infer load by default.
+    let ema = |run: &Path| fingerprint_of(run, "last/ema", &cfg);
+    assert_eq!(ema(&straight), ema(&split));
+    assert_ne!(ema(&straight), fingerprint(&straight, &cfg));
+    assert!(a.history.iter().all(|m| m.ema_val.is_some()));
+    let auto = train::training::load_trained::<Flex>(
+        &straight,
+        train::training::Checkpoint::Auto,
+        &device,
+    )
+    .unwrap();
+    assert_eq!(auto.checkpoint, "ema-best/model.mpk");
 
     // Resuming with another BRDF model is refused with the fix in the message.
     let other = FitConfig {
@@ -237,7 +257,12 @@ fn an_ensemble_loads_every_member_first_and_map_averaging_refuses_mixed_models()
     }
     let missing = tmp.path().join("no-such-run");
     let load = |runs: &[&Path], one_model| {
-        train::training::load_ensemble::<Flex>(runs, one_model, &Default::default())
+        train::training::load_ensemble::<Flex>(
+            runs,
+            train::training::Checkpoint::Auto,
+            one_model,
+            &Default::default(),
+        )
     };
 
     let same = load(&[&m2, &m2_again], true).unwrap();
@@ -267,4 +292,14 @@ fn an_ensemble_loads_every_member_first_and_map_averaging_refuses_mixed_models()
         err.contains("no-such-run") && err.contains("config.json"),
         "{err}"
     );
+    // These runs stopped before any validation and kept no weight average: auto falls back to last/, and asking
+    // for the average names the flag that makes one.
+    assert_eq!(same[0].checkpoint, "last/model.mpk");
+    let err = format!(
+        "{:#}",
+        train::training::load_trained::<Flex>(&m2, train::training::Checkpoint::EmaBest, &device)
+            .err()
+            .expect("no average kept")
+    );
+    assert!(err.contains("ema-best") && err.contains("--ema"), "{err}");
 }
