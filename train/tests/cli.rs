@@ -156,6 +156,18 @@ fn bad_inputs_fail_with_one_line_naming_the_file_and_the_fix() {
             ],
             vec!["http://127.0.0.1:9", "g2r-dataset serve"],
         ),
+        (
+            vec![
+                "fit".into(),
+                "--data".into(),
+                path("no-dataset"),
+                "--out".into(),
+                path("run"),
+                "--ema".into(),
+                "1.5".into(),
+            ],
+            vec!["--ema", "outside [0, 1)"],
+        ),
     ];
     for (args, needles) in cases {
         let args: Vec<&str> = args.iter().map(String::as_str).collect();
