@@ -373,6 +373,40 @@ fn maria_are_darker_smoother_and_less_cratered_than_highlands() {
 }
 
 /// R² of an ordinary least-squares fit with three regressors (normal equations, Cramer's rule).
+/// `truth/w_morphology.tif` is the true albedo without its independent component and nothing else: where neither is
+/// clamped, w / w_morphology = 1 + v·noise with |noise| ≤ 1 (v = the configured `independent_variation`), and the
+/// component is really there (its RMS is not negligible against v).
+#[test]
+fn the_morphology_albedo_differs_from_the_true_one_by_the_independent_component_only() {
+    let world = world_json();
+    let v = world["config"]["reflectance"]["independent_variation"]
+        .as_f64()
+        .unwrap();
+    let w = read_raster(&demo_world().join("truth/hapke_params.tif")).unwrap();
+    let morphology = read_raster(&demo_world().join("truth/w_morphology.tif")).unwrap();
+    assert_eq!(
+        (w.width, w.height, w.transform),
+        (morphology.width, morphology.height, morphology.transform)
+    );
+    let unclamped = |x: f32| x > 0.02 && x < 0.95;
+    let (mut n, mut sum_sq, mut worst) = (0usize, 0f64, 0f64);
+    for (&a, &m) in w.data.iter().zip(&morphology.data).step_by(7) {
+        if !(unclamped(a) && unclamped(m)) {
+            continue;
+        }
+        let deviation = a as f64 / m as f64 - 1.0;
+        n += 1;
+        sum_sq += deviation * deviation;
+        worst = worst.max(deviation.abs());
+    }
+    let rms = (sum_sq / n.max(1) as f64).sqrt();
+    eprintln!("w / w_morphology − 1 over {n} cells: RMS {rms:.4}, max {worst:.4} (v = {v})");
+    assert!(n > 100_000, "{n} unclamped cells");
+    // f32 storage rounds each map to ~6e-8 relative.
+    assert!(worst <= v + 1e-6, "max {worst} > v {v}");
+    assert!(rms >= v / 10.0, "RMS {rms} against v {v}");
+}
+
 fn r_squared(rows: &[([f64; 3], f64)]) -> f64 {
     let mut a = [[0.0; 3]; 3];
     let mut b = [0.0; 3];

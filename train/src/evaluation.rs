@@ -7,7 +7,10 @@
 //! - **hapke_scaled**: uniform Hapke times one scale fitted by least squares on train crops: an honest baseline;
 //! - **lunar_lambert**: McEwen's Lunar-Lambert with one albedo fitted the same way;
 //! - **oracle** (with `--world`): the world's true Hapke maps sampled at each pixel, on the delivered DEM: the floor
-//!   any BRDF rendered from this DEM can reach (the orthos were rendered from the finer true DEM).
+//!   any BRDF rendered from this DEM can reach (the orthos were rendered from the finer true DEM);
+//! - **oracle_morphology** (with `--world`, worlds that carry `truth/w_morphology.tif`): the same without the
+//!   albedo component no terrain can predict (DESIGN §6): about as far as a model that reads the terrain perfectly
+//!   could go, so the gap to it is the part of the error a DEM-driven model can still remove.
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -27,7 +30,7 @@ use crate::metrics::{image_metrics, AggregateMetrics, ImageMetrics, MetricsAccum
 use crate::training::{predict_ensemble, TrainedRun};
 
 /// The methods, in report order.
-pub const METHODS: [(&str, &str); 7] = [
+pub const METHODS: [(&str, &str); 8] = [
     ("learned", "U-Net → SVBRDF parameters → renderer layer"),
     (
         "learned_paper_norm",
@@ -46,6 +49,11 @@ pub const METHODS: [(&str, &str); 7] = [
     ("hapke_scaled", "uniform Hapke × one scale fitted on train crops (honest)"),
     ("lunar_lambert", "Lunar-Lambert with one albedo fitted on train crops (honest)"),
     ("oracle", "the world's true Hapke maps on the delivered DEM (needs --world)"),
+    (
+        "oracle_morphology",
+        "the oracle without the world's independent albedo component, which no terrain predicts (units, \
+         freshness, slope and melt only; needs --world)",
+    ),
 ];
 
 #[derive(Debug, Clone)]
@@ -62,9 +70,20 @@ pub struct EvalOptions {
     pub symmetry_mean: bool,
 }
 
-/// The world's true Hapke parameter maps (`truth/hapke_params.tif`: w, b, c, B_S0, h_S, θ̄ in degrees).
+/// The world's true Hapke parameter maps (`truth/hapke_params.tif`: w, b, c, B_S0, h_S, θ̄ in degrees), and w
+/// without its independent component (`truth/w_morphology.tif`, on the same grid) when the world has it.
 pub struct TruthMaps {
     bands: Vec<Raster>,
+    w_morphology: Option<Raster>,
+}
+
+/// Which true albedo an oracle rendering uses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TrueAlbedo {
+    /// The albedo the orthos were rendered with.
+    Full,
+    /// Without the independent component (`truth/w_morphology.tif`).
+    Morphology,
 }
 
 impl TruthMaps {
@@ -84,11 +103,33 @@ impl TruthMaps {
                 bands.len()
             );
         }
-        Ok(Self { bands })
+        // Worlds generated before the morphology map existed have only the full oracle.
+        let morphology_path = world.join("truth").join("w_morphology.tif");
+        let w_morphology = if morphology_path.exists() {
+            let morphology = read_bands(&morphology_path)?.remove(0);
+            let full = &bands[0];
+            if (morphology.width, morphology.height) != (full.width, full.height)
+                || morphology.transform != full.transform
+            {
+                bail!(
+                    "{}: not on the grid of {}: regenerate the world",
+                    morphology_path.display(),
+                    path.display()
+                );
+            }
+            Some(morphology)
+        } else {
+            None
+        };
+        Ok(Self {
+            bands,
+            w_morphology,
+        })
     }
 
-    /// Parameters at map point (x, y), bilinear; `None` outside the maps or on nodata.
-    pub fn params_at(&self, x: f64, y: f64) -> Option<HapkeParams> {
+    /// Parameters at map point (x, y), bilinear; `None` outside the maps or on nodata (or when `albedo` asks
+    /// for a map the world does not have).
+    pub fn params_at(&self, x: f64, y: f64, albedo: TrueAlbedo) -> Option<HapkeParams> {
         let first = &self.bands[0];
         let (col, row) = first.transform.map_to_pixel(x, y);
         // Bilinear sampling clamps at the edges: points beyond the outer pixel edges are outside the maps.
@@ -99,11 +140,14 @@ impl TruthMaps {
         {
             return None;
         }
-        let v: Vec<f64> = self
+        let mut v: Vec<f64> = self
             .bands
             .iter()
             .map(|b| b.bilinear(col, row) as f64)
             .collect();
+        if albedo == TrueAlbedo::Morphology {
+            v[0] = self.w_morphology.as_ref()?.bilinear(col, row) as f64;
+        }
         v.iter().all(|x| x.is_finite()).then(|| HapkeParams {
             w: v[0],
             b: v[1],
@@ -115,8 +159,13 @@ impl TruthMaps {
         })
     }
 
+    /// Whether the world carries the morphology albedo (the `oracle_morphology` method).
+    pub fn has_morphology(&self) -> bool {
+        self.w_morphology.is_some()
+    }
+
     /// I/F of a crop under the true maps (lit fraction × Hapke); pixels outside the maps render NaN.
-    pub fn render(&self, sample: &Sample) -> Vec<f64> {
+    pub fn render(&self, sample: &Sample, albedo: TrueAlbedo) -> Vec<f64> {
         let grid = sample.crop_grid();
         sample
             .pixel_geometry()
@@ -126,7 +175,7 @@ impl TruthMaps {
             .map(|(k, (g, &lit))| {
                 let (dx, dy) = grid.map_offset(k % CROP_PX, k / CROP_PX, CROP_PX);
                 let c = &g.cosines;
-                self.params_at(sample.center_x_m + dx, sample.center_y_m + dy)
+                self.params_at(sample.center_x_m + dx, sample.center_y_m + dy, albedo)
                     .map_or(f64::NAN, |p| {
                         lit as f64
                             * hapke_i_over_f(&p, c.cos_i, c.cos_e, c.cos_g, HFunction::Hapke2002)
@@ -384,6 +433,8 @@ pub struct EvalReport {
     pub learned_over_hapke_both_paper_norm_sse: f64,
     /// (SSE_hapke_paper − SSE_learned) / (SSE_hapke_paper − SSE_oracle), when the oracle ran.
     pub hapke_to_oracle_gap_closed: Option<f64>,
+    /// The same against `oracle_morphology` (the oracle without the albedo no terrain predicts), when it ran.
+    pub hapke_to_morphology_oracle_gap_closed: Option<f64>,
     /// FAST + BRIEF reciprocal matches between the ground truth and each method's rendering (see
     /// [`crate::features`]); the paper's Table 1 used a learned matcher.
     pub feature_matching: BTreeMap<String, MatchSummary>,
@@ -424,7 +475,13 @@ fn method_renderings(
         ),
     ];
     if let Some(maps) = truth_maps {
-        out.push(("oracle", maps.render(sample)));
+        out.push(("oracle", maps.render(sample, TrueAlbedo::Full)));
+        if maps.has_morphology() {
+            out.push((
+                "oracle_morphology",
+                maps.render(sample, TrueAlbedo::Morphology),
+            ));
+        }
     }
     out
 }
@@ -544,6 +601,8 @@ pub fn evaluate<B: Backend>(
             / paper,
         hapke_to_oracle_gap_closed: sse("oracle")
             .map(|oracle| (paper - learned) / (paper - oracle)),
+        hapke_to_morphology_oracle_gap_closed: sse("oracle_morphology")
+            .map(|oracle| (paper - learned) / (paper - oracle)),
         feature_matching: matches
             .iter()
             .map(|(name, stats)| (name.to_string(), stats.summary()))
@@ -607,6 +666,13 @@ pub fn markdown(report: &EvalReport) -> String {
         None => {
             text.push_str("No oracle (run with --world WORLD_DIR to compare with the true maps).\n")
         }
+    }
+    if let Some(g) = report.hapke_to_morphology_oracle_gap_closed {
+        text.push_str(&format!(
+            "Share of the Hapke → oracle_morphology gap closed: **{:.1} %** (the oracle without the albedo \
+             component no terrain predicts).\n",
+            g * 100.0
+        ));
     }
     text.push_str(
         "\n## Feature-matching consistency\n\nFAST-9 corners + 256-bit BRIEF on the GT and on each rendering (both \
@@ -731,6 +797,89 @@ pub fn write_report(report: &EvalReport, out: &Path) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use dataset::crs::LunarCrs;
+    use dataset::raster::{write_geotiff, BandOut, BandValues, GeoTransform, RasterLayout};
+
+    /// A 4 × 4 truth/ folder: constant Hapke bands, and (optionally) a morphology albedo on `morphology_gsd_m`.
+    fn tiny_world(dir: &Path, morphology_gsd_m: Option<f64>) {
+        std::fs::create_dir_all(dir.join("truth")).unwrap();
+        let crs = LunarCrs::equirectangular(0.0, 0.0);
+        let layout = |gsd_m| RasterLayout {
+            width: 4,
+            height: 4,
+            transform: GeoTransform::north_up(1000.0, 2000.0, gsd_m),
+            crs: &crs,
+            nodata: -1.0,
+        };
+        let bands: Vec<BandOut> = [0.31f32, 0.25, 0.6, 2.0, 0.07, 23.0]
+            .iter()
+            .map(|&v| BandOut {
+                values: BandValues::Constant(v),
+                description: "band",
+            })
+            .collect();
+        write_geotiff(
+            &dir.join("truth/hapke_params.tif"),
+            &layout(5.0),
+            &bands,
+            &[],
+        )
+        .unwrap();
+        if let Some(gsd_m) = morphology_gsd_m {
+            let w = [0.28f32; 16];
+            let band = BandOut {
+                values: BandValues::Grid(&w),
+                description: "w",
+            };
+            write_geotiff(
+                &dir.join("truth/w_morphology.tif"),
+                &layout(gsd_m),
+                &[band],
+                &[],
+            )
+            .unwrap();
+        }
+    }
+
+    #[test]
+    fn the_morphology_oracle_swaps_only_the_albedo_and_needs_its_map_on_the_same_grid() {
+        let tmp = tempfile::tempdir().unwrap();
+        let (x, y) = (1010.0, 1990.0); // inside the 20 m × 20 m maps
+        let with = tmp.path().join("with");
+        tiny_world(&with, Some(5.0));
+        let maps = TruthMaps::open(&with).unwrap();
+        assert!(maps.has_morphology());
+        let full = maps.params_at(x, y, TrueAlbedo::Full).unwrap();
+        let morphology = maps.params_at(x, y, TrueAlbedo::Morphology).unwrap();
+        assert!((full.w - 0.31).abs() < 1e-6 && (morphology.w - 0.28).abs() < 1e-6);
+        assert_eq!(
+            (full.b, full.c, full.b_s0, full.h_s, full.theta_bar_rad),
+            (
+                morphology.b,
+                morphology.c,
+                morphology.b_s0,
+                morphology.h_s,
+                morphology.theta_bar_rad
+            )
+        );
+
+        // A world generated before the map existed: the full oracle only.
+        let without = tmp.path().join("without");
+        tiny_world(&without, None);
+        let maps = TruthMaps::open(&without).unwrap();
+        assert!(!maps.has_morphology());
+        assert!(maps.params_at(x, y, TrueAlbedo::Full).is_some());
+        assert!(maps.params_at(x, y, TrueAlbedo::Morphology).is_none());
+
+        // On another grid it would sample the wrong ground: refused, naming the file.
+        let shifted = tmp.path().join("shifted");
+        tiny_world(&shifted, Some(2.5));
+        let err = format!("{:#}", TruthMaps::open(&shifted).err().expect("refused"));
+        assert!(
+            err.contains("w_morphology.tif") && err.contains("regenerate"),
+            "{err}"
+        );
+    }
 
     #[test]
     fn per_ortho_means_group_images_by_their_ortho() {

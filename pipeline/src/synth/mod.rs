@@ -316,6 +316,16 @@ pub fn generate(
         &bands,
         &[("HAPKE_FORM", "Hapke 2012 IMSA, H-function 2002, K=1".into())],
     )?;
+    write_geotiff(
+        &partial.join("truth/w_morphology.tif"),
+        &fine.layout(&crs, -1.0),
+        &[BandOut {
+            values: BandValues::Grid(&maps.w_morphology),
+            description:
+                "w without the independent albedo component (units, freshness, slope, melt)",
+        }],
+        &[],
+    )?;
     write_json_atomic(&partial.join("truth/craters.json"), &craters)?;
 
     let mut files = Vec::new();
@@ -323,6 +333,7 @@ pub fn generate(
         "dem/dem.tif".into(),
         "truth/dem_true.tif".into(),
         "truth/hapke_params.tif".into(),
+        "truth/w_morphology.tif".into(),
         "truth/craters.json".into(),
     ];
     for s in &strips {

@@ -14,6 +14,9 @@ use crate::rng::keyed_u64;
 pub struct HapkeMaps {
     pub w: Vec<f32>,
     pub b: Vec<f32>,
+    /// w without the independent component: units, freshness, slope and melt only. Evaluation's second oracle
+    /// renders with it, to show how much of the error any terrain-reading model could remove at best.
+    pub w_morphology: Vec<f32>,
 }
 
 pub fn hapke_maps(
@@ -36,11 +39,13 @@ pub fn hapke_maps(
     let steep_tan = cfg.steep_slope_deg.to_radians().tan();
     let mut w_map = vec![0f32; w * h];
     let mut b_map = vec![0f32; w * h];
+    let mut morphology_map = vec![0f32; w * h];
     w_map
         .par_chunks_mut(w)
         .zip(b_map.par_chunks_mut(w))
+        .zip(morphology_map.par_chunks_mut(w))
         .enumerate()
-        .for_each(|(row, (w_row, b_row))| {
+        .for_each(|(row, ((w_row, b_row), morphology_row))| {
             for col in 0..w {
                 let (x, y) = grid.center(col, row);
                 let i = row * w + col;
@@ -55,15 +60,20 @@ pub fn hapke_maps(
                 let steep = smoothstep(0.8 * steep_tan, 1.25 * steep_tan, slope_tan);
                 let fresh = freshness[i] as f64;
                 let noise = independent.at(x, y).clamp(-1.5, 1.5) / 1.5;
-                let value = base
+                let morphology = base
                     * (1.0 + cfg.fresh_brightening * fresh)
                     * (1.0 + cfg.steep_brightening * steep)
-                    * (1.0 - cfg.melt_darkening * melt[i] as f64)
-                    * (1.0 + cfg.independent_variation * noise);
+                    * (1.0 - cfg.melt_darkening * melt[i] as f64);
+                let value = morphology * (1.0 + cfg.independent_variation * noise);
                 w_row[col] = value.clamp(0.02, 0.95) as f32;
+                morphology_row[col] = morphology.clamp(0.02, 0.95) as f32;
                 // Fresh, blocky material back-scatters a little less sharply.
                 b_row[col] = (cfg.b - 0.05 * fresh) as f32;
             }
         });
-    HapkeMaps { w: w_map, b: b_map }
+    HapkeMaps {
+        w: w_map,
+        b: b_map,
+        w_morphology: morphology_map,
+    }
 }
