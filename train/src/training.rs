@@ -520,6 +520,7 @@ pub fn fit<B: AutodiffBackend>(
         // Leftovers of a run that died before its first checkpoint would mix into this one's history.
         let _ = std::fs::remove_file(out.join("metrics.jsonl"));
         let _ = std::fs::remove_dir_all(out.join("best"));
+        let _ = std::fs::remove_dir_all(out.join("ema-best"));
         write_json(&config_path, config)?;
         // What evaluation and inference on a new DEM need from the training data: the input normalisation.
         let input = input_normalisation(&*source, config)?;
