@@ -89,8 +89,8 @@ struct TrainArgs {
     context_input: bool,
     /// Also keep an exponential moving average of the weights with this decay (e.g. 0.995; the first steps
     /// average over about a ninth of the steps taken). It is validated beside the raw network every epoch
-    /// (metrics.jsonl `ema_val`) and checkpointed as ema-best/ and last/ema; eval and infer load ema-best by
-    /// default.
+    /// (metrics.jsonl `ema_val`) and checkpointed as ema-best/ and last/ema; eval, infer and report load
+    /// last/ema (the final average) by default.
     #[arg(long, value_name = "DECAY", value_parser = parse_ema_decay)]
     ema: Option<f64>,
 }
@@ -215,7 +215,7 @@ enum Command {
         /// network pass and one render. Runs may differ in model and input planes.
         #[arg(long, value_name = "RUN")]
         ensemble: Vec<PathBuf>,
-        /// Which checkpoint of each run: auto (ema-best when the run kept a weight average, else best, else last),
+        /// Which checkpoint of each run: auto (ema-last when the run kept a weight average, else best, else last),
         /// best, last, ema-best or ema-last.
         #[arg(long, value_enum, default_value = "auto")]
         checkpoint: train::training::Checkpoint,
@@ -245,7 +245,7 @@ enum Command {
         /// maps, which renders exactly as `eval --ensemble` scores (every model is linear in its parameters).
         #[arg(long, value_name = "RUN")]
         ensemble: Vec<PathBuf>,
-        /// Which checkpoint of each run: auto (ema-best when the run kept a weight average, else best, else last),
+        /// Which checkpoint of each run: auto (ema-last when the run kept a weight average, else best, else last),
         /// best, last, ema-best or ema-last.
         #[arg(long, value_enum, default_value = "auto")]
         checkpoint: train::training::Checkpoint,
@@ -271,7 +271,7 @@ enum Command {
         /// A trained run, for the inference-overlap section (needs --dem).
         #[arg(long, requires = "dem")]
         run: Option<PathBuf>,
-        /// Which checkpoint of each run: auto (ema-best when the run kept a weight average, else best, else last),
+        /// Which checkpoint of each run: auto (ema-last when the run kept a weight average, else best, else last),
         /// best, last, ema-best or ema-last.
         #[arg(long, value_enum, default_value = "auto")]
         checkpoint: train::training::Checkpoint,

@@ -209,7 +209,7 @@ fn stopping_and_resuming_gives_the_same_network_as_an_uninterrupted_run() {
         &device,
     )
     .unwrap();
-    assert_eq!(auto.checkpoint, "ema-best/model.mpk");
+    assert_eq!(auto.checkpoint, "last/ema.mpk");
 
     // Resuming with another BRDF model is refused with the fix in the message.
     let other = FitConfig {
