@@ -855,7 +855,8 @@ pub enum Checkpoint {
 }
 
 impl Checkpoint {
-    /// The checkpoint's path in `run` (without the `.mpk` extension); `Auto` resolves to `ema-last`.
+    /// The checkpoint's path in `run` (without the `.mpk` extension). For `Auto` this is only its first choice,
+    /// `last/ema`: [`Checkpoint::resolve`] says what a given run actually loads.
     pub fn path(self, run: &Path) -> PathBuf {
         match self {
             Self::EmaBest => run.join("ema-best").join("model"),
