@@ -5,13 +5,13 @@ use std::time::Instant;
 
 use burn::optim::{AdamConfig, GradientsParams, Optimizer};
 use burn::prelude::*;
-use burn::tensor::backend::AutodiffBackend;
 use dataset::brdf::{render_crop, BrdfModel};
 use dataset::geometry::{crop_pixel_geometry, CropGrid};
 use dataset::schema::{ContextWindow, Sample, CONTEXT_PX, CROP_PX, DEM_PX};
 use rand::Rng;
 
 use crate::data::{HostBatch, InputNormalisation};
+use crate::kernels::TrainBackend;
 use crate::model::UNetConfig;
 use crate::render::{masked_mse, render, scene_geometry, SceneInputs};
 use crate::training::train_loss;
@@ -188,7 +188,7 @@ pub struct BenchReport {
 }
 
 /// Time `iters` steps after one warm-up step.
-pub fn bench<B: AutodiffBackend>(
+pub fn bench<B: TrainBackend>(
     backend_name: &str,
     model: BrdfModel,
     batch_size: usize,

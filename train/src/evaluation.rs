@@ -16,7 +16,6 @@ use std::collections::BTreeMap;
 use std::path::Path;
 
 use anyhow::{bail, Context, Result};
-use burn::prelude::*;
 use dataset::brdf::BrdfModel;
 use dataset::geometry::PixelGeometry;
 use dataset::hapke::{hapke_i_over_f, lunar_lambert_i_over_f, HFunction, HapkeParams};
@@ -26,6 +25,7 @@ use dataset::schema::{Sample, CROP_PX};
 use crate::baseline::{hapke_render, normalise_like_paper, truth_and_valid};
 use crate::data::{for_each_sample_group, SampleSource};
 use crate::features::{FeatureMatcher, MatchStats, MatchSummary};
+use crate::kernels::TrainOps;
 use crate::metrics::{image_metrics, AggregateMetrics, ImageMetrics, MetricsAccumulator};
 use crate::training::{predict_ensemble, TrainedRun};
 
@@ -489,7 +489,7 @@ fn method_renderings(
 /// Evaluate trained `runs` on a split; writes nothing (see [`write_report`]). One run is the usual case; with
 /// several, "learned" is the mean of their renderings ([`predict_ensemble`]) and the first run names the model.
 /// `on_image` sees every image's renderings (for panels).
-pub fn evaluate<B: Backend>(
+pub fn evaluate<B: TrainOps>(
     runs: &[TrainedRun<B>],
     source: &dyn SampleSource,
     options: &EvalOptions,

@@ -14,6 +14,7 @@ use dataset::raster::{BandOut, BandValues, Raster, RasterLayout};
 use dataset::schema::{CONTEXT_PX, CROP_PX};
 
 use crate::data::{InputNormalisation, CONTEXT_CHANNELS};
+use crate::kernels::TrainOps;
 use crate::model::UNet;
 
 /// Default overlap between neighbouring crops, pixels (a quarter crop).
@@ -123,7 +124,7 @@ impl ParamMaps {
 }
 
 /// Run the network over overlapping crops of `dem` and blend.
-pub fn infer_params<B: Backend>(
+pub fn infer_params<B: TrainOps>(
     net: &UNet<B>,
     model: BrdfModel,
     dem: &Raster,

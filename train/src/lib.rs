@@ -11,6 +11,7 @@ pub mod data;
 pub mod evaluation;
 pub mod features;
 pub mod inference;
+pub mod kernels;
 pub mod metrics;
 pub mod model;
 pub mod plot;

@@ -14,6 +14,8 @@ use burn::tensor::activation::leaky_relu;
 use burn::tensor::module::interpolate;
 use burn::tensor::ops::{InterpolateMode, InterpolateOptions};
 
+use crate::kernels::{batch_norm_leaky_relu, conv2d, TrainOps};
+
 /// Negative slope of the network's activations.
 const ACTIVATION_SLOPE: f64 = 0.01;
 /// Dropout by depth: stages 1-4, then the bottleneck (the up path mirrors the down path).
@@ -68,9 +70,12 @@ impl<B: Backend> ConvBlock<B> {
         }
     }
 
-    fn forward(&self, x: Tensor<B, 4>) -> Tensor<B, 4> {
-        let x = leaky_relu(self.norm1.forward(self.conv1.forward(x)), ACTIVATION_SLOPE);
-        let x = leaky_relu(self.norm2.forward(self.conv2.forward(x)), ACTIVATION_SLOPE);
+    fn forward(&self, x: Tensor<B, 4>) -> Tensor<B, 4>
+    where
+        B: TrainOps,
+    {
+        let x = batch_norm_leaky_relu(&self.norm1, conv2d(&self.conv1, x), ACTIVATION_SLOPE);
+        let x = batch_norm_leaky_relu(&self.norm2, conv2d(&self.conv2, x), ACTIVATION_SLOPE);
         self.dropout.forward(x)
     }
 }
@@ -105,12 +110,17 @@ impl<B: Backend> ContextEncoder<B> {
     }
 
     /// `[N, C, 32, 32]` → `[N, features]`.
-    fn forward(&self, x: Tensor<B, 4>) -> Tensor<B, 2> {
+    fn forward(&self, x: Tensor<B, 4>) -> Tensor<B, 2>
+    where
+        B: TrainOps,
+    {
         let mut x = x;
         for (conv, norm) in self.convs.iter().zip(&self.norms) {
-            x = self
-                .pool
-                .forward(leaky_relu(norm.forward(conv.forward(x)), ACTIVATION_SLOPE));
+            x = self.pool.forward(batch_norm_leaky_relu(
+                norm,
+                conv2d(conv, x),
+                ACTIVATION_SLOPE,
+            ));
         }
         let [n, c, h, w] = x.dims();
         leaky_relu(
@@ -219,7 +229,10 @@ impl<B: Backend> UNet<B> {
 
     /// `[N, C, 128, 128]` input planes (and `[N, C', 32, 32]` context planes when the network has a context
     /// encoder) → `[N, P, 128, 128]` raw BRDF parameters. Panics when `context` does not match the network.
-    pub fn forward(&self, x: Tensor<B, 4>, context: Option<Tensor<B, 4>>) -> Tensor<B, 4> {
+    pub fn forward(&self, x: Tensor<B, 4>, context: Option<Tensor<B, 4>>) -> Tensor<B, 4>
+    where
+        B: TrainOps,
+    {
         let mut skips = Vec::new();
         let mut x = x;
         for block in &self.down {
@@ -255,9 +268,9 @@ impl<B: Backend> UNet<B> {
             let skip = skips.pop().expect("one skip per stage");
             let [_, _, h, w] = skip.dims();
             let up = interpolate(x, [h, w], InterpolateOptions::new(InterpolateMode::Nearest));
-            let up = leaky_relu(conv.forward(up), ACTIVATION_SLOPE);
+            let up = leaky_relu(conv2d(conv, up), ACTIVATION_SLOPE);
             x = block.forward(Tensor::cat(vec![up, skip], 1));
         }
-        self.head.forward(join(x))
+        conv2d(&self.head, join(x))
     }
 }

@@ -16,7 +16,6 @@ use std::path::Path;
 use std::time::Instant;
 
 use anyhow::Result;
-use burn::prelude::*;
 use dataset::brdf::BrdfModel;
 use dataset::geometry::PixelGeometry;
 use dataset::hapke::HapkeParams;
@@ -27,6 +26,7 @@ use crate::baseline::hapke_from_geometry;
 use crate::data::{for_each_sample_group, InputNormalisation, SampleSource};
 use crate::evaluation::{calibrate, lunar_lambert_from_geometry, model_uniform_from_geometry};
 use crate::inference::{infer_params, render_maps, seam_score, InferOptions};
+use crate::kernels::TrainOps;
 use crate::model::UNet;
 use crate::plot::{write_scatter, Point, Scatter};
 
@@ -175,7 +175,7 @@ pub fn brdf_model_rows(
 }
 
 /// Inference-overlap rows: the same network over the same DEM at each overlap.
-pub fn overlap_rows<B: Backend>(
+pub fn overlap_rows<B: TrainOps>(
     net: &UNet<B>,
     model: BrdfModel,
     dem: &Raster,

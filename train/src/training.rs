@@ -27,6 +27,7 @@ use crate::data::{
     crop_interior_m, ContextNormalisation, ElevationNormalisation, EpochStream, HostBatch,
     InputNormalisation, SampleSource, StreamConfig, CONTEXT_CHANNELS,
 };
+use crate::kernels::{TrainBackend, TrainOps};
 use crate::metrics::{AggregateMetrics, MetricsAccumulator};
 use crate::model::{UNet, UNetConfig};
 use crate::render::{masked_mse, render, scene_geometry, SceneGeometry, SceneInputs};
@@ -258,7 +259,7 @@ pub fn trainable_params<B: Backend>(net: &UNet<B>, config: &UNetConfig) -> usize
 }
 
 /// The network's raw parameter maps for one host batch: `[N, P, 128, 128]` (the renderer applies the activation).
-fn net_outputs<B: Backend>(net: &UNet<B>, batch: &HostBatch, device: &B::Device) -> Tensor<B, 4> {
+fn net_outputs<B: TrainOps>(net: &UNet<B>, batch: &HostBatch, device: &B::Device) -> Tensor<B, 4> {
     let input = Tensor::<B, 4>::from_data(
         TensorData::new(
             batch.net_input.clone(),
@@ -279,7 +280,7 @@ fn net_outputs<B: Backend>(net: &UNet<B>, batch: &HostBatch, device: &B::Device)
 }
 
 /// Network → renderer for one host batch: the rendered image `[N, 1, 128, 128]` and the batch's geometry.
-fn render_batch<B: Backend>(
+fn render_batch<B: TrainOps>(
     net: &UNet<B>,
     model: BrdfModel,
     batch: &HostBatch,
@@ -293,7 +294,7 @@ fn render_batch<B: Backend>(
 }
 
 /// One optimisation step's loss (masked MSE through the renderer layer).
-pub fn train_loss<B: AutodiffBackend>(
+pub fn train_loss<B: TrainBackend>(
     net: &UNet<B>,
     model: BrdfModel,
     batch: &HostBatch,
@@ -308,7 +309,7 @@ pub fn train_loss<B: AutodiffBackend>(
 }
 
 /// Render a batch with the network in inference mode (running BatchNorm stats, no dropout): `N × 128²` f64.
-pub fn predict_images<B: Backend>(
+pub fn predict_images<B: TrainOps>(
     net: &UNet<B>,
     model: BrdfModel,
     batch: &HostBatch,
@@ -329,7 +330,7 @@ pub fn predict_images<B: Backend>(
 /// its squared error is at most the members' mean squared error, and the averaged predictor is equivariant under
 /// the 8 symmetries, which a single pass of a trained network is only approximately. Cost: 8 network passes and 8
 /// renders. `N × 128²` f64, as [`predict_images`].
-pub fn predict_images_symmetry_mean<B: Backend>(
+pub fn predict_images_symmetry_mean<B: TrainOps>(
     net: &UNet<B>,
     model: BrdfModel,
     samples: &[Sample],
@@ -370,7 +371,7 @@ pub fn predict_images_symmetry_mean<B: Backend>(
 /// One trained run's renderings of `samples` in inference mode (`N × 128²` f64): a single pass, or with
 /// `symmetry_mean` the mean of its 8 dihedral views ([`predict_images_symmetry_mean`]). Each run uses its own input
 /// normalisation, so runs trained with different input planes can be compared or averaged.
-pub fn predict_run<B: Backend>(
+pub fn predict_run<B: TrainOps>(
     run: &TrainedRun<B>,
     samples: &[Sample],
     symmetry_mean: bool,
@@ -388,7 +389,7 @@ pub fn predict_run<B: Backend>(
 /// renderings, not parameters, makes this valid for any mix of BRDF models and input planes, and by convexity its
 /// squared error on every image is at most the members' mean squared error. Cost: one network pass and one
 /// render per member.
-pub fn predict_ensemble<B: Backend>(
+pub fn predict_ensemble<B: TrainOps>(
     runs: &[TrainedRun<B>],
     samples: &[Sample],
     symmetry_mean: bool,
@@ -414,7 +415,7 @@ pub fn predict_ensemble<B: Backend>(
 }
 
 /// Validation over (up to `max`, spread evenly over the split) val samples, in inference mode, one row group in memory at a time.
-pub fn validate<B: Backend>(
+pub fn validate<B: TrainOps>(
     net: &UNet<B>,
     model: BrdfModel,
     input: &InputNormalisation,
@@ -450,7 +451,7 @@ pub fn validate<B: Backend>(
 
 /// Train (or resume) into `out`. `stop_after_steps` ends the run early with a resumable last checkpoint
 /// (used by the resume test and for wall-clock-bounded jobs).
-pub fn fit<B: AutodiffBackend>(
+pub fn fit<B: TrainBackend>(
     source: Arc<dyn SampleSource>,
     config: &FitConfig,
     out: &Path,

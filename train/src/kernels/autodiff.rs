@@ -1,0 +1,231 @@
+//! [`TrainOps`] for `Autodiff<B>`: each operation is one graph node whose forward runs on the inner backend and
+//! whose backward calls the inner backend's gradient kernels (so a CPU step never builds BatchNorm's ~15-node
+//! broadcast graph, and the convolution's gradients come from the inner backend's own kernels).
+
+use burn::backend::autodiff::checkpoint::base::Checkpointer;
+use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
+use burn::backend::autodiff::grads::Gradients;
+use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
+use burn::backend::autodiff::NodeId;
+use burn::backend::Autodiff;
+use burn::tensor::backend::AutodiffBackend;
+use burn::tensor::ops::{ConvOptions, FloatTensor};
+
+use super::{NormOutput, TrainOps};
+
+#[derive(Debug)]
+struct Conv2dWithBias;
+#[derive(Debug)]
+struct Conv2dNoBias;
+#[derive(Debug)]
+struct BatchNormLeakyRelu;
+
+/// Gradients of a convolution for whichever of input, weight and bias require one.
+fn conv_backward<B: TrainOps>(
+    [node_x, node_weight, node_bias]: [Option<NodeId>; 3],
+    grad: FloatTensor<B>,
+    (x, weight, options): (FloatTensor<B>, FloatTensor<B>, ConvOptions<2>),
+    grads: &mut Gradients,
+) {
+    if let Some(id) = node_bias {
+        grads.register::<B>(id, B::train_conv2d_bias_grad(grad.clone()));
+    }
+    if let Some(id) = node_weight {
+        let g =
+            B::train_conv2d_weight_grad(x.clone(), weight.clone(), grad.clone(), options.clone());
+        grads.register::<B>(id, g);
+    }
+    if let Some(id) = node_x {
+        grads.register::<B>(id, B::train_conv2d_x_grad(x, weight, grad, options));
+    }
+}
+
+impl<B: TrainOps> Backward<B, 3> for Conv2dWithBias {
+    type State = (NodeId, NodeId, ConvOptions<2>);
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 3>,
+        grads: &mut Gradients,
+        checkpointer: &mut Checkpointer,
+    ) {
+        let grad = grads.consume::<B>(&ops.node);
+        let (x, weight, options) = ops.state;
+        let x = checkpointer.retrieve_node_output::<FloatTensor<B>>(x);
+        let weight = checkpointer.retrieve_node_output::<FloatTensor<B>>(weight);
+        let parents = ops.parents.map(|node| node.map(|node| node.id));
+        conv_backward::<B>(parents, grad, (x, weight, options), grads);
+    }
+}
+
+impl<B: TrainOps> Backward<B, 2> for Conv2dNoBias {
+    type State = (NodeId, NodeId, ConvOptions<2>);
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 2>,
+        grads: &mut Gradients,
+        checkpointer: &mut Checkpointer,
+    ) {
+        let grad = grads.consume::<B>(&ops.node);
+        let (x, weight, options) = ops.state;
+        let x = checkpointer.retrieve_node_output::<FloatTensor<B>>(x);
+        let weight = checkpointer.retrieve_node_output::<FloatTensor<B>>(weight);
+        let [node_x, node_weight] = ops.parents.map(|node| node.map(|node| node.id));
+        conv_backward::<B>(
+            [node_x, node_weight, None],
+            grad,
+            (x, weight, options),
+            grads,
+        );
+    }
+}
+
+/// What the fused norm's backward needs besides the checkpointed input and scale.
+#[derive(Debug, Clone)]
+struct NormState<B: TrainOps> {
+    x: NodeId,
+    gamma: NodeId,
+    mean: FloatTensor<B>,
+    var: FloatTensor<B>,
+    output: FloatTensor<B>,
+    epsilon: f64,
+    slope: f64,
+}
+
+impl<B: TrainOps> Backward<B, 3> for BatchNormLeakyRelu {
+    type State = NormState<B>;
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 3>,
+        grads: &mut Gradients,
+        checkpointer: &mut Checkpointer,
+    ) {
+        let grad = grads.consume::<B>(&ops.node);
+        let s = ops.state;
+        let x = checkpointer.retrieve_node_output::<FloatTensor<B>>(s.x);
+        let gamma = checkpointer.retrieve_node_output::<FloatTensor<B>>(s.gamma);
+        let g = B::batch_norm_leaky_relu_backward(
+            x, gamma, s.mean, s.var, s.output, grad, s.epsilon, s.slope,
+        );
+        let [node_x, node_gamma, node_beta] = ops.parents;
+        for (node, value) in [(node_x, g.x), (node_gamma, g.gamma), (node_beta, g.beta)] {
+            if let Some(node) = node {
+                grads.register::<B>(node.id, value);
+            }
+        }
+    }
+}
+
+impl<B: TrainOps, C: CheckpointStrategy> TrainOps for Autodiff<B, C> {
+    fn train_conv2d(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        bias: Option<FloatTensor<Self>>,
+        options: ConvOptions<2>,
+    ) -> FloatTensor<Self> {
+        match bias {
+            Some(bias) => match Conv2dWithBias
+                .prepare::<C>([x.node.clone(), weight.node.clone(), bias.node.clone()])
+                .compute_bound()
+                .stateful()
+            {
+                OpsKind::Tracked(mut prep) => {
+                    let state = (
+                        prep.checkpoint(&x),
+                        prep.checkpoint(&weight),
+                        options.clone(),
+                    );
+                    let out = B::train_conv2d(
+                        x.primitive,
+                        weight.primitive,
+                        Some(bias.primitive),
+                        options,
+                    );
+                    prep.finish(state, out)
+                }
+                OpsKind::UnTracked(prep) => prep.finish(B::train_conv2d(
+                    x.primitive,
+                    weight.primitive,
+                    Some(bias.primitive),
+                    options,
+                )),
+            },
+            None => match Conv2dNoBias
+                .prepare::<C>([x.node.clone(), weight.node.clone()])
+                .compute_bound()
+                .stateful()
+            {
+                OpsKind::Tracked(mut prep) => {
+                    let state = (
+                        prep.checkpoint(&x),
+                        prep.checkpoint(&weight),
+                        options.clone(),
+                    );
+                    prep.finish(
+                        state,
+                        B::train_conv2d(x.primitive, weight.primitive, None, options),
+                    )
+                }
+                OpsKind::UnTracked(prep) => prep.finish(B::train_conv2d(
+                    x.primitive,
+                    weight.primitive,
+                    None,
+                    options,
+                )),
+            },
+        }
+    }
+
+    fn batch_norm_leaky_relu(
+        x: FloatTensor<Self>,
+        gamma: FloatTensor<Self>,
+        beta: FloatTensor<Self>,
+        epsilon: f64,
+        slope: f64,
+    ) -> NormOutput<Self> {
+        let prep = BatchNormLeakyRelu
+            .prepare::<C>([x.node.clone(), gamma.node.clone(), beta.node.clone()])
+            .compute_bound()
+            .stateful();
+        let (output, mean, var) = match prep {
+            OpsKind::Tracked(mut prep) => {
+                let (x_id, gamma_id) = (prep.checkpoint(&x), prep.checkpoint(&gamma));
+                let out = B::batch_norm_leaky_relu(
+                    x.primitive,
+                    gamma.primitive,
+                    beta.primitive,
+                    epsilon,
+                    slope,
+                );
+                let state = NormState {
+                    x: x_id,
+                    gamma: gamma_id,
+                    mean: out.mean.clone(),
+                    var: out.var.clone(),
+                    output: out.output.clone(),
+                    epsilon,
+                    slope,
+                };
+                (prep.finish(state, out.output), out.mean, out.var)
+            }
+            OpsKind::UnTracked(prep) => {
+                let out = B::batch_norm_leaky_relu(
+                    x.primitive,
+                    gamma.primitive,
+                    beta.primitive,
+                    epsilon,
+                    slope,
+                );
+                (prep.finish(out.output), out.mean, out.var)
+            }
+        };
+        // Batch statistics feed the running ones only: no gradient flows through them.
+        NormOutput {
+            output,
+            mean: Self::from_inner(mean),
+            var: Self::from_inner(var),
+        }
+    }
+}

@@ -1,0 +1,459 @@
+//! [`super::TrainOps`] kernels for Flex (Burn's CPU backend) on contiguous f32 `[N, C, H, W]` data.
+//!
+//! Convolutions (stride 1, dilation 1, one group, symmetric zero padding: every convolution of the network) are
+//! per-sample im2col + one `gemm` call each way, parallel over the batch:
+//! forward `Y = W·col(X) + b`, input gradient `∂X = col⁻¹(Wᵀ·∂Y)` (col⁻¹ scatter-adds columns back), weight
+//! gradient `∂W = Σₙ ∂Yₙ·col(Xₙ)ᵀ`. BatchNorm + LeakyReLU is one pass for the statistics (per channel, two-pass
+//! variance with f64 sums) and one for the output, and the same two for the backward. Anything else (other
+//! dtypes, strides, groups) goes to the stock path in [`super::reference`].
+
+use burn::backend::Flex;
+use burn::tensor::ops::{ConvOptions, FloatTensor};
+use burn::tensor::{DType, TensorData, TensorMetadata};
+use burn_flex::FlexTensor;
+use rayon::prelude::*;
+
+use super::{reference, NormGrads, NormOutput};
+
+/// A contiguous f32 view of a tensor, or `None` when the kernels do not apply (another dtype).
+fn f32_data(t: &FlexTensor) -> Option<(FlexTensor, Vec<usize>)> {
+    if t.dtype() != DType::F32 {
+        return None;
+    }
+    let t = if t.is_contiguous() {
+        t.clone()
+    } else {
+        t.to_contiguous()
+    };
+    let shape = t.shape().to_vec();
+    Some((t, shape))
+}
+
+fn slice(t: &FlexTensor) -> &[f32] {
+    t.as_slice::<f32>().expect("contiguous f32 tensor")
+}
+
+fn from_vec(values: Vec<f32>, shape: &[usize]) -> FlexTensor {
+    FlexTensor::from_data(TensorData::new(values, shape.to_vec()))
+}
+
+/// The convolution geometry the kernels support, or `None`.
+#[derive(Clone, Copy, Debug)]
+struct ConvShape {
+    batch: usize,
+    c_in: usize,
+    c_out: usize,
+    height: usize,
+    width: usize,
+    kernel: [usize; 2],
+    padding: [usize; 2],
+}
+
+impl ConvShape {
+    fn new(x: &[usize], weight: &[usize], options: &ConvOptions<2>) -> Option<Self> {
+        let supported = options.stride == [1, 1]
+            && options.dilation == [1, 1]
+            && options.groups == 1
+            && x.len() == 4
+            && weight.len() == 4
+            && weight[1] == x[1]
+            && (0..2).all(|d| 2 * options.padding[d] + 1 == weight[2 + d]);
+        supported.then(|| Self {
+            batch: x[0],
+            c_in: x[1],
+            c_out: weight[0],
+            height: x[2],
+            width: x[3],
+            kernel: [weight[2], weight[3]],
+            padding: options.padding,
+        })
+    }
+
+    /// Output positions per sample ("same" padding: the input's).
+    fn positions(&self) -> usize {
+        self.height * self.width
+    }
+
+    /// Rows of the im2col matrix: input channels × kernel taps.
+    fn taps(&self) -> usize {
+        self.c_in * self.kernel[0] * self.kernel[1]
+    }
+
+    /// For output column `ox` reading tap `kx`: the range of `ox` whose input column is inside the image, and
+    /// the input column of its first element.
+    fn valid_columns(&self, kx: usize) -> (std::ops::Range<usize>, usize) {
+        let (w, pad) = (self.width, self.padding[1]);
+        let lo = pad.saturating_sub(kx);
+        let hi = (w + pad).saturating_sub(kx).min(w);
+        (lo..hi.max(lo), lo + kx - pad)
+    }
+
+    /// `col[(c, ky, kx)][(oy, ox)] = x[c][oy + ky − pad][ox + kx − pad]` (0 outside) for one sample.
+    fn im2col(&self, x: &[f32], col: &mut [f32]) {
+        let (h, w, hw) = (self.height, self.width, self.positions());
+        let [kh, kw] = self.kernel;
+        for c in 0..self.c_in {
+            let plane = &x[c * hw..(c + 1) * hw];
+            for ky in 0..kh {
+                for kx in 0..kw {
+                    let row = &mut col[((c * kh + ky) * kw + kx) * hw..][..hw];
+                    let (cols, first) = self.valid_columns(kx);
+                    for oy in 0..h {
+                        let dst = &mut row[oy * w..(oy + 1) * w];
+                        let iy = (oy + ky).checked_sub(self.padding[0]).filter(|&iy| iy < h);
+                        match iy {
+                            Some(iy) => {
+                                dst[..cols.start].fill(0.0);
+                                dst[cols.end..].fill(0.0);
+                                dst[cols.clone()]
+                                    .copy_from_slice(&plane[iy * w + first..][..cols.len()]);
+                            }
+                            None => dst.fill(0.0),
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// The adjoint of [`Self::im2col`]: `dx[c][iy][ix] += col[(c, ky, kx)][(oy, ox)]`; `dx` starts at zero.
+    fn col2im(&self, col: &[f32], dx: &mut [f32]) {
+        let (h, w, hw) = (self.height, self.width, self.positions());
+        let [kh, kw] = self.kernel;
+        for c in 0..self.c_in {
+            let plane = &mut dx[c * hw..(c + 1) * hw];
+            for ky in 0..kh {
+                for kx in 0..kw {
+                    let row = &col[((c * kh + ky) * kw + kx) * hw..][..hw];
+                    let (cols, first) = self.valid_columns(kx);
+                    for oy in 0..h {
+                        let Some(iy) = (oy + ky).checked_sub(self.padding[0]).filter(|&iy| iy < h)
+                        else {
+                            continue;
+                        };
+                        let src = &row[oy * w + cols.start..oy * w + cols.end];
+                        let dst = &mut plane[iy * w + first..][..cols.len()];
+                        dst.iter_mut().zip(src).for_each(|(d, s)| *d += s);
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// `dst (m × n) = [dst +] lhs (m × k) · rhs (k × n)`, each matrix given as (row stride, column stride).
+#[allow(clippy::too_many_arguments)]
+fn matmul(
+    [m, n, k]: [usize; 3],
+    dst: &mut [f32],
+    dst_strides: [usize; 2],
+    accumulate: bool,
+    lhs: &[f32],
+    lhs_strides: [usize; 2],
+    rhs: &[f32],
+    rhs_strides: [usize; 2],
+) {
+    let last = |[rs, cs]: [usize; 2], rows: usize, cols: usize| {
+        (rows.max(1) - 1) * rs + (cols.max(1) - 1) * cs
+    };
+    assert!(
+        last(dst_strides, m, n) < dst.len().max(1)
+            && last(lhs_strides, m, k) < lhs.len().max(1)
+            && last(rhs_strides, k, n) < rhs.len().max(1),
+        "matmul operands out of bounds"
+    );
+    // SAFETY: the assertion above keeps every element gemm touches inside the three slices, and `dst` is
+    // borrowed mutably, so it aliases neither operand.
+    unsafe {
+        gemm::gemm(
+            m,
+            n,
+            k,
+            dst.as_mut_ptr(),
+            dst_strides[1] as isize,
+            dst_strides[0] as isize,
+            accumulate,
+            lhs.as_ptr(),
+            lhs_strides[1] as isize,
+            lhs_strides[0] as isize,
+            rhs.as_ptr(),
+            rhs_strides[1] as isize,
+            rhs_strides[0] as isize,
+            1.0,
+            1.0,
+            false,
+            false,
+            false,
+            gemm::Parallelism::None,
+        );
+    }
+}
+
+pub fn conv2d(
+    x: FloatTensor<Flex>,
+    weight: FloatTensor<Flex>,
+    bias: Option<FloatTensor<Flex>>,
+    options: ConvOptions<2>,
+) -> FloatTensor<Flex> {
+    use burn::tensor::ops::ModuleOps;
+    <Flex as ModuleOps<Flex>>::conv2d(x, weight, bias, options)
+}
+
+pub fn conv2d_x_grad(
+    x: FloatTensor<Flex>,
+    weight: FloatTensor<Flex>,
+    output_grad: FloatTensor<Flex>,
+    options: ConvOptions<2>,
+) -> FloatTensor<Flex> {
+    use burn::tensor::ops::ModuleOps;
+    let prepared = (f32_data(&x), f32_data(&weight), f32_data(&output_grad));
+    let (Some((_, x_shape)), Some((weight, w_shape)), Some((dy, _))) = prepared else {
+        return <Flex as ModuleOps<Flex>>::conv2d_x_backward(x, weight, output_grad, options);
+    };
+    let Some(s) = ConvShape::new(&x_shape, &w_shape, &options) else {
+        return <Flex as ModuleOps<Flex>>::conv2d_x_backward(x, weight, output_grad, options);
+    };
+    let (w, dy) = (slice(&weight), slice(&dy));
+    let (hw, taps, plane_in, plane_out) = (
+        s.positions(),
+        s.taps(),
+        s.c_in * s.positions(),
+        s.c_out * s.positions(),
+    );
+    let mut dx = vec![0.0f32; s.batch * plane_in];
+    dx.par_chunks_mut(plane_in)
+        .zip(dy.par_chunks(plane_out))
+        .for_each_init(
+            || vec![0.0f32; taps * hw],
+            |col, (dx, dy)| {
+                // col (taps × hw) = Wᵀ (taps × c_out) · ∂Y (c_out × hw)
+                matmul(
+                    [taps, hw, s.c_out],
+                    col,
+                    [hw, 1],
+                    false,
+                    w,
+                    [1, taps],
+                    dy,
+                    [hw, 1],
+                );
+                s.col2im(col, dx);
+            },
+        );
+    from_vec(dx, &x_shape)
+}
+
+pub fn conv2d_weight_grad(
+    x: FloatTensor<Flex>,
+    weight: FloatTensor<Flex>,
+    output_grad: FloatTensor<Flex>,
+    options: ConvOptions<2>,
+) -> FloatTensor<Flex> {
+    use burn::tensor::ops::ModuleOps;
+    let prepared = (f32_data(&x), f32_data(&weight), f32_data(&output_grad));
+    let (Some((xc, x_shape)), Some((_, w_shape)), Some((dy, _))) = prepared else {
+        return <Flex as ModuleOps<Flex>>::conv2d_weight_backward(x, weight, output_grad, options);
+    };
+    let Some(s) = ConvShape::new(&x_shape, &w_shape, &options) else {
+        return <Flex as ModuleOps<Flex>>::conv2d_weight_backward(x, weight, output_grad, options);
+    };
+    let (xs, dy) = (slice(&xc), slice(&dy));
+    let (hw, taps, plane_in, plane_out) = (
+        s.positions(),
+        s.taps(),
+        s.c_in * s.positions(),
+        s.c_out * s.positions(),
+    );
+    let dw = xs
+        .par_chunks(plane_in)
+        .zip(dy.par_chunks(plane_out))
+        .fold(
+            || (vec![0.0f32; taps * hw], vec![0.0f32; s.c_out * taps]),
+            |(mut col, mut dw), (x, dy)| {
+                s.im2col(x, &mut col);
+                // ∂W (c_out × taps) += ∂Y (c_out × hw) · colᵀ (hw × taps)
+                matmul(
+                    [s.c_out, taps, hw],
+                    &mut dw,
+                    [taps, 1],
+                    true,
+                    dy,
+                    [hw, 1],
+                    &col,
+                    [1, hw],
+                );
+                (col, dw)
+            },
+        )
+        .map(|(_, dw)| dw)
+        .reduce(
+            || vec![0.0f32; s.c_out * taps],
+            |mut a, b| {
+                a.iter_mut().zip(&b).for_each(|(a, b)| *a += b);
+                a
+            },
+        );
+    from_vec(dw, &w_shape)
+}
+
+/// Per-channel sums of `[N, C, ...]` as `[C]` (f64 accumulation).
+pub fn channel_sums(t: FloatTensor<Flex>) -> FloatTensor<Flex> {
+    let Some((tc, shape)) = f32_data(&t) else {
+        return reference::channel_sums::<Flex>(t);
+    };
+    let (c, plane) = (shape[1], shape[2..].iter().product::<usize>());
+    let values = slice(&tc);
+    let sums: Vec<f32> = (0..c)
+        .into_par_iter()
+        .map(|k| {
+            values
+                .chunks(plane)
+                .skip(k)
+                .step_by(c)
+                .map(|p| p.iter().map(|&v| v as f64).sum::<f64>())
+                .sum::<f64>() as f32
+        })
+        .collect();
+    from_vec(sums, &[c])
+}
+
+/// Per-channel mean and biased variance of contiguous `[N, C, plane]` data (two passes, f64 sums).
+fn channel_stats(values: &[f32], c: usize, plane: usize) -> Vec<(f64, f64)> {
+    let count = (values.len() / plane.max(1)) as f64 / c as f64 * plane as f64;
+    (0..c)
+        .into_par_iter()
+        .map(|k| {
+            let planes = || values.chunks(plane).skip(k).step_by(c);
+            let mean = planes()
+                .map(|p| p.iter().map(|&v| v as f64).sum::<f64>())
+                .sum::<f64>()
+                / count;
+            let var = planes()
+                .map(|p| p.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>())
+                .sum::<f64>()
+                / count;
+            (mean, var)
+        })
+        .collect()
+}
+
+pub fn batch_norm_leaky_relu(
+    x: FloatTensor<Flex>,
+    gamma: FloatTensor<Flex>,
+    beta: FloatTensor<Flex>,
+    epsilon: f64,
+    slope: f64,
+) -> NormOutput<Flex> {
+    let prepared = (f32_data(&x), f32_data(&gamma), f32_data(&beta));
+    let (Some((xc, shape)), Some((gamma_c, _)), Some((beta_c, _))) = prepared else {
+        return reference::batch_norm_leaky_relu::<Flex>(x, gamma, beta, epsilon, slope);
+    };
+    let (c, plane) = (shape[1], shape[2..].iter().product::<usize>());
+    let values = slice(&xc);
+    let stats = channel_stats(values, c, plane);
+    let (gamma, beta) = (slice(&gamma_c), slice(&beta_c));
+    // y = LeakyReLU(scale·x + shift) with scale = γ/σ, shift = β − μ·scale.
+    let affine: Vec<(f32, f32)> = stats
+        .iter()
+        .enumerate()
+        .map(|(k, &(mean, var))| {
+            let scale = gamma[k] as f64 / (var + epsilon).sqrt();
+            (scale as f32, (beta[k] as f64 - mean * scale) as f32)
+        })
+        .collect();
+    let slope = slope as f32;
+    let mut out = vec![0.0f32; values.len()];
+    out.par_chunks_mut(plane)
+        .zip(values.par_chunks(plane))
+        .enumerate()
+        .for_each(|(p, (y, x))| {
+            let (scale, shift) = affine[p % c];
+            y.iter_mut().zip(x).for_each(|(y, &x)| {
+                let z = scale * x + shift;
+                *y = if z < 0.0 { slope * z } else { z };
+            });
+        });
+    NormOutput {
+        output: from_vec(out, &shape),
+        mean: from_vec(stats.iter().map(|s| s.0 as f32).collect(), &[c]),
+        var: from_vec(stats.iter().map(|s| s.1 as f32).collect(), &[c]),
+    }
+}
+
+#[allow(clippy::too_many_arguments)]
+pub fn batch_norm_leaky_relu_backward(
+    x: FloatTensor<Flex>,
+    gamma: FloatTensor<Flex>,
+    mean: FloatTensor<Flex>,
+    var: FloatTensor<Flex>,
+    output: FloatTensor<Flex>,
+    output_grad: FloatTensor<Flex>,
+    epsilon: f64,
+    slope: f64,
+) -> NormGrads<Flex> {
+    let prepared = [&x, &gamma, &mean, &var, &output, &output_grad].map(f32_data);
+    let [Some((xc, shape)), Some((gamma_c, _)), Some((mean_c, _)), Some((var_c, _)), Some((out_c, _)), Some((dy_c, _))] =
+        prepared
+    else {
+        return reference::batch_norm_leaky_relu_backward::<Flex>(
+            x,
+            gamma,
+            mean,
+            var,
+            output,
+            output_grad,
+            epsilon,
+            slope,
+        );
+    };
+    let (c, plane) = (shape[1], shape[2..].iter().product::<usize>());
+    let (xs, ys, dys) = (slice(&xc), slice(&out_c), slice(&dy_c));
+    let (gamma, mean, var) = (slice(&gamma_c), slice(&mean_c), slice(&var_c));
+    let inv_std: Vec<f64> = var
+        .iter()
+        .map(|&v| 1.0 / (v as f64 + epsilon).sqrt())
+        .collect();
+    let dz = |y: f32, dy: f32| if y < 0.0 { dy * slope as f32 } else { dy };
+    // Σg and Σg·x̂ per channel.
+    let sums: Vec<(f64, f64)> = (0..c)
+        .into_par_iter()
+        .map(|k| {
+            let (m, s) = (mean[k] as f64, inv_std[k]);
+            let (mut d_beta, mut d_gamma) = (0.0f64, 0.0f64);
+            for p in (k..xs.len() / plane).step_by(c) {
+                let r = p * plane..(p + 1) * plane;
+                for ((&x, &y), &dy) in xs[r.clone()].iter().zip(&ys[r.clone()]).zip(&dys[r]) {
+                    let g = dz(y, dy) as f64;
+                    d_beta += g;
+                    d_gamma += g * (x as f64 - m) * s;
+                }
+            }
+            (d_beta, d_gamma)
+        })
+        .collect();
+    let count = (xs.len() / c) as f64;
+    let mut dx = vec![0.0f32; xs.len()];
+    dx.par_chunks_mut(plane).enumerate().for_each(|(p, dx)| {
+        let k = p % c;
+        let r = p * plane..(p + 1) * plane;
+        let (d_beta, d_gamma) = sums[k];
+        let s = inv_std[k];
+        // ∂x = γσ⁻¹ (g − mean(g) − x̂·mean(g·x̂))
+        let a = (gamma[k] as f64 * s) as f32;
+        let b = (d_beta / count) as f32;
+        let e = (d_gamma / count * s) as f32;
+        let m = mean[k];
+        for ((dx, &x), (&y, &dy)) in dx
+            .iter_mut()
+            .zip(&xs[r.clone()])
+            .zip(ys[r.clone()].iter().zip(&dys[r]))
+        {
+            *dx = a * (dz(y, dy) - b - (x - m) * e);
+        }
+    });
+    NormGrads {
+        x: from_vec(dx, &shape),
+        gamma: from_vec(sums.iter().map(|s| s.1 as f32).collect(), &[c]),
+        beta: from_vec(sums.iter().map(|s| s.0 as f32).collect(), &[c]),
+    }
+}

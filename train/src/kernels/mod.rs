@@ -1,0 +1,262 @@
+//! The U-Net's hot operations as one backend extension, [`TrainOps`]: a convolution whose backward pass the
+//! backend chooses, and a training-mode BatchNorm fused with the LeakyReLU that follows it everywhere in the
+//! network, with an analytic backward pass.
+//!
+//! Why: written as stock tensor operations, BatchNorm's statistics and its autodiff graph (swap_dims, reshape,
+//! broadcast sub/div/mul and their broadcast-reducing backward passes) and the stock convolution backward
+//! (a 128 × 128-kernel convolution over swapped dims for the weight gradient) cost most of a CPU train step in
+//! strided copies rather than arithmetic (`docs/performance.md` has the profile). Here:
+//! - [`mod@autodiff`] implements the trait for `Autodiff<B>`: forward on the inner backend, one graph node per
+//!   operation, and a backward pass that calls the inner backend's gradient kernels;
+//! - [`cpu`] implements it for Flex with contiguous f32 kernels (im2col + gemm, one pass per channel);
+//! - every other backend (CUDA) takes the trait's defaults: stock Burn operations, the same math.
+//!
+//! The model calls [`conv2d`] and [`batch_norm_leaky_relu`] on Burn's own `Conv2d` and `BatchNorm` modules, so
+//! parameters, running statistics and checkpoints are exactly Burn's. Tests hold every kernel to the stock
+//! operations and Burn's autodiff (values, gradients, running statistics).
+
+mod autodiff;
+mod cpu;
+pub mod reference;
+
+use burn::nn::conv::Conv2d;
+use burn::nn::{BatchNorm, PaddingConfig2d};
+use burn::prelude::*;
+use burn::tensor::backend::AutodiffBackend;
+use burn::tensor::ops::{ConvOptions, FloatTensor};
+use burn::tensor::TensorPrimitive;
+
+/// Output of the fused training-mode BatchNorm + LeakyReLU: the activation and the batch statistics that update
+/// the running ones (`var` biased, as Burn's BatchNorm uses it for both normalisation and running variance).
+#[derive(Debug, Clone)]
+pub struct NormOutput<B: Backend> {
+    /// `[N, C, H, W]`.
+    pub output: FloatTensor<B>,
+    /// `[C]`.
+    pub mean: FloatTensor<B>,
+    /// `[C]`.
+    pub var: FloatTensor<B>,
+}
+
+/// Gradients of the fused BatchNorm + LeakyReLU with respect to its input, scale and shift.
+#[derive(Debug, Clone)]
+pub struct NormGrads<B: Backend> {
+    pub x: FloatTensor<B>,
+    pub gamma: FloatTensor<B>,
+    pub beta: FloatTensor<B>,
+}
+
+/// The train step's hot operations. Defaults are stock Burn operations ([`reference`]); a backend overrides what
+/// it can do faster. Inputs are `[N, C, H, W]`, `gamma`/`beta` `[C]`.
+pub trait TrainOps: Backend {
+    /// Convolution forward (the stock one unless overridden). `Autodiff` makes it a graph node whose backward
+    /// calls the gradient methods below on the inner backend.
+    fn train_conv2d(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        bias: Option<FloatTensor<Self>>,
+        options: ConvOptions<2>,
+    ) -> FloatTensor<Self> {
+        Self::conv2d(x, weight, bias, options)
+    }
+
+    /// ∂L/∂x of a convolution, given ∂L/∂output.
+    fn train_conv2d_x_grad(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        output_grad: FloatTensor<Self>,
+        options: ConvOptions<2>,
+    ) -> FloatTensor<Self> {
+        Self::conv2d_x_backward(x, weight, output_grad, options)
+    }
+
+    /// ∂L/∂weight of a convolution.
+    fn train_conv2d_weight_grad(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        output_grad: FloatTensor<Self>,
+        options: ConvOptions<2>,
+    ) -> FloatTensor<Self> {
+        Self::conv2d_weight_backward(x, weight, output_grad, options)
+    }
+
+    /// ∂L/∂bias of a convolution: the output gradient summed over batch and positions, `[C_out]`.
+    fn train_conv2d_bias_grad(output_grad: FloatTensor<Self>) -> FloatTensor<Self> {
+        reference::channel_sums::<Self>(output_grad)
+    }
+
+    /// Training-mode BatchNorm (batch statistics) followed by LeakyReLU with `slope`.
+    fn batch_norm_leaky_relu(
+        x: FloatTensor<Self>,
+        gamma: FloatTensor<Self>,
+        beta: FloatTensor<Self>,
+        epsilon: f64,
+        slope: f64,
+    ) -> NormOutput<Self> {
+        reference::batch_norm_leaky_relu::<Self>(x, gamma, beta, epsilon, slope)
+    }
+
+    /// Backward of [`TrainOps::batch_norm_leaky_relu`] given the forward's input, output and statistics.
+    #[allow(clippy::too_many_arguments)]
+    fn batch_norm_leaky_relu_backward(
+        x: FloatTensor<Self>,
+        gamma: FloatTensor<Self>,
+        mean: FloatTensor<Self>,
+        var: FloatTensor<Self>,
+        output: FloatTensor<Self>,
+        output_grad: FloatTensor<Self>,
+        epsilon: f64,
+        slope: f64,
+    ) -> NormGrads<Self> {
+        reference::batch_norm_leaky_relu_backward::<Self>(
+            x,
+            gamma,
+            mean,
+            var,
+            output,
+            output_grad,
+            epsilon,
+            slope,
+        )
+    }
+}
+
+impl TrainOps for burn::backend::Flex {
+    fn train_conv2d(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        bias: Option<FloatTensor<Self>>,
+        options: ConvOptions<2>,
+    ) -> FloatTensor<Self> {
+        cpu::conv2d(x, weight, bias, options)
+    }
+
+    fn train_conv2d_x_grad(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        output_grad: FloatTensor<Self>,
+        options: ConvOptions<2>,
+    ) -> FloatTensor<Self> {
+        cpu::conv2d_x_grad(x, weight, output_grad, options)
+    }
+
+    fn train_conv2d_weight_grad(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        output_grad: FloatTensor<Self>,
+        options: ConvOptions<2>,
+    ) -> FloatTensor<Self> {
+        cpu::conv2d_weight_grad(x, weight, output_grad, options)
+    }
+
+    fn train_conv2d_bias_grad(output_grad: FloatTensor<Self>) -> FloatTensor<Self> {
+        cpu::channel_sums(output_grad)
+    }
+
+    fn batch_norm_leaky_relu(
+        x: FloatTensor<Self>,
+        gamma: FloatTensor<Self>,
+        beta: FloatTensor<Self>,
+        epsilon: f64,
+        slope: f64,
+    ) -> NormOutput<Self> {
+        cpu::batch_norm_leaky_relu(x, gamma, beta, epsilon, slope)
+    }
+
+    fn batch_norm_leaky_relu_backward(
+        x: FloatTensor<Self>,
+        gamma: FloatTensor<Self>,
+        mean: FloatTensor<Self>,
+        var: FloatTensor<Self>,
+        output: FloatTensor<Self>,
+        output_grad: FloatTensor<Self>,
+        epsilon: f64,
+        slope: f64,
+    ) -> NormGrads<Self> {
+        cpu::batch_norm_leaky_relu_backward(
+            x,
+            gamma,
+            mean,
+            var,
+            output,
+            output_grad,
+            epsilon,
+            slope,
+        )
+    }
+}
+
+#[cfg(feature = "cuda")]
+impl TrainOps for burn::backend::Cuda {}
+
+/// A backend the trainer can fit on: autodiff with [`TrainOps`] on both the autodiff and the inner backend.
+pub trait TrainBackend: AutodiffBackend<InnerBackend: TrainOps> + TrainOps {}
+
+impl<B: AutodiffBackend<InnerBackend: TrainOps> + TrainOps> TrainBackend for B {}
+
+fn primitive<B: Backend, const D: usize>(t: Tensor<B, D>) -> FloatTensor<B> {
+    t.into_primitive().tensor()
+}
+
+fn tensor<B: Backend, const D: usize>(p: FloatTensor<B>) -> Tensor<B, D> {
+    Tensor::from_primitive(TensorPrimitive::Float(p))
+}
+
+/// `conv.forward(x)` through [`TrainOps::train_conv2d`]. Supports the paddings the network uses: `Valid` and
+/// symmetric `Explicit` (panics on others rather than pad differently from Burn).
+pub fn conv2d<B: TrainOps>(conv: &Conv2d<B>, x: Tensor<B, 4>) -> Tensor<B, 4> {
+    let padding = match conv.padding {
+        PaddingConfig2d::Valid => [0, 0],
+        PaddingConfig2d::Explicit(top, left, bottom, right) if top == bottom && left == right => {
+            [top, left]
+        }
+        ref other => {
+            panic!("kernels::conv2d supports Valid and symmetric Explicit padding, not {other:?}")
+        }
+    };
+    let options = ConvOptions::new(conv.stride, padding, conv.dilation, conv.groups);
+    tensor(B::train_conv2d(
+        primitive(x),
+        primitive(conv.weight.val()),
+        conv.bias.as_ref().map(|b| primitive(b.val())),
+        options,
+    ))
+}
+
+/// `leaky_relu(norm.forward(x), slope)`. When the backend tracks gradients (training), one fused operation with
+/// batch statistics that also updates the running statistics exactly as Burn's `BatchNorm` does; otherwise
+/// (inference) Burn's own running-statistics path.
+pub fn batch_norm_leaky_relu<B: TrainOps>(
+    norm: &BatchNorm<B>,
+    x: Tensor<B, 4>,
+    slope: f64,
+) -> Tensor<B, 4> {
+    let device = x.device();
+    if !B::ad_enabled(&device) {
+        return burn::tensor::activation::leaky_relu(norm.forward(x), slope);
+    }
+    let out = B::batch_norm_leaky_relu(
+        primitive(x),
+        primitive(norm.gamma.val()),
+        primitive(norm.beta.val()),
+        norm.epsilon,
+        slope,
+    );
+    let m = norm.momentum;
+    let update = |state: &burn::module::RunningState<Tensor<B, 1>>, batch: FloatTensor<B>| {
+        let batch = tensor::<B, 1>(batch).detach();
+        let running = state.value_sync().to_device(&device);
+        state.update(
+            running
+                .mul_scalar(1.0 - m)
+                .add(batch.mul_scalar(m))
+                .detach(),
+        );
+    };
+    update(&norm.running_mean, out.mean);
+    update(&norm.running_var, out.var);
+    tensor(out.output)
+}
+
+#[cfg(test)]
+mod tests;

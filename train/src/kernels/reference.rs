@@ -1,0 +1,87 @@
+//! [`super::TrainOps`]'s defaults written with stock Burn tensor operations: the math every backend shares, used
+//! as is where no faster kernel exists (CUDA; CPU tensors that are not f32).
+
+use burn::prelude::*;
+use burn::tensor::activation::leaky_relu;
+use burn::tensor::ops::FloatTensor;
+
+use super::{primitive, tensor, NormGrads, NormOutput};
+
+/// Per-channel mean of `[N, C, H, W]` as `[1, C, 1, 1]`, as Burn's BatchNorm computes it.
+fn channel_mean<B: Backend>(x: Tensor<B, 4>) -> Tensor<B, 4> {
+    let [n, c, h, w] = x.dims();
+    x.swap_dims(0, 1)
+        .reshape([c, n * h * w])
+        .mean_dim(1)
+        .reshape([1, c, 1, 1])
+}
+
+/// Per-channel sum of `[N, C, H, W]` as `[C]`.
+pub fn channel_sums<B: Backend>(x: FloatTensor<B>) -> FloatTensor<B> {
+    let x = tensor::<B, 4>(x);
+    let [n, c, h, w] = x.dims();
+    primitive(
+        x.swap_dims(0, 1)
+            .reshape([c, n * h * w])
+            .sum_dim(1)
+            .reshape([c]),
+    )
+}
+
+pub fn batch_norm_leaky_relu<B: Backend>(
+    x: FloatTensor<B>,
+    gamma: FloatTensor<B>,
+    beta: FloatTensor<B>,
+    epsilon: f64,
+    slope: f64,
+) -> NormOutput<B> {
+    let x = tensor::<B, 4>(x);
+    let c = x.dims()[1];
+    let mean = channel_mean(x.clone());
+    let var = channel_mean((x.clone() - mean.clone()).square());
+    let normalised = (x - mean.clone()) / (var.clone() + epsilon).sqrt();
+    let gamma = tensor::<B, 1>(gamma).reshape([1, c, 1, 1]);
+    let beta = tensor::<B, 1>(beta).reshape([1, c, 1, 1]);
+    NormOutput {
+        output: primitive(leaky_relu(normalised * gamma + beta, slope)),
+        mean: primitive(mean.reshape([c])),
+        var: primitive(var.reshape([c])),
+    }
+}
+
+/// With x̂ = (x − μ)/σ, z = γx̂ + β, y = LeakyReLU(z) and g = ∂L/∂z (z < 0 exactly where y < 0):
+/// ∂L/∂β = Σg, ∂L/∂γ = Σg·x̂, ∂L/∂x = γ/(σM) · (M·g − ∂L/∂β − x̂·∂L/∂γ), M = N·H·W (μ and σ depend on x).
+#[allow(clippy::too_many_arguments)]
+pub fn batch_norm_leaky_relu_backward<B: Backend>(
+    x: FloatTensor<B>,
+    gamma: FloatTensor<B>,
+    mean: FloatTensor<B>,
+    var: FloatTensor<B>,
+    output: FloatTensor<B>,
+    output_grad: FloatTensor<B>,
+    epsilon: f64,
+    slope: f64,
+) -> NormGrads<B> {
+    let x = tensor::<B, 4>(x);
+    let [n, c, h, w] = x.dims();
+    let per_channel = |t: FloatTensor<B>| tensor::<B, 1>(t).reshape([1, c, 1, 1]);
+    let inv_std = (per_channel(var) + epsilon).sqrt().recip();
+    let normalised = (x - per_channel(mean)) * inv_std.clone();
+    let dy = tensor::<B, 4>(output_grad);
+    let negative = tensor::<B, 4>(output).lower_elem(0.0);
+    let dz = dy.clone().mask_where(negative, dy * slope);
+    let d_beta = tensor::<B, 1>(channel_sums::<B>(primitive(dz.clone())));
+    let d_gamma = tensor::<B, 1>(channel_sums::<B>(primitive(
+        dz.clone() * normalised.clone(),
+    )));
+    let count = (n * h * w) as f64;
+    let dx = (dz * count
+        - d_beta.clone().reshape([1, c, 1, 1])
+        - normalised * d_gamma.clone().reshape([1, c, 1, 1]))
+        * (per_channel(gamma) * inv_std / count);
+    NormGrads {
+        x: primitive(dx),
+        gamma: primitive(d_gamma),
+        beta: primitive(d_beta),
+    }
+}

@@ -1,0 +1,185 @@
+//! Every kernel against Burn's stock operations and autodiff: values, all gradients, running statistics.
+
+use burn::backend::{Autodiff, Flex};
+use burn::module::Param;
+use burn::nn::conv::Conv2dConfig;
+use burn::nn::{BatchNormConfig, PaddingConfig2d};
+use burn::prelude::*;
+use burn::tensor::activation::leaky_relu;
+use burn::tensor::Distribution;
+
+use super::*;
+
+type Ad = Autodiff<Flex>;
+
+fn random<const D: usize>(shape: [usize; D], seed: u64) -> Tensor<Ad, D> {
+    Ad::seed(&Default::default(), seed);
+    Tensor::random(shape, Distribution::Normal(0.0, 1.0), &Default::default())
+}
+
+fn values<const D: usize, B: Backend>(t: Tensor<B, D>) -> Vec<f32> {
+    t.into_data().convert::<f32>().into_vec().unwrap()
+}
+
+/// max |a − b| ≤ tol · max(1, max |b|).
+fn assert_close(what: &str, a: Vec<f32>, b: Vec<f32>, tol: f32) {
+    assert_eq!(a.len(), b.len(), "{what}: lengths");
+    let scale = b.iter().fold(1.0f32, |m, v| m.max(v.abs()));
+    let worst = a
+        .iter()
+        .zip(&b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0f32, f32::max);
+    assert!(
+        worst <= tol * scale,
+        "{what}: max difference {worst:e} at scale {scale}"
+    );
+}
+
+/// Fused vs stock BatchNorm + LeakyReLU: forward, ∂x, ∂γ, ∂β (through a random linear loss) and the running
+/// statistics after two steps, on a shape whose planes are not a SIMD multiple.
+#[test]
+fn fused_batch_norm_matches_stock_batch_norm_and_autodiff() {
+    let device = Default::default();
+    let (shape, slope) = ([3, 5, 7, 9], 0.01);
+    let weights = random(shape, 2);
+    let run = |fused: bool| {
+        let mut norm = BatchNormConfig::new(shape[1]).init::<Ad>(&device);
+        norm.gamma = Param::from_tensor((random([shape[1]], 3) * 0.3 + 1.0).detach());
+        norm.beta = Param::from_tensor((random([shape[1]], 4) * 0.5).detach());
+        let mut grads_out = Vec::new();
+        let mut outputs = Vec::new();
+        for step in 0..2u64 {
+            let x = (random(shape, 10 + step) * 2.0 + 0.7).require_grad();
+            let y = if fused {
+                batch_norm_leaky_relu(&norm, x.clone(), slope)
+            } else {
+                leaky_relu(norm.forward(x.clone()), slope)
+            };
+            let grads = (y.clone() * weights.clone()).sum().backward();
+            outputs.push(values(y));
+            grads_out.push((
+                values(x.grad(&grads).unwrap()),
+                values(norm.gamma.grad(&grads).unwrap()),
+                values(norm.beta.grad(&grads).unwrap()),
+            ));
+        }
+        let stats = (
+            values(norm.running_mean.value()),
+            values(norm.running_var.value()),
+        );
+        (outputs, grads_out, stats)
+    };
+    let (fused, stock) = (run(true), run(false));
+    for step in 0..2 {
+        assert_close("output", fused.0[step].clone(), stock.0[step].clone(), 1e-5);
+        assert_close("dx", fused.1[step].0.clone(), stock.1[step].0.clone(), 1e-4);
+        assert_close(
+            "dgamma",
+            fused.1[step].1.clone(),
+            stock.1[step].1.clone(),
+            1e-4,
+        );
+        assert_close(
+            "dbeta",
+            fused.1[step].2.clone(),
+            stock.1[step].2.clone(),
+            1e-5,
+        );
+    }
+    assert_close("running mean", fused.2 .0, stock.2 .0, 1e-6);
+    assert_close("running var", fused.2 .1, stock.2 .1, 1e-5);
+}
+
+/// The stock-op defaults (what CUDA runs) against Burn's autodiff of the stock module.
+#[test]
+fn reference_batch_norm_backward_matches_autodiff() {
+    let device = Default::default();
+    let (shape, slope, eps) = ([2, 3, 6, 5], 0.01, 1e-5);
+    let x = (random(shape, 20) * 1.5 - 0.2).require_grad();
+    let weights = random(shape, 21);
+    let norm = BatchNormConfig::new(shape[1]).init::<Ad>(&device);
+    let y = leaky_relu(norm.forward(x.clone()), slope);
+    let grads = (y.clone() * weights.clone()).sum().backward();
+    let inner = |t: Tensor<Ad, 4>| primitive(t.inner());
+    let out = reference::batch_norm_leaky_relu::<Flex>(
+        inner(x.clone()),
+        primitive(norm.gamma.val().inner()),
+        primitive(norm.beta.val().inner()),
+        eps,
+        slope,
+    );
+    assert_close(
+        "output",
+        values(tensor::<Flex, 4>(out.output.clone())),
+        values(y),
+        1e-5,
+    );
+    let g = reference::batch_norm_leaky_relu_backward::<Flex>(
+        inner(x.clone()),
+        primitive(norm.gamma.val().inner()),
+        out.mean,
+        out.var,
+        out.output,
+        inner(weights),
+        eps,
+        slope,
+    );
+    assert_close(
+        "dx",
+        values(tensor::<Flex, 4>(g.x)),
+        values(x.grad(&grads).unwrap()),
+        1e-4,
+    );
+    assert_close(
+        "dgamma",
+        values(tensor::<Flex, 1>(g.gamma)),
+        values(norm.gamma.grad(&grads).unwrap()),
+        1e-4,
+    );
+}
+
+/// Conv through [`TrainOps`] against the stock convolution and its autodiff: output, ∂x, ∂W, ∂b, for the
+/// network's 3×3 (padding 1) and 1×1 convolutions and a 5×5 with padding 2, on odd plane sizes.
+#[test]
+fn train_conv2d_matches_stock_conv_and_autodiff() {
+    let device = Default::default();
+    for (kernel, padding, c_in, c_out, bias) in [
+        (3, 1, 4, 6, true),
+        (1, 0, 5, 3, true),
+        (5, 2, 2, 3, false),
+        (3, 1, 1, 8, true),
+    ] {
+        let shape = [3, c_in, 11, 13];
+        let conv = Conv2dConfig::new([c_in, c_out], [kernel, kernel])
+            .with_padding(PaddingConfig2d::Explicit(
+                padding, padding, padding, padding,
+            ))
+            .with_bias(bias)
+            .init::<Ad>(&device);
+        let weights = random([3, c_out, 11, 13], 31);
+        let run = |fused: bool| {
+            let x = random(shape, 30).require_grad();
+            let y = if fused {
+                conv2d(&conv, x.clone())
+            } else {
+                conv.forward(x.clone())
+            };
+            let grads = (y.clone() * weights.clone()).sum().backward();
+            (
+                values(y),
+                values(x.grad(&grads).unwrap()),
+                values(conv.weight.grad(&grads).unwrap()),
+                conv.bias.as_ref().map(|b| values(b.grad(&grads).unwrap())),
+            )
+        };
+        let (fused, stock) = (run(true), run(false));
+        let what = format!("{kernel}x{kernel} conv");
+        assert_close(&format!("{what} output"), fused.0, stock.0, 1e-5);
+        assert_close(&format!("{what} dx"), fused.1, stock.1, 1e-5);
+        assert_close(&format!("{what} dW"), fused.2, stock.2, 1e-5);
+        if let (Some(a), Some(b)) = (fused.3, stock.3) {
+            assert_close(&format!("{what} db"), a, b, 1e-5);
+        }
+    }
+}
