@@ -185,6 +185,12 @@ pub struct BenchReport {
     pub train_step_ms: f64,
     pub layer_samples_per_s: f64,
     pub layer_ms: f64,
+    /// The train step's phases, ms per step: network + renderer + loss forward, backward, Adam.
+    pub forward_ms: f64,
+    pub backward_ms: f64,
+    pub optimizer_ms: f64,
+    /// Time per step inside each CPU kernel (forward and backward; empty timings on other backends).
+    pub kernels: Vec<crate::kernels::profile::KernelTime>,
 }
 
 /// Time `iters` steps after one warm-up step.
@@ -204,17 +210,41 @@ pub fn bench<B: TrainBackend>(
     let mut optim = AdamConfig::new()
         .with_epsilon(1e-8)
         .init::<B, crate::model::UNet<B>>();
-    let mut step = |net: crate::model::UNet<B>| {
+    // Forward, backward and optimizer phases timed apart; kernel totals from `kernels::profile` (CPU only).
+    let mut phases = [0.0f64; 3];
+    let mut step = |net: crate::model::UNet<B>, phases: &mut [f64; 3]| {
+        let t = Instant::now();
         let loss = train_loss(&net, model, &batch, device);
+        let t_forward = t.elapsed().as_secs_f64();
         let grads = GradientsParams::from_grads(loss.backward(), &net);
-        optim.step(1e-4, net, grads)
+        let t_backward = t.elapsed().as_secs_f64();
+        let net = optim.step(1e-4, net, grads);
+        let t_step = t.elapsed().as_secs_f64();
+        for (total, span) in phases
+            .iter_mut()
+            .zip([t_forward, t_backward - t_forward, t_step - t_backward])
+        {
+            *total += span;
+        }
+        net
     };
-    net = step(net);
+    net = step(net, &mut [0.0; 3]);
+    crate::kernels::profile::reset(true);
     let t = Instant::now();
     for _ in 0..iters {
-        net = step(net);
+        net = step(net, &mut phases);
     }
     let train_s = t.elapsed().as_secs_f64() / iters as f64;
+    let kernels = crate::kernels::profile::totals()
+        .into_iter()
+        .map(|mut k| {
+            k.ms /= iters as f64;
+            k.calls /= iters as u64;
+            k
+        })
+        .collect();
+    crate::kernels::profile::reset(false);
+    let [forward_ms, backward_ms, optimizer_ms] = phases.map(|s| s * 1e3 / iters as f64);
 
     // Layer alone: geometry + render + loss, backward to the parameter maps.
     let n = batch.len();
@@ -256,5 +286,9 @@ pub fn bench<B: TrainBackend>(
         train_step_ms: train_s * 1e3,
         layer_samples_per_s: batch_size as f64 / layer_s,
         layer_ms: layer_s * 1e3,
+        forward_ms,
+        backward_ms,
+        optimizer_ms,
+        kernels,
     }
 }

@@ -88,6 +88,21 @@ impl ConvShape {
         (lo..hi.max(lo), lo + kx - pad)
     }
 
+    /// A 1×1 convolution without padding: its im2col matrix is the input itself.
+    fn is_pointwise(&self) -> bool {
+        self.kernel == [1, 1] && self.padding == [0, 0]
+    }
+
+    /// The im2col matrix of one sample: the input itself for a pointwise convolution, else built in `buffer`.
+    fn columns<'a>(&self, x: &'a [f32], buffer: &'a mut [f32]) -> &'a [f32] {
+        if self.is_pointwise() {
+            x
+        } else {
+            self.im2col(x, buffer);
+            buffer
+        }
+    }
+
     /// `col[(c, ky, kx)][(oy, ox)] = x[c][oy + ky − pad][ox + kx − pad]` (0 outside) for one sample.
     fn im2col(&self, x: &[f32], col: &mut [f32]) {
         let (h, w, hw) = (self.height, self.width, self.positions());
@@ -196,7 +211,54 @@ pub fn conv2d(
     options: ConvOptions<2>,
 ) -> FloatTensor<Flex> {
     use burn::tensor::ops::ModuleOps;
-    <Flex as ModuleOps<Flex>>::conv2d(x, weight, bias, options)
+    let bias_data = bias.as_ref().map(f32_data);
+    let prepared = (f32_data(&x), f32_data(&weight), bias_data.clone().unwrap_or(None));
+    let supported = match &prepared {
+        (Some((_, xs)), Some((_, ws)), b) => {
+            (bias.is_none() || b.is_some()) && ConvShape::new(xs, ws, &options).is_some()
+        }
+        _ => false,
+    };
+    let (Some((xc, x_shape)), Some((wc, w_shape)), bias_c) = prepared else {
+        return <Flex as ModuleOps<Flex>>::conv2d(x, weight, bias, options);
+    };
+    let s = match ConvShape::new(&x_shape, &w_shape, &options) {
+        Some(s) if supported => s,
+        _ => return <Flex as ModuleOps<Flex>>::conv2d(x, weight, bias, options),
+    };
+    let (xs, w) = (slice(&xc), slice(&wc));
+    let bias = bias_c.as_ref().map(|(b, _)| slice(b));
+    let (hw, taps, plane_in, plane_out) = (
+        s.positions(),
+        s.taps(),
+        s.c_in * s.positions(),
+        s.c_out * s.positions(),
+    );
+    let mut y = vec![0.0f32; s.batch * plane_out];
+    y.par_chunks_mut(plane_out)
+        .zip(xs.par_chunks(plane_in))
+        .for_each_init(
+            || vec![0.0f32; if s.is_pointwise() { 0 } else { taps * hw }],
+            |buffer, (y, x)| {
+                if let Some(bias) = bias {
+                    y.chunks_mut(hw)
+                        .zip(bias)
+                        .for_each(|(plane, &b)| plane.fill(b));
+                }
+                // Y (c_out × hw) [+]= W (c_out × taps) · col (taps × hw)
+                matmul(
+                    [s.c_out, hw, taps],
+                    y,
+                    [hw, 1],
+                    bias.is_some(),
+                    w,
+                    [taps, 1],
+                    s.columns(x, buffer),
+                    [hw, 1],
+                );
+            },
+        );
+    from_vec(y, &[s.batch, s.c_out, s.height, s.width])
 }
 
 pub fn conv2d_x_grad(
@@ -268,9 +330,12 @@ pub fn conv2d_weight_grad(
         .par_chunks(plane_in)
         .zip(dy.par_chunks(plane_out))
         .fold(
-            || (vec![0.0f32; taps * hw], vec![0.0f32; s.c_out * taps]),
-            |(mut col, mut dw), (x, dy)| {
-                s.im2col(x, &mut col);
+            || {
+                let buffer = vec![0.0f32; if s.is_pointwise() { 0 } else { taps * hw }];
+                (buffer, vec![0.0f32; s.c_out * taps])
+            },
+            |(mut buffer, mut dw), (x, dy)| {
+                let col = s.columns(x, &mut buffer);
                 // ∂W (c_out × taps) += ∂Y (c_out × hw) · colᵀ (hw × taps)
                 matmul(
                     [s.c_out, taps, hw],
@@ -279,10 +344,10 @@ pub fn conv2d_weight_grad(
                     true,
                     dy,
                     [hw, 1],
-                    &col,
+                    col,
                     [1, hw],
                 );
-                (col, dw)
+                (buffer, dw)
             },
         )
         .map(|(_, dw)| dw)

@@ -17,6 +17,7 @@
 
 mod autodiff;
 mod cpu;
+pub mod profile;
 pub mod reference;
 
 use burn::nn::conv::Conv2d;
@@ -25,6 +26,7 @@ use burn::prelude::*;
 use burn::tensor::backend::AutodiffBackend;
 use burn::tensor::ops::{ConvOptions, FloatTensor};
 use burn::tensor::TensorPrimitive;
+use profile::{timed, Kernel};
 
 /// Output of the fused training-mode BatchNorm + LeakyReLU: the activation and the batch statistics that update
 /// the running ones (`var` biased, as Burn's BatchNorm uses it for both normalisation and running variance).
@@ -128,7 +130,7 @@ impl TrainOps for burn::backend::Flex {
         bias: Option<FloatTensor<Self>>,
         options: ConvOptions<2>,
     ) -> FloatTensor<Self> {
-        cpu::conv2d(x, weight, bias, options)
+        timed(Kernel::ConvForward, || cpu::conv2d(x, weight, bias, options))
     }
 
     fn train_conv2d_x_grad(
@@ -137,7 +139,9 @@ impl TrainOps for burn::backend::Flex {
         output_grad: FloatTensor<Self>,
         options: ConvOptions<2>,
     ) -> FloatTensor<Self> {
-        cpu::conv2d_x_grad(x, weight, output_grad, options)
+        timed(Kernel::ConvInputGrad, || {
+            cpu::conv2d_x_grad(x, weight, output_grad, options)
+        })
     }
 
     fn train_conv2d_weight_grad(
@@ -146,11 +150,13 @@ impl TrainOps for burn::backend::Flex {
         output_grad: FloatTensor<Self>,
         options: ConvOptions<2>,
     ) -> FloatTensor<Self> {
-        cpu::conv2d_weight_grad(x, weight, output_grad, options)
+        timed(Kernel::ConvWeightGrad, || {
+            cpu::conv2d_weight_grad(x, weight, output_grad, options)
+        })
     }
 
     fn train_conv2d_bias_grad(output_grad: FloatTensor<Self>) -> FloatTensor<Self> {
-        cpu::channel_sums(output_grad)
+        timed(Kernel::ConvBiasGrad, || cpu::channel_sums(output_grad))
     }
 
     fn batch_norm_leaky_relu(
@@ -160,7 +166,9 @@ impl TrainOps for burn::backend::Flex {
         epsilon: f64,
         slope: f64,
     ) -> NormOutput<Self> {
-        cpu::batch_norm_leaky_relu(x, gamma, beta, epsilon, slope)
+        timed(Kernel::NormForward, || {
+            cpu::batch_norm_leaky_relu(x, gamma, beta, epsilon, slope)
+        })
     }
 
     fn batch_norm_leaky_relu_backward(
@@ -173,16 +181,18 @@ impl TrainOps for burn::backend::Flex {
         epsilon: f64,
         slope: f64,
     ) -> NormGrads<Self> {
-        cpu::batch_norm_leaky_relu_backward(
-            x,
-            gamma,
-            mean,
-            var,
-            output,
-            output_grad,
-            epsilon,
-            slope,
-        )
+        timed(Kernel::NormBackward, || {
+            cpu::batch_norm_leaky_relu_backward(
+                x,
+                gamma,
+                mean,
+                var,
+                output,
+                output_grad,
+                epsilon,
+                slope,
+            )
+        })
     }
 }
 

@@ -1,0 +1,75 @@
+//! Wall time spent in each CPU kernel, summed over calls while profiling is on: the per-operation breakdown
+//! `g2r-train bench` prints. Off by default (one relaxed atomic load per call); CPU kernels only, because Flex runs
+//! synchronously and a wall-clock span there is the operation's cost.
+
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::time::Instant;
+
+/// The timed kernels.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Kernel {
+    ConvForward,
+    ConvInputGrad,
+    ConvWeightGrad,
+    ConvBiasGrad,
+    NormForward,
+    NormBackward,
+}
+
+impl Kernel {
+    pub const ALL: [Kernel; 6] = [
+        Kernel::ConvForward,
+        Kernel::ConvInputGrad,
+        Kernel::ConvWeightGrad,
+        Kernel::ConvBiasGrad,
+        Kernel::NormForward,
+        Kernel::NormBackward,
+    ];
+}
+
+static ENABLED: AtomicBool = AtomicBool::new(false);
+static NANOS: [AtomicU64; 6] = [const { AtomicU64::new(0) }; 6];
+static CALLS: [AtomicU64; 6] = [const { AtomicU64::new(0) }; 6];
+
+/// Run `f`, adding its wall time to `kernel`'s total when profiling is on.
+pub fn timed<T>(kernel: Kernel, f: impl FnOnce() -> T) -> T {
+    if !ENABLED.load(Ordering::Relaxed) {
+        return f();
+    }
+    let start = Instant::now();
+    let out = f();
+    let k = kernel as usize;
+    NANOS[k].fetch_add(start.elapsed().as_nanos() as u64, Ordering::Relaxed);
+    CALLS[k].fetch_add(1, Ordering::Relaxed);
+    out
+}
+
+/// Zero the totals and switch profiling on or off.
+pub fn reset(enabled: bool) {
+    for k in 0..Kernel::ALL.len() {
+        NANOS[k].store(0, Ordering::Relaxed);
+        CALLS[k].store(0, Ordering::Relaxed);
+    }
+    ENABLED.store(enabled, Ordering::Relaxed);
+}
+
+/// One kernel's total since the last [`reset`].
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct KernelTime {
+    pub kernel: Kernel,
+    pub calls: u64,
+    pub ms: f64,
+}
+
+/// Totals since the last [`reset`], in [`Kernel::ALL`] order.
+pub fn totals() -> Vec<KernelTime> {
+    Kernel::ALL
+        .iter()
+        .map(|&kernel| KernelTime {
+            kernel,
+            calls: CALLS[kernel as usize].load(Ordering::Relaxed),
+            ms: NANOS[kernel as usize].load(Ordering::Relaxed) as f64 * 1e-6,
+        })
+        .collect()
+}
