@@ -126,6 +126,11 @@ impl BrdfModel {
         }
     }
 
+    /// Whether [`Self::terms`] reads the half-angle cosines (M6 only), so callers may skip building them.
+    pub fn uses_half_diff(self) -> bool {
+        self == Self::M6
+    }
+
     /// The geometric terms (the basis functions) for this geometry, in parameter order.
     pub fn terms(self, c: &Cosines, hd: &HalfDiffCosines) -> [f64; 4] {
         match self {

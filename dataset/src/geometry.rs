@@ -119,27 +119,40 @@ pub fn crop_pixel_geometry(
     sun_dir_enu: DVec3,
     camera_pos_enu: DVec3,
 ) -> Vec<PixelGeometry> {
+    crop_pixel_frames(relative_heights_with_apron, n, grid, camera_pos_enu)
+        .map(|(normal, view_dir)| PixelGeometry {
+            cosines: Cosines::new(normal, sun_dir_enu, view_dir),
+            half_diff: HalfDiffCosines::new(normal, sun_dir_enu, view_dir),
+        })
+        .collect()
+}
+
+/// The unit normal and the unit view direction (surface → camera) of every pixel of an `n × n` crop, row-major,
+/// from `(n + 2)²` apron heights: what [`crop_pixel_geometry`] builds its cosines from, for callers that need
+/// only some of them. Each ENU point is computed once (the normals' central differences share them).
+pub fn crop_pixel_frames<'a>(
+    relative_heights_with_apron: &'a [f64],
+    n: usize,
+    grid: &'a CropGrid,
+    camera_pos_enu: DVec3,
+) -> impl Iterator<Item = (DVec3, DVec3)> + 'a {
     let an = n + 2;
     assert_eq!(
         relative_heights_with_apron.len(),
         an * an,
         "heights must carry a 1-pixel apron"
     );
-    let point = |col: usize, row: usize| {
-        grid.enu_point(col, row, an, relative_heights_with_apron[row * an + col])
-    };
-    let mut out = Vec::with_capacity(n * n);
-    for row in 1..=n {
-        for col in 1..=n {
+    let points: std::sync::Arc<[DVec3]> = (0..an * an)
+        .map(|k| grid.enu_point(k % an, k / an, an, relative_heights_with_apron[k]))
+        .collect();
+    (1..=n).flat_map(move |row| {
+        let points = std::sync::Arc::clone(&points);
+        (1..=n).map(move |col| {
+            let point = |c: usize, r: usize| points[r * an + c];
             let normal = central_difference_normal(&point, col, row);
-            let view_dir = (camera_pos_enu - point(col, row)).normalize();
-            out.push(PixelGeometry {
-                cosines: Cosines::new(normal, sun_dir_enu, view_dir),
-                half_diff: HalfDiffCosines::new(normal, sun_dir_enu, view_dir),
-            });
-        }
-    }
-    out
+            (normal, (camera_pos_enu - point(col, row)).normalize())
+        })
+    })
 }
 
 /// Unit normal of a plane z = a·east + b·north (handy for analytic tests and the synthetic world).

@@ -13,7 +13,7 @@ use rand::Rng;
 use crate::data::{HostBatch, InputNormalisation};
 use crate::kernels::TrainBackend;
 use crate::model::UNetConfig;
-use crate::render::{masked_mse, render, scene_geometry, SceneInputs};
+use crate::render::{masked_mse, render, SceneTerms};
 use crate::training::train_loss;
 
 /// Synthetic samples for benches and tests: smooth random terrain, a sun at 60° incidence from a random azimuth,
@@ -185,6 +185,8 @@ pub struct BenchReport {
     pub train_step_ms: f64,
     pub layer_samples_per_s: f64,
     pub layer_ms: f64,
+    /// Of `layer_ms`: the scene terms, evaluated on the host and uploaded ([`SceneTerms::from_host`]).
+    pub layer_terms_ms: f64,
     /// The train step's phases, ms per step: network + renderer + loss forward, backward, Adam.
     pub forward_ms: f64,
     pub backward_ms: f64,
@@ -256,14 +258,13 @@ pub fn bench<B: TrainBackend>(
         TensorData::new(batch.image.clone(), [n, 1, CROP_PX, CROP_PX]),
         device,
     );
+    let terms_s = std::cell::Cell::new(0.0f64);
     let layer = || {
         let params = Tensor::<B, 4>::from_data(params_data.clone(), device).require_grad();
-        let geometry = scene_geometry(&SceneInputs::<B>::from_host(&batch, model, device));
-        let loss = masked_mse(
-            render(model, params.clone(), &geometry),
-            image.clone(),
-            geometry.valid.clone(),
-        );
+        let t = Instant::now();
+        let scene = SceneTerms::<B>::from_host(&batch, model, device);
+        terms_s.set(terms_s.get() + t.elapsed().as_secs_f64());
+        let loss = masked_mse(render(params.clone(), &scene), image.clone(), scene.valid);
         let grads = loss.backward();
         params
             .grad(&grads)
@@ -271,11 +272,13 @@ pub fn bench<B: TrainBackend>(
             .into_data()
     };
     layer();
+    terms_s.set(0.0);
     let t = Instant::now();
     for _ in 0..iters {
         layer();
     }
     let layer_s = t.elapsed().as_secs_f64() / iters as f64;
+    let layer_terms_ms = terms_s.get() * 1e3 / iters as f64;
     BenchReport {
         backend: backend_name.to_string(),
         batch: batch_size,
@@ -286,6 +289,7 @@ pub fn bench<B: TrainBackend>(
         train_step_ms: train_s * 1e3,
         layer_samples_per_s: batch_size as f64 / layer_s,
         layer_ms: layer_s * 1e3,
+        layer_terms_ms,
         forward_ms,
         backward_ms,
         optimizer_ms,

@@ -30,7 +30,7 @@ use crate::data::{
 use crate::kernels::{TrainBackend, TrainOps};
 use crate::metrics::{AggregateMetrics, MetricsAccumulator};
 use crate::model::{UNet, UNetConfig};
-use crate::render::{masked_mse, render, scene_geometry, SceneGeometry, SceneInputs};
+use crate::render::{masked_mse, render, SceneTerms};
 use dataset::schema::{Sample, CONTEXT_PX, CROP_PX};
 
 /// Everything that defines a run (saved as `config.json`; a resume must match it).
@@ -279,18 +279,15 @@ fn net_outputs<B: TrainOps>(net: &UNet<B>, batch: &HostBatch, device: &B::Device
     net.forward(input, context)
 }
 
-/// Network → renderer for one host batch: the rendered image `[N, 1, 128, 128]` and the batch's geometry.
+/// Network → renderer for one host batch: the rendered image `[N, 1, 128, 128]` and the batch's scene terms.
 fn render_batch<B: TrainOps>(
     net: &UNet<B>,
     model: BrdfModel,
     batch: &HostBatch,
     device: &B::Device,
-) -> (Tensor<B, 4>, SceneGeometry<B>) {
-    let geometry = scene_geometry(&SceneInputs::<B>::from_host(batch, model, device));
-    (
-        render(model, net_outputs(net, batch, device), &geometry),
-        geometry,
-    )
+) -> (Tensor<B, 4>, SceneTerms<B>) {
+    let scene = SceneTerms::<B>::from_host(batch, model, device);
+    (render(net_outputs(net, batch, device), &scene), scene)
 }
 
 /// One optimisation step's loss (masked MSE through the renderer layer).
@@ -300,12 +297,12 @@ pub fn train_loss<B: TrainBackend>(
     batch: &HostBatch,
     device: &B::Device,
 ) -> Tensor<B, 1> {
-    let (rendered, geometry) = render_batch(net, model, batch, device);
+    let (rendered, scene) = render_batch(net, model, batch, device);
     let image = Tensor::<B, 4>::from_data(
         TensorData::new(batch.image.clone(), [batch.len(), 1, 128, 128]),
         device,
     );
-    masked_mse(rendered, image, geometry.valid)
+    masked_mse(rendered, image, scene.valid)
 }
 
 /// Render a batch with the network in inference mode (running BatchNorm stats, no dropout): `N × 128²` f64.
@@ -338,7 +335,7 @@ pub fn predict_images_symmetry_mean<B: TrainOps>(
     device: &B::Device,
 ) -> Vec<f64> {
     let batch = HostBatch::from_samples(samples, input);
-    let geometry = scene_geometry(&SceneInputs::<B>::from_host(&batch, model, device));
+    let scene = SceneTerms::<B>::from_host(&batch, model, device);
     let npx = CROP_PX * CROP_PX;
     let shape = [samples.len(), model.param_count(), CROP_PX, CROP_PX];
     let mut sum: Option<Tensor<B, 4>> = None;
@@ -355,7 +352,7 @@ pub fn predict_images_symmetry_mean<B: TrainOps>(
             .flat_map(|plane| back.apply_raster(plane, CROP_PX))
             .collect();
         let raw_back = Tensor::<B, 4>::from_data(TensorData::new(raw_back, shape), device);
-        let rendered = render(model, raw_back, &geometry);
+        let rendered = render(raw_back, &scene);
         sum = Some(match sum {
             None => rendered,
             Some(total) => total + rendered,

@@ -9,9 +9,7 @@ use dataset::brdf::BrdfModel;
 use dataset::schema::CROP_PX;
 use train::bench::{hard_case_samples, synthetic_samples, test_params};
 use train::data::{HostBatch, InputNormalisation};
-use train::render::{
-    masked_mse, reference_render, render, scene_geometry, SceneGeometry, SceneInputs,
-};
+use train::render::{masked_mse, reference_render, render, SceneTerms};
 
 type Ad = Autodiff<Flex>;
 
@@ -50,14 +48,14 @@ fn batched_layer_equals_scalar_reference_in_f64() {
     let device = f64_device();
     let batch = batch();
     for model in BrdfModel::ALL {
-        let geometry = scene_geometry(&SceneInputs::<Flex>::from_host(&batch, model, &device));
+        let scene = SceneTerms::<Flex>::from_host(&batch, model, &device);
         let params = test_params(model, batch.len(), 8);
         let expected = reference_render(model, &batch, &params);
         let tensor = Tensor::<Flex, 4>::from_data(
             TensorData::new(params, [batch.len(), model.param_count(), CROP_PX, CROP_PX]),
             &device,
         );
-        let got = to_f64(render(model, tensor, &geometry));
+        let got = to_f64(render(tensor, &scene));
         let scale = expected.iter().fold(0.0f64, |m, v| m.max(v.abs()));
         let worst = got
             .iter()
@@ -73,7 +71,7 @@ fn batched_layer_equals_scalar_reference_in_f64() {
 
 /// A batch's geometry and image on the autodiff backend (no gradient tracked: only parameters get one).
 struct Scene {
-    geometry: SceneGeometry<Ad>,
+    terms: SceneTerms<Ad>,
     image: Tensor<Ad, 4>,
     n: usize,
 }
@@ -82,7 +80,7 @@ fn scene(batch: &HostBatch, model: BrdfModel) -> Scene {
     let device = f64_device();
     let n = batch.len();
     Scene {
-        geometry: scene_geometry(&SceneInputs::<Ad>::from_host(batch, model, &device)),
+        terms: SceneTerms::<Ad>::from_host(batch, model, &device),
         image: Tensor::from_data(
             TensorData::new(batch.image.clone(), [n, 1, CROP_PX, CROP_PX]),
             &device,
@@ -95,9 +93,9 @@ fn scene(batch: &HostBatch, model: BrdfModel) -> Scene {
 fn loss_and_grad(model: BrdfModel, scene: &Scene, params: &[f64]) -> (f64, Vec<f64>) {
     let p = params_tensor(model, params.to_vec(), scene.n).require_grad();
     let loss = masked_mse(
-        render(model, p.clone(), &scene.geometry),
+        render(p.clone(), &scene.terms),
         scene.image.clone(),
-        scene.geometry.valid.clone(),
+        scene.terms.valid.clone(),
     );
     let value = loss.clone().into_data().into_vec::<f64>().unwrap()[0];
     let grads = loss.backward();
