@@ -326,39 +326,59 @@ pub fn conv2d_weight_grad(
         s.c_in * s.positions(),
         s.c_out * s.positions(),
     );
-    let dw = xs
+    // Accumulated as ∂Wᵀ (taps × c_out, i.e. c_out contiguous) with ∂Y transposed to position-major first, so
+    // that every gemm operand has its rows contiguous: the long reduction over positions then packs at memory
+    // speed (with ∂Y·colᵀ on row-major data, packing the transposed operand cost more than the arithmetic).
+    let dw_t = xs
         .par_chunks(plane_in)
         .zip(dy.par_chunks(plane_out))
         .fold(
             || {
                 let buffer = vec![0.0f32; if s.is_pointwise() { 0 } else { taps * hw }];
-                (buffer, vec![0.0f32; s.c_out * taps])
+                (buffer, vec![0.0f32; hw * s.c_out], vec![0.0f32; taps * s.c_out])
             },
-            |(mut buffer, mut dw), (x, dy)| {
+            |(mut buffer, mut dy_t, mut dw_t), (x, dy)| {
                 let col = s.columns(x, &mut buffer);
-                // ∂W (c_out × taps) += ∂Y (c_out × hw) · colᵀ (hw × taps)
+                transpose(dy, s.c_out, hw, &mut dy_t);
+                // ∂W (c_out × taps) += ∂Y (c_out × hw) · colᵀ (hw × taps), stored column-major (= ∂Wᵀ row-major)
                 matmul(
                     [s.c_out, taps, hw],
-                    &mut dw,
-                    [taps, 1],
+                    &mut dw_t,
+                    [1, s.c_out],
                     true,
-                    dy,
-                    [hw, 1],
+                    &dy_t,
+                    [1, s.c_out],
                     col,
                     [1, hw],
                 );
-                (buffer, dw)
+                (buffer, dy_t, dw_t)
             },
         )
-        .map(|(_, dw)| dw)
+        .map(|(_, _, dw_t)| dw_t)
         .reduce(
-            || vec![0.0f32; s.c_out * taps],
+            || vec![0.0f32; taps * s.c_out],
             |mut a, b| {
                 a.iter_mut().zip(&b).for_each(|(a, b)| *a += b);
                 a
             },
         );
+    let mut dw = vec![0.0f32; s.c_out * taps];
+    transpose(&dw_t, taps, s.c_out, &mut dw);
     from_vec(dw, &w_shape)
+}
+
+/// `dst (cols × rows) = srcᵀ` for a row-major `src (rows × cols)`, in cache-sized tiles.
+fn transpose(src: &[f32], rows: usize, cols: usize, dst: &mut [f32]) {
+    const TILE: usize = 32;
+    for r0 in (0..rows).step_by(TILE) {
+        for c0 in (0..cols).step_by(TILE) {
+            for r in r0..(r0 + TILE).min(rows) {
+                for c in c0..(c0 + TILE).min(cols) {
+                    dst[c * rows + r] = src[r * cols + c];
+                }
+            }
+        }
+    }
 }
 
 /// Per-channel sums of `[N, C, ...]` as `[C]` (f64 accumulation).
