@@ -14,7 +14,7 @@ use burn::tensor::activation::leaky_relu;
 use burn::tensor::module::interpolate;
 use burn::tensor::ops::{InterpolateMode, InterpolateOptions};
 
-use crate::kernels::{batch_norm_leaky_relu, conv2d, TrainOps};
+use crate::kernels::{batch_norm_leaky_relu, conv2d, max_pool2d, TrainOps};
 
 /// Negative slope of the network's activations.
 const ACTIVATION_SLOPE: f64 = 0.01;
@@ -116,11 +116,10 @@ impl<B: Backend> ContextEncoder<B> {
     {
         let mut x = x;
         for (conv, norm) in self.convs.iter().zip(&self.norms) {
-            x = self.pool.forward(batch_norm_leaky_relu(
-                norm,
-                conv2d(conv, x),
-                ACTIVATION_SLOPE,
-            ));
+            x = max_pool2d(
+                &self.pool,
+                batch_norm_leaky_relu(norm, conv2d(conv, x), ACTIVATION_SLOPE),
+            );
         }
         let [n, c, h, w] = x.dims();
         leaky_relu(
@@ -237,7 +236,7 @@ impl<B: Backend> UNet<B> {
         let mut x = x;
         for block in &self.down {
             let y = block.forward(x);
-            x = self.pool.forward(y.clone());
+            x = max_pool2d(&self.pool, y.clone());
             skips.push(y);
         }
         let features = match (&self.context, context) {

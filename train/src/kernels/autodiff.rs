@@ -9,9 +9,9 @@ use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::backend::autodiff::NodeId;
 use burn::backend::Autodiff;
 use burn::tensor::backend::AutodiffBackend;
-use burn::tensor::ops::{ConvOptions, FloatTensor};
+use burn::tensor::ops::{ConvOptions, FloatTensor, IntTensor};
 
-use super::{NormOutput, TrainOps};
+use super::{MaxPoolOutput, NormOutput, TrainOps};
 
 #[derive(Debug)]
 struct Conv2dWithBias;
@@ -19,6 +19,27 @@ struct Conv2dWithBias;
 struct Conv2dNoBias;
 #[derive(Debug)]
 struct BatchNormLeakyRelu;
+#[derive(Debug)]
+struct MaxPool2x2;
+
+impl<B: TrainOps> Backward<B, 1> for MaxPool2x2 {
+    type State = (NodeId, IntTensor<B>);
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 1>,
+        grads: &mut Gradients,
+        checkpointer: &mut Checkpointer,
+    ) {
+        let grad = grads.consume::<B>(&ops.node);
+        let (x, argmax) = ops.state;
+        let x = checkpointer.retrieve_node_output::<FloatTensor<B>>(x);
+        let [node_x] = ops.parents;
+        if let Some(node) = node_x {
+            grads.register::<B>(node.id, B::max_pool2x2_backward(x, grad, argmax));
+        }
+    }
+}
 
 /// Gradients of a convolution for whichever of input, weight and bias require one.
 fn conv_backward<B: TrainOps>(
@@ -175,6 +196,30 @@ impl<B: TrainOps, C: CheckpointStrategy> TrainOps for Autodiff<B, C> {
                     options,
                 )),
             },
+        }
+    }
+
+    fn max_pool2x2(x: FloatTensor<Self>) -> MaxPoolOutput<Self> {
+        match MaxPool2x2
+            .prepare::<C>([x.node.clone()])
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(mut prep) => {
+                let x_id = prep.checkpoint(&x);
+                let out = B::max_pool2x2(x.primitive);
+                MaxPoolOutput {
+                    output: prep.finish((x_id, out.argmax.clone()), out.output),
+                    argmax: out.argmax,
+                }
+            }
+            OpsKind::UnTracked(prep) => {
+                let out = B::max_pool2x2(x.primitive);
+                MaxPoolOutput {
+                    output: prep.finish(out.output),
+                    argmax: out.argmax,
+                }
+            }
         }
     }
 

@@ -21,10 +21,11 @@ pub mod profile;
 pub mod reference;
 
 use burn::nn::conv::Conv2d;
+use burn::nn::pool::MaxPool2d;
 use burn::nn::{BatchNorm, PaddingConfig2d};
 use burn::prelude::*;
 use burn::tensor::backend::AutodiffBackend;
-use burn::tensor::ops::{ConvOptions, FloatTensor};
+use burn::tensor::ops::{ConvOptions, FloatTensor, IntTensor};
 use burn::tensor::TensorPrimitive;
 use profile::{timed, Kernel};
 
@@ -38,6 +39,13 @@ pub struct NormOutput<B: Backend> {
     pub mean: FloatTensor<B>,
     /// `[C]`.
     pub var: FloatTensor<B>,
+}
+
+/// A 2 × 2 max-pool's output and where each maximum came from (the backend's own encoding).
+#[derive(Debug, Clone)]
+pub struct MaxPoolOutput<B: Backend> {
+    pub output: FloatTensor<B>,
+    pub argmax: IntTensor<B>,
 }
 
 /// Gradients of the fused BatchNorm + LeakyReLU with respect to its input, scale and shift.
@@ -85,6 +93,34 @@ pub trait TrainOps: Backend {
     /// ∂L/∂bias of a convolution: the output gradient summed over batch and positions, `[C_out]`.
     fn train_conv2d_bias_grad(output_grad: FloatTensor<Self>) -> FloatTensor<Self> {
         reference::channel_sums::<Self>(output_grad)
+    }
+
+    /// 2 × 2 max-pool with stride 2 (floor mode): the output and the backend's record of where each maximum was.
+    fn max_pool2x2(x: FloatTensor<Self>) -> MaxPoolOutput<Self> {
+        let out = Self::max_pool2d_with_indices(x, [2, 2], [2, 2], [0, 0], [1, 1], false);
+        MaxPoolOutput {
+            output: out.output,
+            argmax: out.indices,
+        }
+    }
+
+    /// ∂L/∂x of [`TrainOps::max_pool2x2`]: each output gradient goes to its window's maximum.
+    fn max_pool2x2_backward(
+        x: FloatTensor<Self>,
+        output_grad: FloatTensor<Self>,
+        argmax: IntTensor<Self>,
+    ) -> FloatTensor<Self> {
+        Self::max_pool2d_with_indices_backward(
+            x,
+            [2, 2],
+            [2, 2],
+            [0, 0],
+            [1, 1],
+            false,
+            output_grad,
+            argmax,
+        )
+        .x_grad
     }
 
     /// Training-mode BatchNorm (batch statistics) followed by LeakyReLU with `slope`.
@@ -159,6 +195,20 @@ impl TrainOps for burn::backend::Flex {
         timed(Kernel::ConvBiasGrad, || cpu::channel_sums(output_grad))
     }
 
+    fn max_pool2x2(x: FloatTensor<Self>) -> MaxPoolOutput<Self> {
+        timed(Kernel::PoolForward, || cpu::max_pool2x2(x))
+    }
+
+    fn max_pool2x2_backward(
+        x: FloatTensor<Self>,
+        output_grad: FloatTensor<Self>,
+        argmax: IntTensor<Self>,
+    ) -> FloatTensor<Self> {
+        timed(Kernel::PoolBackward, || {
+            cpu::max_pool2x2_backward(x, output_grad, argmax)
+        })
+    }
+
     fn batch_norm_leaky_relu(
         x: FloatTensor<Self>,
         gamma: FloatTensor<Self>,
@@ -231,6 +281,20 @@ pub fn conv2d<B: TrainOps>(conv: &Conv2d<B>, x: Tensor<B, 4>) -> Tensor<B, 4> {
         conv.bias.as_ref().map(|b| primitive(b.val())),
         options,
     ))
+}
+
+/// `pool.forward(x)` through [`TrainOps::max_pool2x2`]; the network pools 2 × 2 with stride 2 only (panics on
+/// another configuration rather than pool differently from Burn).
+pub fn max_pool2d<B: TrainOps>(pool: &MaxPool2d, x: Tensor<B, 4>) -> Tensor<B, 4> {
+    assert!(
+        pool.kernel_size == [2, 2]
+            && pool.stride == [2, 2]
+            && pool.dilation == [1, 1]
+            && !pool.ceil_mode
+            && matches!(pool.padding, PaddingConfig2d::Valid | PaddingConfig2d::Explicit(0, 0, 0, 0)),
+        "kernels::max_pool2d supports 2x2 stride-2 pooling only, not {pool:?}"
+    );
+    tensor(B::max_pool2x2(primitive(x)).output)
 }
 
 /// `leaky_relu(norm.forward(x), slope)`. When the backend tracks gradients (training), one fused operation with

@@ -15,22 +15,26 @@ pub enum Kernel {
     ConvBiasGrad,
     NormForward,
     NormBackward,
+    PoolForward,
+    PoolBackward,
 }
 
 impl Kernel {
-    pub const ALL: [Kernel; 6] = [
+    pub const ALL: [Kernel; 8] = [
         Kernel::ConvForward,
         Kernel::ConvInputGrad,
         Kernel::ConvWeightGrad,
         Kernel::ConvBiasGrad,
         Kernel::NormForward,
         Kernel::NormBackward,
+        Kernel::PoolForward,
+        Kernel::PoolBackward,
     ];
 }
 
 static ENABLED: AtomicBool = AtomicBool::new(false);
-static NANOS: [AtomicU64; 6] = [const { AtomicU64::new(0) }; 6];
-static CALLS: [AtomicU64; 6] = [const { AtomicU64::new(0) }; 6];
+static NANOS: [AtomicU64; Kernel::ALL.len()] = [const { AtomicU64::new(0) }; Kernel::ALL.len()];
+static CALLS: [AtomicU64; Kernel::ALL.len()] = [const { AtomicU64::new(0) }; Kernel::ALL.len()];
 
 /// Run `f`, adding its wall time to `kernel`'s total when profiling is on.
 pub fn timed<T>(kernel: Kernel, f: impl FnOnce() -> T) -> T {
