@@ -296,3 +296,114 @@ pub fn bench<B: TrainBackend>(
         kernels,
     }
 }
+
+/// The PyTorch peer of the train step, carried in the binary so anyone can re-measure against it.
+pub const TORCH_PEER: &str = include_str!("../bench/torch_peer.py");
+
+/// One run of the PyTorch peer (its JSON line).
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
+pub struct TorchReport {
+    pub torch: String,
+    pub device: String,
+    pub threads: usize,
+    pub step_ms: f64,
+    pub samples_per_s: f64,
+}
+
+/// Run the PyTorch peer with `python` at the bench's width and batch: `device` is `cpu` or `cuda`, `threads`
+/// PyTorch's intra-op threads (the same count the Rust step uses).
+pub fn run_torch_peer(
+    python: &std::path::Path,
+    width: usize,
+    batch: usize,
+    iters: usize,
+    device: &str,
+    threads: usize,
+) -> anyhow::Result<TorchReport> {
+    use anyhow::Context;
+    let script = std::env::temp_dir().join(format!("g2r-torch-peer-{}.py", std::process::id()));
+    std::fs::write(&script, TORCH_PEER)
+        .with_context(|| format!("writing the PyTorch peer to {}", script.display()))?;
+    let output = std::process::Command::new(python)
+        .arg(&script)
+        .args(["--width", &width.to_string(), "--batch", &batch.to_string()])
+        .args(["--iters", &iters.to_string(), "--device", device])
+        .args(["--threads", &threads.to_string()])
+        .output();
+    let _ = std::fs::remove_file(&script);
+    let output = output.with_context(|| {
+        format!(
+            "running {}: give --torch a Python with torch installed \
+             (python3 -m venv /tmp/torch-venv && /tmp/torch-venv/bin/pip install torch numpy)",
+            python.display()
+        )
+    })?;
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    anyhow::ensure!(
+        output.status.success(),
+        "the PyTorch peer failed under {} ({}): {}",
+        python.display(),
+        output.status,
+        stderr.lines().last().unwrap_or("no message")
+    );
+    let line = stdout.lines().last().unwrap_or_default();
+    serde_json::from_str(line)
+        .with_context(|| format!("reading the PyTorch peer's report line {line:?}"))
+}
+
+/// One round of [`compare_with_torch`]: the peer, then this crate's step, back to back.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct ComparisonRound {
+    pub torch_samples_per_s: f64,
+    pub g2r_samples_per_s: f64,
+    /// g2r / PyTorch samples/s (≥ 1: as fast as the reference or faster).
+    pub ratio: f64,
+}
+
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct Comparison {
+    pub torch: TorchReport,
+    /// The last round's full report of this crate's step (with its breakdown).
+    pub g2r: BenchReport,
+    pub rounds: Vec<ComparisonRound>,
+    /// Median over rounds of g2r / PyTorch samples/s.
+    pub median_ratio: f64,
+}
+
+/// Alternate the PyTorch peer and [`bench`] `rounds` times on the same machine (so both see the same machine
+/// state) and report each round's samples/s and their ratio.
+#[allow(clippy::too_many_arguments)]
+pub fn compare_with_torch<B: TrainBackend>(
+    python: &std::path::Path,
+    backend_name: &str,
+    torch_device: &str,
+    batch_size: usize,
+    base_width: usize,
+    iters: usize,
+    rounds: usize,
+    device: &B::Device,
+) -> anyhow::Result<Comparison> {
+    let threads = rayon::current_num_threads();
+    let mut results = Vec::new();
+    let mut last = None;
+    for _ in 0..rounds.max(1) {
+        let torch = run_torch_peer(python, base_width, batch_size, iters, torch_device, threads)?;
+        let g2r = bench::<B>(backend_name, BrdfModel::M2, batch_size, base_width, iters, device);
+        results.push(ComparisonRound {
+            torch_samples_per_s: torch.samples_per_s,
+            g2r_samples_per_s: g2r.train_step_samples_per_s,
+            ratio: g2r.train_step_samples_per_s / torch.samples_per_s,
+        });
+        last = Some((torch, g2r));
+    }
+    let mut ratios: Vec<f64> = results.iter().map(|r| r.ratio).collect();
+    ratios.sort_by(f64::total_cmp);
+    let (torch, g2r) = last.expect("at least one round");
+    Ok(Comparison {
+        torch,
+        g2r,
+        rounds: results,
+        median_ratio: ratios[ratios.len() / 2],
+    })
+}

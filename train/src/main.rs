@@ -332,7 +332,16 @@ enum Command {
         #[arg(long, default_value_t = 0)]
         seed: u64,
     },
-    /// Samples/s of the train step (U-Net + renderer layer, forward + backward + Adam) and of the layer alone.
+    /// Samples/s of the train step (U-Net + renderer layer, forward + backward + Adam) and of the layer alone,
+    /// with the step's phases and per-kernel times; with --torch, alternately against the PyTorch peer.
+    #[command(
+        long_about = "Samples/s of the train step (U-Net + renderer layer, forward + backward + Adam) on synthetic \
+crops, its forward/backward/optimizer phases and the time inside each CPU kernel, and the renderer layer alone \
+(scene terms + render + loss + backward). Prints JSON.\n\nWith --torch PYTHON, runs the PyTorch peer of the same \
+step (carried in the binary; needs torch in that Python) and this step alternately for --rounds rounds, at the \
+same width, batch and thread count, and prints each round's ratio and the median (g2r / PyTorch samples/s). \
+Measure on an idle machine; compare only figures from the same sitting."
+    )]
     Bench {
         #[arg(long, default_value_t = 8)]
         batch: usize,
@@ -340,10 +349,17 @@ enum Command {
         width: usize,
         #[arg(long, default_value = "m2")]
         model: BrdfModel,
+        /// Timed steps per measurement (after one warm-up step).
         #[arg(long, default_value_t = 3)]
         iters: usize,
         #[arg(long, value_enum, default_value = "flex")]
         backend: BackendKind,
+        /// A Python interpreter with torch: run the PyTorch peer alternately with this step (model m2).
+        #[arg(long, value_name = "PYTHON")]
+        torch: Option<PathBuf>,
+        /// Alternating rounds with --torch.
+        #[arg(long, default_value_t = 3, requires = "torch")]
+        rounds: usize,
     },
 }
 
@@ -710,12 +726,30 @@ fn run(cli: Cli) -> Result<()> {
             model,
             iters,
             backend,
+            torch,
+            rounds,
         } => {
             let name = format!("{backend:?}").to_lowercase();
-            let report: train::bench::BenchReport = with_backend!(backend, B => Ok::<_, anyhow::Error>(
-                train::bench::bench::<B>(&name, model, batch, width, iters, &Default::default())
-            ))?;
-            println!("{}", serde_json::to_string_pretty(&report)?);
+            let torch_device = if matches!(backend, BackendKind::Flex) { "cpu" } else { "cuda" };
+            let json = match torch {
+                Some(python) => {
+                    anyhow::ensure!(
+                        model == BrdfModel::M2,
+                        "--torch compares the M2 step only: drop --model or use --model m2"
+                    );
+                    let comparison = with_backend!(backend, B => train::bench::compare_with_torch::<B>(
+                        &python, &name, torch_device, batch, width, iters, rounds, &Default::default()
+                    ))?;
+                    serde_json::to_string_pretty(&comparison)?
+                }
+                None => {
+                    let report: train::bench::BenchReport = with_backend!(backend, B => Ok::<_, anyhow::Error>(
+                        train::bench::bench::<B>(&name, model, batch, width, iters, &Default::default())
+                    ))?;
+                    serde_json::to_string_pretty(&report)?
+                }
+            };
+            println!("{json}");
         }
     }
     Ok(())
