@@ -222,9 +222,10 @@ pub fn bench<B: TrainBackend>(
         let t_backward = t.elapsed().as_secs_f64();
         let net = optim.step(1e-4, net, grads);
         let t_step = t.elapsed().as_secs_f64();
-        for (total, span) in phases
-            .iter_mut()
-            .zip([t_forward, t_backward - t_forward, t_step - t_backward])
+        for (total, span) in
+            phases
+                .iter_mut()
+                .zip([t_forward, t_backward - t_forward, t_step - t_backward])
         {
             *total += span;
         }
@@ -389,7 +390,14 @@ pub fn compare_with_torch<B: TrainBackend>(
     let mut last = None;
     for _ in 0..rounds.max(1) {
         let torch = run_torch_peer(python, base_width, batch_size, iters, torch_device, threads)?;
-        let g2r = bench::<B>(backend_name, BrdfModel::M2, batch_size, base_width, iters, device);
+        let g2r = bench::<B>(
+            backend_name,
+            BrdfModel::M2,
+            batch_size,
+            base_width,
+            iters,
+            device,
+        );
         results.push(ComparisonRound {
             torch_samples_per_s: torch.samples_per_s,
             g2r_samples_per_s: g2r.train_step_samples_per_s,

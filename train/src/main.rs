@@ -730,7 +730,11 @@ fn run(cli: Cli) -> Result<()> {
             rounds,
         } => {
             let name = format!("{backend:?}").to_lowercase();
-            let torch_device = if matches!(backend, BackendKind::Flex) { "cpu" } else { "cuda" };
+            let torch_device = if matches!(backend, BackendKind::Flex) {
+                "cpu"
+            } else {
+                "cuda"
+            };
             let json = match torch {
                 Some(python) => {
                     anyhow::ensure!(

@@ -37,6 +37,26 @@ fn from_vec(values: Vec<f32>, shape: &[usize]) -> FlexTensor {
     FlexTensor::from_data(TensorData::new(values, shape.to_vec()))
 }
 
+std::thread_local! {
+    /// Per-thread working memory for im2col matrices and transposes, reused across calls: a fresh, zeroed
+    /// allocation per sample (tens of MB at width 16) cost more in memset and page faults than im2col itself.
+    static SCRATCH: std::cell::RefCell<[Vec<f32>; 2]> = const { std::cell::RefCell::new([Vec::new(), Vec::new()]) };
+}
+
+/// Run `f` with two scratch slices of `lens` elements (contents unspecified: callers overwrite what they read).
+fn with_scratch<R>(lens: [usize; 2], f: impl FnOnce(&mut [f32], &mut [f32]) -> R) -> R {
+    SCRATCH.with(|cell| {
+        let mut buffers = cell.borrow_mut();
+        for (buffer, &len) in buffers.iter_mut().zip(&lens) {
+            if buffer.len() < len {
+                buffer.resize(len, 0.0);
+            }
+        }
+        let [a, b] = &mut *buffers;
+        f(&mut a[..lens[0]], &mut b[..lens[1]])
+    })
+}
+
 /// The convolution geometry the kernels support, or `None`.
 #[derive(Clone, Copy, Debug)]
 struct ConvShape {
@@ -86,6 +106,15 @@ impl ConvShape {
         let lo = pad.saturating_sub(kx);
         let hi = (w + pad).saturating_sub(kx).min(w);
         (lo..hi.max(lo), lo + kx - pad)
+    }
+
+    /// Scratch elements [`Self::columns`] needs (none for a pointwise convolution).
+    fn im2col_len(&self) -> usize {
+        if self.is_pointwise() {
+            0
+        } else {
+            self.taps() * self.positions()
+        }
     }
 
     /// A 1×1 convolution without padding: its im2col matrix is the input itself.
@@ -212,7 +241,11 @@ pub fn conv2d(
 ) -> FloatTensor<Flex> {
     use burn::tensor::ops::ModuleOps;
     let bias_data = bias.as_ref().map(f32_data);
-    let prepared = (f32_data(&x), f32_data(&weight), bias_data.clone().unwrap_or(None));
+    let prepared = (
+        f32_data(&x),
+        f32_data(&weight),
+        bias_data.clone().unwrap_or(None),
+    );
     let supported = match &prepared {
         (Some((_, xs)), Some((_, ws)), b) => {
             (bias.is_none() || b.is_some()) && ConvShape::new(xs, ws, &options).is_some()
@@ -237,14 +270,13 @@ pub fn conv2d(
     let mut y = vec![0.0f32; s.batch * plane_out];
     y.par_chunks_mut(plane_out)
         .zip(xs.par_chunks(plane_in))
-        .for_each_init(
-            || vec![0.0f32; if s.is_pointwise() { 0 } else { taps * hw }],
-            |buffer, (y, x)| {
-                if let Some(bias) = bias {
-                    y.chunks_mut(hw)
-                        .zip(bias)
-                        .for_each(|(plane, &b)| plane.fill(b));
-                }
+        .for_each(|(y, x)| {
+            if let Some(bias) = bias {
+                y.chunks_mut(hw)
+                    .zip(bias)
+                    .for_each(|(plane, &b)| plane.fill(b));
+            }
+            with_scratch([s.im2col_len(), 0], |buffer, _| {
                 // Y (c_out × hw) [+]= W (c_out × taps) · col (taps × hw)
                 matmul(
                     [s.c_out, hw, taps],
@@ -256,8 +288,8 @@ pub fn conv2d(
                     s.columns(x, buffer),
                     [hw, 1],
                 );
-            },
-        );
+            });
+        });
     from_vec(y, &[s.batch, s.c_out, s.height, s.width])
 }
 
@@ -285,9 +317,8 @@ pub fn conv2d_x_grad(
     let mut dx = vec![0.0f32; s.batch * plane_in];
     dx.par_chunks_mut(plane_in)
         .zip(dy.par_chunks(plane_out))
-        .for_each_init(
-            || vec![0.0f32; taps * hw],
-            |col, (dx, dy)| {
+        .for_each(|(dx, dy)| {
+            with_scratch([taps * hw, 0], |col, _| {
                 // col (taps × hw) = Wᵀ (taps × c_out) · ∂Y (c_out × hw)
                 matmul(
                     [taps, hw, s.c_out],
@@ -300,8 +331,8 @@ pub fn conv2d_x_grad(
                     [hw, 1],
                 );
                 s.col2im(col, dx);
-            },
-        );
+            });
+        });
     from_vec(dx, &x_shape)
 }
 
@@ -333,28 +364,26 @@ pub fn conv2d_weight_grad(
         .par_chunks(plane_in)
         .zip(dy.par_chunks(plane_out))
         .fold(
-            || {
-                let buffer = vec![0.0f32; if s.is_pointwise() { 0 } else { taps * hw }];
-                (buffer, vec![0.0f32; hw * s.c_out], vec![0.0f32; taps * s.c_out])
-            },
-            |(mut buffer, mut dy_t, mut dw_t), (x, dy)| {
-                let col = s.columns(x, &mut buffer);
-                transpose(dy, s.c_out, hw, &mut dy_t);
-                // ∂W (c_out × taps) += ∂Y (c_out × hw) · colᵀ (hw × taps), stored column-major (= ∂Wᵀ row-major)
-                matmul(
-                    [s.c_out, taps, hw],
-                    &mut dw_t,
-                    [1, s.c_out],
-                    true,
-                    &dy_t,
-                    [1, s.c_out],
-                    col,
-                    [1, hw],
-                );
-                (buffer, dy_t, dw_t)
+            || vec![0.0f32; taps * s.c_out],
+            |mut dw_t, (x, dy)| {
+                with_scratch([s.im2col_len(), hw * s.c_out], |buffer, dy_t| {
+                    let col = s.columns(x, buffer);
+                    transpose(dy, s.c_out, hw, dy_t);
+                    // ∂W (c_out × taps) += ∂Y (c_out × hw) · colᵀ (hw × taps), stored column-major (= ∂Wᵀ row-major)
+                    matmul(
+                        [s.c_out, taps, hw],
+                        &mut dw_t,
+                        [1, s.c_out],
+                        true,
+                        dy_t,
+                        [1, s.c_out],
+                        col,
+                        [1, hw],
+                    );
+                });
+                dw_t
             },
         )
-        .map(|(_, _, dw_t)| dw_t)
         .reduce(
             || vec![0.0f32; taps * s.c_out],
             |mut a, b| {
@@ -653,7 +682,10 @@ pub fn max_pool2x2_backward(
     } else {
         argmax.to_contiguous()
     };
-    let (dy, at) = (slice(&dy_c), argmax.as_slice::<u8>().expect("contiguous u8"));
+    let (dy, at) = (
+        slice(&dy_c),
+        argmax.as_slice::<u8>().expect("contiguous u8"),
+    );
     let mut dx = vec![0.0f32; x_shape.iter().product()];
     dx.par_chunks_mut(x_shape[2] * w)
         .zip(dy.par_chunks(oh * ow).zip(at.par_chunks(oh * ow)))

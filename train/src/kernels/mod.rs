@@ -166,7 +166,9 @@ impl TrainOps for burn::backend::Flex {
         bias: Option<FloatTensor<Self>>,
         options: ConvOptions<2>,
     ) -> FloatTensor<Self> {
-        timed(Kernel::ConvForward, || cpu::conv2d(x, weight, bias, options))
+        timed(Kernel::ConvForward, || {
+            cpu::conv2d(x, weight, bias, options)
+        })
     }
 
     fn train_conv2d_x_grad(
@@ -291,7 +293,10 @@ pub fn max_pool2d<B: TrainOps>(pool: &MaxPool2d, x: Tensor<B, 4>) -> Tensor<B, 4
             && pool.stride == [2, 2]
             && pool.dilation == [1, 1]
             && !pool.ceil_mode
-            && matches!(pool.padding, PaddingConfig2d::Valid | PaddingConfig2d::Explicit(0, 0, 0, 0)),
+            && matches!(
+                pool.padding,
+                PaddingConfig2d::Valid | PaddingConfig2d::Explicit(0, 0, 0, 0)
+            ),
         "kernels::max_pool2d supports 2x2 stride-2 pooling only, not {pool:?}"
     );
     tensor(B::max_pool2x2(primitive(x)).output)
