@@ -14,7 +14,7 @@ use burn::tensor::activation::leaky_relu;
 use burn::tensor::module::interpolate;
 use burn::tensor::ops::{InterpolateMode, InterpolateOptions};
 
-use crate::kernels::{batch_norm_leaky_relu, conv2d, max_pool2d, TrainOps};
+use crate::kernels::{batch_norm_leaky_relu, conv2d, dropout, max_pool2d, TrainOps};
 
 /// Negative slope of the network's activations.
 const ACTIVATION_SLOPE: f64 = 0.01;
@@ -76,7 +76,7 @@ impl<B: Backend> ConvBlock<B> {
     {
         let x = batch_norm_leaky_relu(&self.norm1, conv2d(&self.conv1, x), ACTIVATION_SLOPE);
         let x = batch_norm_leaky_relu(&self.norm2, conv2d(&self.conv2, x), ACTIVATION_SLOPE);
-        self.dropout.forward(x)
+        dropout(&self.dropout, x)
     }
 }
 

@@ -11,7 +11,7 @@ use burn::backend::Autodiff;
 use burn::tensor::backend::AutodiffBackend;
 use burn::tensor::ops::{ConvOptions, FloatTensor, IntTensor};
 
-use super::{MaxPoolOutput, NormOutput, TrainOps};
+use super::{DropoutOutput, MaxPoolOutput, NormOutput, TrainOps};
 
 #[derive(Debug)]
 struct Conv2dWithBias;
@@ -21,6 +21,26 @@ struct Conv2dNoBias;
 struct BatchNormLeakyRelu;
 #[derive(Debug)]
 struct MaxPool2x2;
+#[derive(Debug)]
+struct DropoutMask;
+
+impl<B: TrainOps> Backward<B, 1> for DropoutMask {
+    type State = (FloatTensor<B>, f64);
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 1>,
+        grads: &mut Gradients,
+        _checkpointer: &mut Checkpointer,
+    ) {
+        let grad = grads.consume::<B>(&ops.node);
+        let (mask, prob) = ops.state;
+        let [node_x] = ops.parents;
+        if let Some(node) = node_x {
+            grads.register::<B>(node.id, B::dropout_backward(grad, mask, prob));
+        }
+    }
+}
 
 impl<B: TrainOps> Backward<B, 1> for MaxPool2x2 {
     type State = (NodeId, IntTensor<B>);
@@ -197,6 +217,21 @@ impl<B: TrainOps, C: CheckpointStrategy> TrainOps for Autodiff<B, C> {
                 )),
             },
         }
+    }
+
+    fn dropout(x: FloatTensor<Self>, prob: f64) -> DropoutOutput<Self> {
+        let prep = DropoutMask
+            .prepare::<C>([x.node.clone()])
+            .compute_bound()
+            .stateful();
+        let out = B::dropout(x.primitive, prob);
+        // The mask is a constant of the step: returned without a graph node of its own.
+        let mask = Self::from_inner(out.mask.clone());
+        let output = match prep {
+            OpsKind::Tracked(prep) => prep.finish((out.mask, prob), out.output),
+            OpsKind::UnTracked(prep) => prep.finish(out.output),
+        };
+        DropoutOutput { output, mask }
     }
 
     fn max_pool2x2(x: FloatTensor<Self>) -> MaxPoolOutput<Self> {

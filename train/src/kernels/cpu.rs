@@ -699,3 +699,70 @@ pub fn max_pool2x2_backward(
         });
     from_vec(dx, &x_shape)
 }
+
+/// Elements per independently seeded mask chunk: the mask is the same whatever the thread count.
+const DROPOUT_CHUNK: usize = 1 << 14;
+
+/// Inverted dropout on f32 data. One 64-bit seed is drawn from Flex's own seeded RNG per call (so
+/// `Backend::seed` before a step fixes the masks, as with Burn's dropout); chunk `j`'s keep decisions are u32
+/// draws from `keyed_rng(seed, "dropout-mask", j)`, kept when below `keep · 2³²`.
+pub fn dropout(x: FloatTensor<Flex>, prob: f64) -> super::DropoutOutput<Flex> {
+    use burn::tensor::ops::FloatTensorOps;
+    use rand::RngCore;
+    let Some((xc, shape)) = f32_data(&x) else {
+        return reference::dropout::<Flex>(x, prob);
+    };
+    let draws = <Flex as FloatTensorOps<Flex>>::float_random(
+        burn::tensor::Shape::new([2]),
+        burn::tensor::Distribution::Default,
+        &Default::default(),
+        burn::tensor::FloatDType::F32,
+    );
+    let draws = f32_data(&draws).expect("f32 draws").0;
+    let bits = slice(&draws);
+    let seed = (u64::from(bits[0].to_bits()) << 32) | u64::from(bits[1].to_bits());
+    let keep = 1.0 - prob;
+    let threshold = (keep * 4_294_967_296.0).min(4_294_967_295.0) as u32;
+    let scale = (1.0 / keep) as f32;
+    let values = slice(&xc);
+    let mut out = vec![0.0f32; values.len()];
+    let mut mask = vec![0.0f32; values.len()];
+    out.par_chunks_mut(DROPOUT_CHUNK)
+        .zip(mask.par_chunks_mut(DROPOUT_CHUNK))
+        .zip(values.par_chunks(DROPOUT_CHUNK))
+        .enumerate()
+        .for_each(|(j, ((y, m), x))| {
+            let mut rng = dataset::rng::keyed_rng(seed, "dropout-mask", j as u64);
+            for ((y, m), &x) in y.iter_mut().zip(m.iter_mut()).zip(x) {
+                if rng.next_u32() < threshold {
+                    *m = 1.0;
+                    *y = x * scale;
+                }
+            }
+        });
+    super::DropoutOutput {
+        output: from_vec(out, &shape),
+        mask: from_vec(mask, &shape),
+    }
+}
+
+pub fn dropout_backward(
+    output_grad: FloatTensor<Flex>,
+    mask: FloatTensor<Flex>,
+    prob: f64,
+) -> FloatTensor<Flex> {
+    let (Some((dy_c, shape)), Some((mask_c, _))) = (f32_data(&output_grad), f32_data(&mask)) else {
+        return reference::dropout_backward::<Flex>(output_grad, mask, prob);
+    };
+    let scale = (1.0 / (1.0 - prob)) as f32;
+    let (dy, m) = (slice(&dy_c), slice(&mask_c));
+    let mut dx = vec![0.0f32; dy.len()];
+    dx.par_chunks_mut(DROPOUT_CHUNK)
+        .zip(dy.par_chunks(DROPOUT_CHUNK).zip(m.par_chunks(DROPOUT_CHUNK)))
+        .for_each(|(dx, (dy, m))| {
+            dx.iter_mut()
+                .zip(dy.iter().zip(m))
+                .for_each(|(dx, (&dy, &m))| *dx = dy * m * scale);
+        });
+    from_vec(dx, &shape)
+}

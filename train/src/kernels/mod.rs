@@ -22,7 +22,7 @@ pub mod reference;
 
 use burn::nn::conv::Conv2d;
 use burn::nn::pool::MaxPool2d;
-use burn::nn::{BatchNorm, PaddingConfig2d};
+use burn::nn::{BatchNorm, Dropout, PaddingConfig2d};
 use burn::prelude::*;
 use burn::tensor::backend::AutodiffBackend;
 use burn::tensor::ops::{ConvOptions, FloatTensor, IntTensor};
@@ -39,6 +39,13 @@ pub struct NormOutput<B: Backend> {
     pub mean: FloatTensor<B>,
     /// `[C]`.
     pub var: FloatTensor<B>,
+}
+
+/// Dropout's output and its keep mask (1 kept, 0 dropped), which the backward pass reuses.
+#[derive(Debug, Clone)]
+pub struct DropoutOutput<B: Backend> {
+    pub output: FloatTensor<B>,
+    pub mask: FloatTensor<B>,
 }
 
 /// A 2 × 2 max-pool's output and where each maximum came from (the backend's own encoding).
@@ -93,6 +100,20 @@ pub trait TrainOps: Backend {
     /// ∂L/∂bias of a convolution: the output gradient summed over batch and positions, `[C_out]`.
     fn train_conv2d_bias_grad(output_grad: FloatTensor<Self>) -> FloatTensor<Self> {
         reference::channel_sums::<Self>(output_grad)
+    }
+
+    /// Inverted dropout (training): `x · mask / (1 − prob)` with a keep mask drawn from the backend's seeded RNG.
+    fn dropout(x: FloatTensor<Self>, prob: f64) -> DropoutOutput<Self> {
+        reference::dropout::<Self>(x, prob)
+    }
+
+    /// ∂L/∂x of [`TrainOps::dropout`]: `∂y · mask / (1 − prob)`.
+    fn dropout_backward(
+        output_grad: FloatTensor<Self>,
+        mask: FloatTensor<Self>,
+        prob: f64,
+    ) -> FloatTensor<Self> {
+        reference::dropout_backward::<Self>(output_grad, mask, prob)
     }
 
     /// 2 × 2 max-pool with stride 2 (floor mode): the output and the backend's record of where each maximum was.
@@ -197,6 +218,20 @@ impl TrainOps for burn::backend::Flex {
         timed(Kernel::ConvBiasGrad, || cpu::channel_sums(output_grad))
     }
 
+    fn dropout(x: FloatTensor<Self>, prob: f64) -> DropoutOutput<Self> {
+        timed(Kernel::DropoutForward, || cpu::dropout(x, prob))
+    }
+
+    fn dropout_backward(
+        output_grad: FloatTensor<Self>,
+        mask: FloatTensor<Self>,
+        prob: f64,
+    ) -> FloatTensor<Self> {
+        timed(Kernel::DropoutBackward, || {
+            cpu::dropout_backward(output_grad, mask, prob)
+        })
+    }
+
     fn max_pool2x2(x: FloatTensor<Self>) -> MaxPoolOutput<Self> {
         timed(Kernel::PoolForward, || cpu::max_pool2x2(x))
     }
@@ -283,6 +318,14 @@ pub fn conv2d<B: TrainOps>(conv: &Conv2d<B>, x: Tensor<B, 4>) -> Tensor<B, 4> {
         conv.bias.as_ref().map(|b| primitive(b.val())),
         options,
     ))
+}
+
+/// `dropout.forward(x)` through [`TrainOps::dropout`]: the identity in inference or at probability 0, as Burn's.
+pub fn dropout<B: TrainOps>(dropout: &Dropout, x: Tensor<B, 4>) -> Tensor<B, 4> {
+    if !B::ad_enabled(&x.device()) || dropout.prob == 0.0 {
+        return x;
+    }
+    tensor(B::dropout(primitive(x), dropout.prob).output)
 }
 
 /// `pool.forward(x)` through [`TrainOps::max_pool2x2`]; the network pools 2 × 2 with stride 2 only (panics on

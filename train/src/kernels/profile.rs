@@ -17,10 +17,12 @@ pub enum Kernel {
     NormBackward,
     PoolForward,
     PoolBackward,
+    DropoutForward,
+    DropoutBackward,
 }
 
 impl Kernel {
-    pub const ALL: [Kernel; 8] = [
+    pub const ALL: [Kernel; 10] = [
         Kernel::ConvForward,
         Kernel::ConvInputGrad,
         Kernel::ConvWeightGrad,
@@ -29,6 +31,8 @@ impl Kernel {
         Kernel::NormBackward,
         Kernel::PoolForward,
         Kernel::PoolBackward,
+        Kernel::DropoutForward,
+        Kernel::DropoutBackward,
     ];
 }
 

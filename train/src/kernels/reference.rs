@@ -5,7 +5,7 @@ use burn::prelude::*;
 use burn::tensor::activation::leaky_relu;
 use burn::tensor::ops::FloatTensor;
 
-use super::{primitive, tensor, NormGrads, NormOutput};
+use super::{primitive, tensor, DropoutOutput, NormGrads, NormOutput};
 
 /// Per-channel mean of `[N, C, H, W]` as `[1, C, 1, 1]`, as Burn's BatchNorm computes it.
 fn channel_mean<B: Backend>(x: Tensor<B, 4>) -> Tensor<B, 4> {
@@ -84,4 +84,23 @@ pub fn batch_norm_leaky_relu_backward<B: Backend>(
         gamma: primitive(d_gamma),
         beta: primitive(d_beta),
     }
+}
+
+/// Burn's `Dropout::forward` arithmetic (a Bernoulli keep mask from the backend RNG, then `x · mask / keep`).
+pub fn dropout<B: Backend>(x: FloatTensor<B>, prob: f64) -> DropoutOutput<B> {
+    let x = tensor::<B, 4>(x);
+    let keep = 1.0 - prob;
+    let mask = x.random_like(burn::tensor::Distribution::Bernoulli(keep));
+    DropoutOutput {
+        output: primitive((x * mask.clone()) * (1.0 / keep)),
+        mask: primitive(mask),
+    }
+}
+
+pub fn dropout_backward<B: Backend>(
+    output_grad: FloatTensor<B>,
+    mask: FloatTensor<B>,
+    prob: f64,
+) -> FloatTensor<B> {
+    primitive((tensor::<B, 4>(output_grad) * tensor::<B, 4>(mask)) * (1.0 / (1.0 - prob)))
 }

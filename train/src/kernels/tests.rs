@@ -183,3 +183,46 @@ fn train_conv2d_matches_stock_conv_and_autodiff() {
         }
     }
 }
+
+/// Dropout on Flex: kept elements are scaled by 1/keep and the rest are zero, exactly as the returned mask says;
+/// the kept share matches the probability (±6σ); the same backend seed gives the same mask and another seed
+/// another; the gradient is the upstream gradient through the same mask.
+#[test]
+fn dropout_masks_scale_and_reproduce() {
+    let device = Default::default();
+    let (shape, prob) = ([2, 3, 100, 100], 0.3);
+    let keep = 1.0 - prob;
+    let draw = |seed: u64| {
+        let x = (random(shape, 40) + 3.0).require_grad();
+        Ad::seed(&device, seed);
+        let out = Ad::dropout(primitive(x.clone()), prob);
+        let (y, mask) = (tensor::<Ad, 4>(out.output), tensor::<Ad, 4>(out.mask));
+        let weights = random(shape, 41);
+        let grads = (y.clone() * weights.clone()).sum().backward();
+        (
+            values(x.clone()),
+            values(y),
+            values(mask),
+            values(x.grad(&grads).unwrap()),
+            values(weights),
+        )
+    };
+    let (x, y, mask, dx, weights) = draw(5);
+    let n = x.len() as f64;
+    let kept = mask.iter().filter(|&&m| m == 1.0).count() as f64;
+    assert!(mask.iter().all(|&m| m == 0.0 || m == 1.0), "mask is 0/1");
+    let sigma = (keep * prob / n).sqrt();
+    assert!(
+        (kept / n - keep).abs() <= 6.0 * sigma,
+        "kept share {} for keep {keep}",
+        kept / n
+    );
+    for i in 0..x.len() {
+        let expected = x[i] * mask[i] / keep as f32;
+        assert!((y[i] - expected).abs() <= 1e-6 * expected.abs().max(1.0), "output {i}");
+        let g = weights[i] * mask[i] / keep as f32;
+        assert!((dx[i] - g).abs() <= 1e-6 * g.abs().max(1.0), "gradient {i}");
+    }
+    assert_eq!(draw(5).2, mask, "same seed, same mask");
+    assert_ne!(draw(6).2, mask, "another seed, another mask");
+}
