@@ -19,10 +19,12 @@ pub enum Kernel {
     PoolBackward,
     DropoutForward,
     DropoutBackward,
+    /// The renderer layer + masked MSE, forward and backward.
+    RenderLoss,
 }
 
 impl Kernel {
-    pub const ALL: [Kernel; 10] = [
+    pub const ALL: [Kernel; 11] = [
         Kernel::ConvForward,
         Kernel::ConvInputGrad,
         Kernel::ConvWeightGrad,
@@ -33,6 +35,7 @@ impl Kernel {
         Kernel::PoolBackward,
         Kernel::DropoutForward,
         Kernel::DropoutBackward,
+        Kernel::RenderLoss,
     ];
 }
 
