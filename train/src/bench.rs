@@ -13,7 +13,7 @@ use rand::Rng;
 use crate::data::{HostBatch, InputNormalisation};
 use crate::kernels::TrainBackend;
 use crate::model::UNetConfig;
-use crate::render::{rendered_mse, SceneTerms};
+use crate::render::{masked_mse, render, SceneTerms};
 use crate::training::train_loss;
 
 /// Synthetic samples for benches and tests: smooth random terrain, a sun at 60° incidence from a random azimuth,
@@ -265,7 +265,7 @@ pub fn bench<B: TrainBackend>(
         let t = Instant::now();
         let scene = SceneTerms::<B>::from_host(&batch, model, device);
         terms_s.set(terms_s.get() + t.elapsed().as_secs_f64());
-        let loss = rendered_mse(params.clone(), &scene, image.clone());
+        let loss = masked_mse(render(params.clone(), &scene), image.clone(), scene.valid);
         let grads = loss.backward();
         params
             .grad(&grads)

@@ -95,22 +95,6 @@ pub fn render<B: Backend>(raw_params: Tensor<B, 4>, scene: &SceneTerms<B>) -> Te
     (leaky_relu(raw_params, LEAKY_SLOPE) * scene.terms.clone()).sum_dim(1)
 }
 
-/// [`render`] then [`masked_mse`] against `image` as one operation ([`crate::kernels::TrainOps::rendered_mse`]:
-/// one pass forward and one backward on the CPU): the train step's loss.
-pub fn rendered_mse<B: crate::kernels::TrainOps>(
-    raw_params: Tensor<B, 4>,
-    scene: &SceneTerms<B>,
-    image: Tensor<B, 4>,
-) -> Tensor<B, 1> {
-    let p = |t: Tensor<B, 4>| t.into_primitive().tensor();
-    Tensor::from_primitive(burn::tensor::TensorPrimitive::Float(B::rendered_mse(
-        p(raw_params),
-        p(scene.terms.clone()),
-        p(image),
-        p(scene.valid.clone()),
-    )))
-}
-
 /// Mean squared error over valid pixels of the whole batch; 0 (with zero gradient) when no pixel is valid.
 pub fn masked_mse<B: Backend>(
     rendered: Tensor<B, 4>,

@@ -23,29 +23,6 @@ struct BatchNormLeakyRelu;
 struct MaxPool2x2;
 #[derive(Debug)]
 struct DropoutMask;
-#[derive(Debug)]
-struct RenderedMse;
-
-impl<B: TrainOps> Backward<B, 1> for RenderedMse {
-    /// Parameters (checkpointed), then the constant terms, image and valid mask.
-    type State = (NodeId, FloatTensor<B>, FloatTensor<B>, FloatTensor<B>);
-
-    fn backward(
-        self,
-        ops: Ops<Self::State, 1>,
-        grads: &mut Gradients,
-        checkpointer: &mut Checkpointer,
-    ) {
-        let grad = grads.consume::<B>(&ops.node);
-        let (params, terms, image, valid) = ops.state;
-        let params = checkpointer.retrieve_node_output::<FloatTensor<B>>(params);
-        let [node_params] = ops.parents;
-        if let Some(node) = node_params {
-            let g = B::rendered_mse_backward(params, terms, image, valid, grad);
-            grads.register::<B>(node.id, g);
-        }
-    }
-}
 
 impl<B: TrainOps> Backward<B, 1> for DropoutMask {
     type State = (FloatTensor<B>, f64);
@@ -239,34 +216,6 @@ impl<B: TrainOps, C: CheckpointStrategy> TrainOps for Autodiff<B, C> {
                     options,
                 )),
             },
-        }
-    }
-
-    fn rendered_mse(
-        params: FloatTensor<Self>,
-        terms: FloatTensor<Self>,
-        image: FloatTensor<Self>,
-        valid: FloatTensor<Self>,
-    ) -> FloatTensor<Self> {
-        let (terms, image, valid) = (terms.primitive, image.primitive, valid.primitive);
-        match RenderedMse
-            .prepare::<C>([params.node.clone()])
-            .compute_bound()
-            .stateful()
-        {
-            OpsKind::Tracked(mut prep) => {
-                let id = prep.checkpoint(&params);
-                let loss = B::rendered_mse(
-                    params.primitive,
-                    terms.clone(),
-                    image.clone(),
-                    valid.clone(),
-                );
-                prep.finish((id, terms, image, valid), loss)
-            }
-            OpsKind::UnTracked(prep) => {
-                prep.finish(B::rendered_mse(params.primitive, terms, image, valid))
-            }
         }
     }
 

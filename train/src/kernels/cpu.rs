@@ -763,105 +763,11 @@ pub fn dropout_backward(
     let (dy, m) = (slice(&dy_c), slice(&mask_c));
     let mut dx = vec![0.0f32; dy.len()];
     dx.par_chunks_mut(DROPOUT_CHUNK)
-        .zip(
-            dy.par_chunks(DROPOUT_CHUNK)
-                .zip(m.par_chunks(DROPOUT_CHUNK)),
-        )
+        .zip(dy.par_chunks(DROPOUT_CHUNK).zip(m.par_chunks(DROPOUT_CHUNK)))
         .for_each(|(dx, (dy, m))| {
             dx.iter_mut()
                 .zip(dy.iter().zip(m))
                 .for_each(|(dx, (&dy, &m))| *dx = dy * m * scale);
         });
     from_vec(dx, &shape)
-}
-
-/// Per-sample sums and the valid count of [`rendered_mse`]'s residuals: `(Σ valid·(r − I)², Σ valid)`, and
-/// the residual `valid·(r − I)` per pixel when `residuals` is given.
-fn render_residuals(
-    p: &[f32],
-    t: &[f32],
-    image: &[f32],
-    valid: &[f32],
-    planes: usize,
-    mut residuals: Option<&mut [f32]>,
-) -> (f64, f64) {
-    let npx = image.len();
-    let slope = dataset::brdf::LEAKY_SLOPE as f32;
-    let (mut sse, mut count) = (0.0f64, 0.0f64);
-    for px in 0..npx {
-        let mut r = 0.0f32;
-        for k in 0..planes {
-            let v = p[k * npx + px];
-            r += if v < 0.0 { slope * v } else { v } * t[k * npx + px];
-        }
-        let e = valid[px] * (r - image[px]);
-        if let Some(out) = residuals.as_deref_mut() {
-            out[px] = e;
-        }
-        sse += (e * (r - image[px])) as f64;
-        count += valid[px] as f64;
-    }
-    (sse, count)
-}
-
-/// [`super::TrainOps::rendered_mse`] on f32 data: one pass per sample (f64 sums).
-pub fn rendered_mse(
-    params: FloatTensor<Flex>,
-    terms: FloatTensor<Flex>,
-    image: FloatTensor<Flex>,
-    valid: FloatTensor<Flex>,
-) -> FloatTensor<Flex> {
-    let prepared = [&params, &terms, &image, &valid].map(f32_data);
-    let [Some((pc, shape)), Some((tc, _)), Some((ic, _)), Some((vc, _))] = prepared else {
-        return reference::rendered_mse::<Flex>(params, terms, image, valid);
-    };
-    let (planes, npx) = (shape[1], shape[2] * shape[3]);
-    let (p, t, img, val) = (slice(&pc), slice(&tc), slice(&ic), slice(&vc));
-    let (sse, count) = p
-        .par_chunks(planes * npx)
-        .zip(t.par_chunks(planes * npx))
-        .zip(img.par_chunks(npx).zip(val.par_chunks(npx)))
-        .map(|((p, t), (img, val))| render_residuals(p, t, img, val, planes, None))
-        .reduce(|| (0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1));
-    from_vec(vec![(sse / count.max(1.0)) as f32], &[1])
-}
-
-pub fn rendered_mse_backward(
-    params: FloatTensor<Flex>,
-    terms: FloatTensor<Flex>,
-    image: FloatTensor<Flex>,
-    valid: FloatTensor<Flex>,
-    loss_grad: FloatTensor<Flex>,
-) -> FloatTensor<Flex> {
-    let prepared = [&params, &terms, &image, &valid, &loss_grad].map(f32_data);
-    let [Some((pc, shape)), Some((tc, _)), Some((ic, _)), Some((vc, _)), Some((gc, _))] = prepared
-    else {
-        return reference::rendered_mse_backward::<Flex>(params, terms, image, valid, loss_grad);
-    };
-    let (planes, npx) = (shape[1], shape[2] * shape[3]);
-    let (p, t, img, val) = (slice(&pc), slice(&tc), slice(&ic), slice(&vc));
-    let count = val.iter().map(|&v| v as f64).sum::<f64>().max(1.0);
-    let scale = (2.0 * slice(&gc)[0] as f64 / count) as f32;
-    let slope = dataset::brdf::LEAKY_SLOPE as f32;
-    let mut dp = vec![0.0f32; p.len()];
-    dp.par_chunks_mut(planes * npx)
-        .zip(p.par_chunks(planes * npx).zip(t.par_chunks(planes * npx)))
-        .zip(img.par_chunks(npx).zip(val.par_chunks(npx)))
-        .for_each(|((dp, (p, t)), (img, val))| {
-            with_scratch([npx, 0], |residual, _| {
-                render_residuals(p, t, img, val, planes, Some(residual));
-                for k in 0..planes {
-                    let r = k * npx..(k + 1) * npx;
-                    for (((d, &v), &tk), &e) in dp[r.clone()]
-                        .iter_mut()
-                        .zip(&p[r.clone()])
-                        .zip(&t[r])
-                        .zip(&*residual)
-                    {
-                        *d = scale * e * tk * if v < 0.0 { slope } else { 1.0 };
-                    }
-                }
-            });
-        });
-    from_vec(dp, &shape)
 }

@@ -102,29 +102,6 @@ pub trait TrainOps: Backend {
         reference::channel_sums::<Self>(output_grad)
     }
 
-    /// The renderer layer and its loss in one: `Σ valid · (Σ_k LeakyReLU(p_k)·T_k − image)² / max(Σ valid, 1)`,
-    /// `[1]` (what `render::masked_mse(render::render(..))` computes; `terms`, `image`, `valid` are constants).
-    fn rendered_mse(
-        params: FloatTensor<Self>,
-        terms: FloatTensor<Self>,
-        image: FloatTensor<Self>,
-        valid: FloatTensor<Self>,
-    ) -> FloatTensor<Self> {
-        reference::rendered_mse::<Self>(params, terms, image, valid)
-    }
-
-    /// ∂L/∂params of [`TrainOps::rendered_mse`] times the upstream gradient `loss_grad` (`[1]`):
-    /// `2·g·valid·(r − image)·T_k·LeakyReLU'(p_k) / max(Σ valid, 1)`.
-    fn rendered_mse_backward(
-        params: FloatTensor<Self>,
-        terms: FloatTensor<Self>,
-        image: FloatTensor<Self>,
-        valid: FloatTensor<Self>,
-        loss_grad: FloatTensor<Self>,
-    ) -> FloatTensor<Self> {
-        reference::rendered_mse_backward::<Self>(params, terms, image, valid, loss_grad)
-    }
-
     /// Inverted dropout (training): `x · mask / (1 − prob)` with a keep mask drawn from the backend's seeded RNG.
     fn dropout(x: FloatTensor<Self>, prob: f64) -> DropoutOutput<Self> {
         reference::dropout::<Self>(x, prob)
@@ -239,29 +216,6 @@ impl TrainOps for burn::backend::Flex {
 
     fn train_conv2d_bias_grad(output_grad: FloatTensor<Self>) -> FloatTensor<Self> {
         timed(Kernel::ConvBiasGrad, || cpu::channel_sums(output_grad))
-    }
-
-    fn rendered_mse(
-        params: FloatTensor<Self>,
-        terms: FloatTensor<Self>,
-        image: FloatTensor<Self>,
-        valid: FloatTensor<Self>,
-    ) -> FloatTensor<Self> {
-        timed(Kernel::RenderLoss, || {
-            cpu::rendered_mse(params, terms, image, valid)
-        })
-    }
-
-    fn rendered_mse_backward(
-        params: FloatTensor<Self>,
-        terms: FloatTensor<Self>,
-        image: FloatTensor<Self>,
-        valid: FloatTensor<Self>,
-        loss_grad: FloatTensor<Self>,
-    ) -> FloatTensor<Self> {
-        timed(Kernel::RenderLoss, || {
-            cpu::rendered_mse_backward(params, terms, image, valid, loss_grad)
-        })
     }
 
     fn dropout(x: FloatTensor<Self>, prob: f64) -> DropoutOutput<Self> {

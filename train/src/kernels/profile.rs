@@ -19,12 +19,10 @@ pub enum Kernel {
     PoolBackward,
     DropoutForward,
     DropoutBackward,
-    /// The renderer layer + masked MSE, forward and backward.
-    RenderLoss,
 }
 
 impl Kernel {
-    pub const ALL: [Kernel; 11] = [
+    pub const ALL: [Kernel; 10] = [
         Kernel::ConvForward,
         Kernel::ConvInputGrad,
         Kernel::ConvWeightGrad,
@@ -35,7 +33,6 @@ impl Kernel {
         Kernel::PoolBackward,
         Kernel::DropoutForward,
         Kernel::DropoutBackward,
-        Kernel::RenderLoss,
     ];
 }
 

@@ -104,38 +104,3 @@ pub fn dropout_backward<B: Backend>(
 ) -> FloatTensor<B> {
     primitive((tensor::<B, 4>(output_grad) * tensor::<B, 4>(mask)) * (1.0 / (1.0 - prob)))
 }
-
-pub fn rendered_mse<B: Backend>(
-    params: FloatTensor<B>,
-    terms: FloatTensor<B>,
-    image: FloatTensor<B>,
-    valid: FloatTensor<B>,
-) -> FloatTensor<B> {
-    let rendered = (leaky_relu(tensor::<B, 4>(params), dataset::brdf::LEAKY_SLOPE)
-        * tensor::<B, 4>(terms))
-    .sum_dim(1);
-    primitive(crate::render::masked_mse(
-        rendered,
-        tensor::<B, 4>(image),
-        tensor::<B, 4>(valid),
-    ))
-}
-
-pub fn rendered_mse_backward<B: Backend>(
-    params: FloatTensor<B>,
-    terms: FloatTensor<B>,
-    image: FloatTensor<B>,
-    valid: FloatTensor<B>,
-    loss_grad: FloatTensor<B>,
-) -> FloatTensor<B> {
-    let slope = dataset::brdf::LEAKY_SLOPE;
-    let (p, t) = (tensor::<B, 4>(params), tensor::<B, 4>(terms));
-    let valid = tensor::<B, 4>(valid);
-    let rendered = (leaky_relu(p.clone(), slope) * t.clone()).sum_dim(1);
-    let count = valid.clone().sum().clamp_min(1.0).reshape([1, 1, 1, 1]);
-    let g = tensor::<B, 1>(loss_grad).reshape([1, 1, 1, 1]);
-    let residual = (rendered - tensor::<B, 4>(image)) * valid * 2.0 * g / count;
-    let negative = p.lower_elem(0.0);
-    let derivative = t.clone().mask_where(negative, t * slope);
-    primitive(derivative * residual)
-}
