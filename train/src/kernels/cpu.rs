@@ -763,7 +763,10 @@ pub fn dropout_backward(
     let (dy, m) = (slice(&dy_c), slice(&mask_c));
     let mut dx = vec![0.0f32; dy.len()];
     dx.par_chunks_mut(DROPOUT_CHUNK)
-        .zip(dy.par_chunks(DROPOUT_CHUNK).zip(m.par_chunks(DROPOUT_CHUNK)))
+        .zip(
+            dy.par_chunks(DROPOUT_CHUNK)
+                .zip(m.par_chunks(DROPOUT_CHUNK)),
+        )
         .for_each(|(dx, (dy, m))| {
             dx.iter_mut()
                 .zip(dy.iter().zip(m))
