@@ -251,12 +251,14 @@ pub fn open_lunar(path: &Path) -> Result<(Dataset, RasterInfo), RasterError> {
     ))
 }
 
-/// Read band 1 of a lunar GeoTIFF; nodata values become NaN.
+/// Read band 1 of a lunar raster (any format GDAL reads); nodata values become NaN and the band's scale and
+/// offset are applied, so values are physical (I/F, metres) whatever the stored type.
 pub fn read_raster(path: &Path) -> Result<Raster, RasterError> {
     Ok(read_bands(path)?.swap_remove(0))
 }
 
-/// Read every band of a lunar GeoTIFF (band descriptions kept); nodata values become NaN.
+/// Read every band of a lunar raster (band descriptions kept); nodata values become NaN, scale and offset are
+/// applied.
 pub fn read_bands(path: &Path) -> Result<Vec<Raster>, RasterError> {
     let (ds, info) = open_lunar(path)?;
     (1..=ds.raster_count())
@@ -271,31 +273,51 @@ fn read_band(
     index: usize,
 ) -> Result<Raster, RasterError> {
     let band = ds.rasterband(index).map_err(gdal_err(path))?;
-    let buf = band
-        .read_as::<f32>(
-            (0, 0),
-            (info.width, info.height),
-            (info.width, info.height),
-            None,
-        )
-        .map_err(gdal_err(path))?;
+    let window = ((0, 0), (info.width, info.height), (info.width, info.height));
     let description = band.description().unwrap_or_default();
-    let (_, mut data) = buf.into_shape_and_vec();
-    let nodata = band.no_data_value().map(|v| v as f32);
-    if let Some(nd) = nodata {
-        for v in &mut data {
-            if *v == nd {
-                *v = f32::NAN;
-            }
+    let raw_nodata = band.no_data_value();
+    // Stored values are `physical = raw · scale + offset` (GDAL band scale/offset; e.g. LROC's Int16 "Scaled
+    // I/F"); nodata is a raw value, so it is matched before scaling.
+    let (scale, offset) = (band.scale().unwrap_or(1.0), band.offset().unwrap_or(0.0));
+    let data: Vec<f32> = if scale == 1.0 && offset == 0.0 {
+        let (_, mut data) = band
+            .read_as::<f32>(window.0, window.1, window.2, None)
+            .map_err(gdal_err(path))?
+            .into_shape_and_vec();
+        if let Some(nd) = raw_nodata.map(|v| v as f32) {
+            data.iter_mut()
+                .filter(|v| **v == nd)
+                .for_each(|v| *v = f32::NAN);
         }
-    }
+        data
+    } else {
+        // f64 holds every integer type's raw values exactly; the physical value is rounded to f32 once.
+        let (_, raw) = band
+            .read_as::<f64>(window.0, window.1, window.2, None)
+            .map_err(gdal_err(path))?
+            .into_shape_and_vec();
+        raw.into_iter()
+            .map(|v| {
+                if Some(v) == raw_nodata {
+                    f32::NAN
+                } else {
+                    (v * scale + offset) as f32
+                }
+            })
+            .collect()
+    };
     Ok(Raster {
         width: info.width,
         height: info.height,
         transform: info.transform,
         crs: info.crs.clone(),
         data,
-        nodata: nodata.unwrap_or(f32::NAN),
+        // Missing values are NaN in `data` from here on; the raw nodata value is kept for reference only when
+        // it is also a physical value (no scale/offset), else NaN.
+        nodata: match raw_nodata {
+            Some(v) if scale == 1.0 && offset == 0.0 => v as f32,
+            _ => f32::NAN,
+        },
         description,
     })
 }
@@ -494,5 +516,82 @@ mod tests {
         assert_eq!(back.transform, raster.transform);
         assert!(back.data[3].is_nan() && back.data[4] == 1.5);
         assert_eq!(back.description, "height_m");
+    }
+
+    /// LROC CDR orthos store I/F as Int16 "Scaled I/F" (band scale 3.0518509475997199e-05); DEMs are sometimes
+    /// integers with a scale and offset. Both must read back as physical values (to half a quantisation step)
+    /// with their nodata as NaN, exactly like the float originals.
+    #[test]
+    fn integer_rasters_with_scale_offset_read_as_physical_values() {
+        use gdal::raster::Buffer;
+        use gdal::DriverManager;
+        let dir = tempfile::tempdir().unwrap();
+        let crs = LunarCrs::equirectangular(-43.3, -11.2);
+        let transform = GeoTransform::north_up(-1000.0, -1_300_000.0, 5.0);
+        let (w, h) = (9, 5);
+        let write =
+            |name: &str, raw: Vec<f64>, int16: bool, scale: f64, offset: f64, nodata: f64| {
+                let path = dir.path().join(name);
+                let driver = DriverManager::get_driver_by_name("GTiff").unwrap();
+                let mut ds = if int16 {
+                    driver
+                        .create_with_band_type::<i16, _>(&path, w, h, 1)
+                        .unwrap()
+                } else {
+                    driver
+                        .create_with_band_type::<u16, _>(&path, w, h, 1)
+                        .unwrap()
+                };
+                ds.set_geo_transform(&transform.to_gdal()).unwrap();
+                ds.set_spatial_ref(&SpatialRef::from_definition(&crs.definition).unwrap())
+                    .unwrap();
+                let mut band = ds.rasterband(1).unwrap();
+                band.set_scale(scale).unwrap();
+                band.set_offset(offset).unwrap();
+                band.set_no_data_value(Some(nodata)).unwrap();
+                if int16 {
+                    let mut buf = Buffer::new((w, h), raw.iter().map(|&v| v as i16).collect());
+                    band.write((0, 0), (w, h), &mut buf).unwrap();
+                } else {
+                    let mut buf = Buffer::new((w, h), raw.iter().map(|&v| v as u16).collect());
+                    band.write((0, 0), (w, h), &mut buf).unwrap();
+                }
+                path
+            };
+        let n = w * h;
+        // I/F 0.01–0.14 as LROC stores it; pixel 7 is nodata (−32768).
+        let scale = 3.0518509475997199e-05;
+        let truth: Vec<f64> = (0..n).map(|k| 0.01 + 0.003 * k as f64).collect();
+        let mut raw: Vec<f64> = truth.iter().map(|v| (v / scale).round()).collect();
+        raw[7] = -32768.0;
+        let ortho = read_raster(&write("ortho.tif", raw, true, scale, 0.0, -32768.0)).unwrap();
+        for k in 0..n {
+            if k == 7 {
+                assert!(ortho.data[k].is_nan(), "nodata pixel becomes NaN");
+            } else {
+                let err = (ortho.data[k] as f64 - truth[k]).abs();
+                assert!(
+                    err <= scale / 2.0 + 1e-7,
+                    "pixel {k}: {} vs {}",
+                    ortho.data[k],
+                    truth[k]
+                );
+            }
+        }
+        // A UInt16 DEM: height = raw · 0.5 − 4000 m; 0 is nodata.
+        let heights: Vec<f64> = (0..n).map(|k| -3500.0 + 37.25 * k as f64).collect();
+        let mut raw: Vec<f64> = heights
+            .iter()
+            .map(|v| ((v + 4000.0) / 0.5).round())
+            .collect();
+        raw[0] = 0.0;
+        let dem = read_raster(&write("dem.tif", raw, false, 0.5, -4000.0, 0.0)).unwrap();
+        assert!(dem.data[0].is_nan());
+        for k in 1..n {
+            assert!(
+                (dem.data[k] as f64 - heights[k]).abs() <= 0.25,
+                "height {k}"
+            );
+        }
     }
 }
