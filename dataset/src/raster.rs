@@ -560,7 +560,8 @@ mod tests {
             };
         let n = w * h;
         // I/F 0.01–0.14 as LROC stores it; pixel 7 is nodata (−32768).
-        let scale = 3.0518509475997199e-05;
+        // 1/32767: LROC's published 3.0518509475997199e-05 rounded to f64.
+        let scale = 1.0 / 32767.0;
         let truth: Vec<f64> = (0..n).map(|k| 0.01 + 0.003 * k as f64).collect();
         let mut raw: Vec<f64> = truth.iter().map(|v| (v / scale).round()).collect();
         raw[7] = -32768.0;
