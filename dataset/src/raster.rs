@@ -566,17 +566,12 @@ mod tests {
         let mut raw: Vec<f64> = truth.iter().map(|v| (v / scale).round()).collect();
         raw[7] = -32768.0;
         let ortho = read_raster(&write("ortho.tif", raw, true, scale, 0.0, -32768.0)).unwrap();
-        for k in 0..n {
+        for (k, (&got, &want)) in ortho.data.iter().zip(&truth).enumerate() {
             if k == 7 {
-                assert!(ortho.data[k].is_nan(), "nodata pixel becomes NaN");
+                assert!(got.is_nan(), "nodata pixel becomes NaN");
             } else {
-                let err = (ortho.data[k] as f64 - truth[k]).abs();
-                assert!(
-                    err <= scale / 2.0 + 1e-7,
-                    "pixel {k}: {} vs {}",
-                    ortho.data[k],
-                    truth[k]
-                );
+                let err = (got as f64 - want).abs();
+                assert!(err <= scale / 2.0 + 1e-7, "pixel {k}: {got} vs {want}");
             }
         }
         // A UInt16 DEM: height = raw · 0.5 − 4000 m; 0 is nodata.
@@ -588,10 +583,10 @@ mod tests {
         raw[0] = 0.0;
         let dem = read_raster(&write("dem.tif", raw, false, 0.5, -4000.0, 0.0)).unwrap();
         assert!(dem.data[0].is_nan());
-        for k in 1..n {
+        for (k, (&got, &want)) in dem.data.iter().zip(&heights).enumerate().skip(1) {
             assert!(
-                (dem.data[k] as f64 - heights[k]).abs() <= 0.25,
-                "height {k}"
+                (got as f64 - want).abs() <= 0.25,
+                "height {k}: {got} vs {want}"
             );
         }
     }
