@@ -94,6 +94,15 @@ impl ConvShape {
         self.height * self.width
     }
 
+    /// Elements of one sample's input and of its output.
+    fn planes(&self) -> (usize, usize) {
+        (self.c_in * self.positions(), self.c_out * self.positions())
+    }
+
+    fn input_shape(&self) -> [usize; 4] {
+        [self.batch, self.c_in, self.height, self.width]
+    }
+
     /// Rows of the im2col matrix: input channels × kernel taps.
     fn taps(&self) -> usize {
         self.c_in * self.kernel[0] * self.kernel[1]
@@ -185,6 +194,24 @@ impl ConvShape {
     }
 }
 
+/// Contiguous f32 input and weight of a convolution the kernels support (with a third operand of the same
+/// dtype when given: the bias or the output gradient), or `None`: the caller then takes the stock path.
+fn conv_operands(
+    x: &FlexTensor,
+    weight: &FlexTensor,
+    third: Option<&FlexTensor>,
+    options: &ConvOptions<2>,
+) -> Option<(FlexTensor, FlexTensor, Option<FlexTensor>, ConvShape)> {
+    let (xc, x_shape) = f32_data(x)?;
+    let (wc, w_shape) = f32_data(weight)?;
+    let third = match third {
+        Some(t) => Some(f32_data(t)?.0),
+        None => None,
+    };
+    let shape = ConvShape::new(&x_shape, &w_shape, options)?;
+    Some((xc, wc, third, shape))
+}
+
 /// `dst (m × n) = [dst +] lhs (m × k) · rhs (k × n)`, each matrix given as (row stride, column stride).
 #[allow(clippy::too_many_arguments)]
 fn matmul(
@@ -239,34 +266,12 @@ pub fn conv2d(
     bias: Option<FloatTensor<Flex>>,
     options: ConvOptions<2>,
 ) -> FloatTensor<Flex> {
-    use burn::tensor::ops::ModuleOps;
-    let bias_data = bias.as_ref().map(f32_data);
-    let prepared = (
-        f32_data(&x),
-        f32_data(&weight),
-        bias_data.clone().unwrap_or(None),
-    );
-    let supported = match &prepared {
-        (Some((_, xs)), Some((_, ws)), b) => {
-            (bias.is_none() || b.is_some()) && ConvShape::new(xs, ws, &options).is_some()
-        }
-        _ => false,
-    };
-    let (Some((xc, x_shape)), Some((wc, w_shape)), bias_c) = prepared else {
+    let Some((xc, wc, bias_c, s)) = conv_operands(&x, &weight, bias.as_ref(), &options) else {
         return <Flex as ModuleOps<Flex>>::conv2d(x, weight, bias, options);
     };
-    let s = match ConvShape::new(&x_shape, &w_shape, &options) {
-        Some(s) if supported => s,
-        _ => return <Flex as ModuleOps<Flex>>::conv2d(x, weight, bias, options),
-    };
-    let (xs, w) = (slice(&xc), slice(&wc));
-    let bias = bias_c.as_ref().map(|(b, _)| slice(b));
-    let (hw, taps, plane_in, plane_out) = (
-        s.positions(),
-        s.taps(),
-        s.c_in * s.positions(),
-        s.c_out * s.positions(),
-    );
+    let (xs, w, bias) = (slice(&xc), slice(&wc), bias_c.as_ref().map(slice));
+    let (hw, taps) = (s.positions(), s.taps());
+    let (plane_in, plane_out) = s.planes();
     let mut y = vec![0.0f32; s.batch * plane_out];
     y.par_chunks_mut(plane_out)
         .zip(xs.par_chunks(plane_in))
@@ -299,21 +304,13 @@ pub fn conv2d_x_grad(
     output_grad: FloatTensor<Flex>,
     options: ConvOptions<2>,
 ) -> FloatTensor<Flex> {
-    use burn::tensor::ops::ModuleOps;
-    let prepared = (f32_data(&x), f32_data(&weight), f32_data(&output_grad));
-    let (Some((_, x_shape)), Some((weight, w_shape)), Some((dy, _))) = prepared else {
+    let Some((_, wc, Some(dy_c), s)) = conv_operands(&x, &weight, Some(&output_grad), &options)
+    else {
         return <Flex as ModuleOps<Flex>>::conv2d_x_backward(x, weight, output_grad, options);
     };
-    let Some(s) = ConvShape::new(&x_shape, &w_shape, &options) else {
-        return <Flex as ModuleOps<Flex>>::conv2d_x_backward(x, weight, output_grad, options);
-    };
-    let (w, dy) = (slice(&weight), slice(&dy));
-    let (hw, taps, plane_in, plane_out) = (
-        s.positions(),
-        s.taps(),
-        s.c_in * s.positions(),
-        s.c_out * s.positions(),
-    );
+    let (w, dy) = (slice(&wc), slice(&dy_c));
+    let (hw, taps) = (s.positions(), s.taps());
+    let (plane_in, plane_out) = s.planes();
     let mut dx = vec![0.0f32; s.batch * plane_in];
     dx.par_chunks_mut(plane_in)
         .zip(dy.par_chunks(plane_out))
@@ -333,7 +330,7 @@ pub fn conv2d_x_grad(
                 s.col2im(col, dx);
             });
         });
-    from_vec(dx, &x_shape)
+    from_vec(dx, &s.input_shape())
 }
 
 pub fn conv2d_weight_grad(
@@ -342,21 +339,13 @@ pub fn conv2d_weight_grad(
     output_grad: FloatTensor<Flex>,
     options: ConvOptions<2>,
 ) -> FloatTensor<Flex> {
-    use burn::tensor::ops::ModuleOps;
-    let prepared = (f32_data(&x), f32_data(&weight), f32_data(&output_grad));
-    let (Some((xc, x_shape)), Some((_, w_shape)), Some((dy, _))) = prepared else {
+    let Some((xc, _, Some(dy_c), s)) = conv_operands(&x, &weight, Some(&output_grad), &options)
+    else {
         return <Flex as ModuleOps<Flex>>::conv2d_weight_backward(x, weight, output_grad, options);
     };
-    let Some(s) = ConvShape::new(&x_shape, &w_shape, &options) else {
-        return <Flex as ModuleOps<Flex>>::conv2d_weight_backward(x, weight, output_grad, options);
-    };
-    let (xs, dy) = (slice(&xc), slice(&dy));
-    let (hw, taps, plane_in, plane_out) = (
-        s.positions(),
-        s.taps(),
-        s.c_in * s.positions(),
-        s.c_out * s.positions(),
-    );
+    let (xs, dy) = (slice(&xc), slice(&dy_c));
+    let (hw, taps) = (s.positions(), s.taps());
+    let (plane_in, plane_out) = s.planes();
     // Accumulated as ∂Wᵀ (taps × c_out, i.e. c_out contiguous) with ∂Y transposed to position-major first, so
     // that every gemm operand has its rows contiguous: the long reduction over positions then packs at memory
     // speed (with ∂Y·colᵀ on row-major data, packing the transposed operand cost more than the arithmetic).
@@ -393,7 +382,7 @@ pub fn conv2d_weight_grad(
         );
     let mut dw = vec![0.0f32; s.c_out * taps];
     transpose(&dw_t, taps, s.c_out, &mut dw);
-    from_vec(dw, &w_shape)
+    from_vec(dw, &[s.c_out, s.c_in, s.kernel[0], s.kernel[1]])
 }
 
 /// `dst (cols × rows) = srcᵀ` for a row-major `src (rows × cols)`, in cache-sized tiles.
