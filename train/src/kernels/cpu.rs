@@ -413,7 +413,7 @@ pub fn channel_sums(t: FloatTensor<Flex>) -> FloatTensor<Flex> {
                 .chunks(plane)
                 .skip(k)
                 .step_by(c)
-                .map(|p| p.iter().map(|&v| v as f64).sum::<f64>())
+                .map(|p| lane_sums(p, p, |v, _| (v as f64, 0.0)).0)
                 .sum::<f64>() as f32
         })
         .collect();
@@ -555,8 +555,12 @@ pub fn batch_norm_leaky_relu_backward(
                     let r = p * plane..(p + 1) * plane;
                     let (x, y, dy) = (&xs[r.clone()], &ys[r.clone()], &dys[r]);
                     // g per element first (vectorises), then the two lane sums over (g, x).
-                    let g: Vec<f32> = y.iter().zip(dy).map(|(&y, &dy)| dz(y, dy)).collect();
-                    lane_sums(&g, x, |g, x| (g as f64, g as f64 * (x - m) as f64))
+                    with_scratch([0, plane], |_, g| {
+                        g.iter_mut()
+                            .zip(y.iter().zip(dy))
+                            .for_each(|(g, (&y, &dy))| *g = dz(y, dy));
+                        lane_sums(g, x, |g, x| (g as f64, g as f64 * (x - m) as f64))
+                    })
                 })
                 .fold((0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1));
             (d_beta, d_gamma * inv_std[k])
