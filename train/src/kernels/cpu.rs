@@ -349,37 +349,34 @@ pub fn conv2d_weight_grad(
     // Accumulated as ∂Wᵀ (taps × c_out, i.e. c_out contiguous) with ∂Y transposed to position-major first, so
     // that every gemm operand has its rows contiguous: the long reduction over positions then packs at memory
     // speed (with ∂Y·colᵀ on row-major data, packing the transposed operand cost more than the arithmetic).
-    let dw_t = xs
-        .par_chunks(plane_in)
-        .zip(dy.par_chunks(plane_out))
-        .fold(
-            || vec![0.0f32; taps * s.c_out],
-            |mut dw_t, (x, dy)| {
-                with_scratch([s.im2col_len(), hw * s.c_out], |buffer, dy_t| {
-                    let col = s.columns(x, buffer);
-                    transpose(dy, s.c_out, hw, dy_t);
-                    // ∂W (c_out × taps) += ∂Y (c_out × hw) · colᵀ (hw × taps), stored column-major (= ∂Wᵀ row-major)
-                    matmul(
-                        [s.c_out, taps, hw],
-                        &mut dw_t,
-                        [1, s.c_out],
-                        true,
-                        dy_t,
-                        [1, s.c_out],
-                        col,
-                        [1, hw],
-                    );
-                });
-                dw_t
-            },
-        )
-        .reduce(
-            || vec![0.0f32; taps * s.c_out],
-            |mut a, b| {
-                a.iter_mut().zip(&b).for_each(|(a, b)| *a += b);
-                a
-            },
-        );
+    // One partial per sample, summed in sample order: the result does not depend on how rayon split the work
+    // (a fold/reduce would sum in an order set by work stealing, and training must be reproducible bit for bit).
+    let mut partials = vec![0.0f32; s.batch * taps * s.c_out];
+    partials
+        .par_chunks_mut(taps * s.c_out)
+        .zip(xs.par_chunks(plane_in).zip(dy.par_chunks(plane_out)))
+        .for_each(|(dw_t, (x, dy))| {
+            with_scratch([s.im2col_len(), hw * s.c_out], |buffer, dy_t| {
+                let col = s.columns(x, buffer);
+                transpose(dy, s.c_out, hw, dy_t);
+                // ∂W (c_out × taps) = ∂Y (c_out × hw) · colᵀ (hw × taps), stored column-major (= ∂Wᵀ row-major)
+                matmul(
+                    [s.c_out, taps, hw],
+                    dw_t,
+                    [1, s.c_out],
+                    false,
+                    dy_t,
+                    [1, s.c_out],
+                    col,
+                    [1, hw],
+                );
+            });
+        });
+    let mut chunks = partials.chunks_exact(taps * s.c_out);
+    let mut dw_t = chunks.next().expect("a batch of at least one").to_vec();
+    for partial in chunks {
+        dw_t.iter_mut().zip(partial).for_each(|(a, b)| *a += b);
+    }
     let mut dw = vec![0.0f32; s.c_out * taps];
     transpose(&dw_t, taps, s.c_out, &mut dw);
     from_vec(dw, &[s.c_out, s.c_in, s.kernel[0], s.kernel[1]])

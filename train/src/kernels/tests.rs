@@ -226,3 +226,66 @@ fn dropout_masks_scale_and_reproduce() {
     assert_eq!(seeded(5), seeded(5), "same seed, same mask");
     assert_ne!(seeded(5), seeded(6), "another seed, another mask");
 }
+
+/// Training is reproducible bit for bit whatever the thread count: every Flex kernel that sums across samples
+/// or positions gives identical bits in a 1-thread and a 3-thread pool.
+#[test]
+fn kernels_give_the_same_bits_on_any_thread_count() {
+    use burn::backend::Flex;
+    let x = primitive(random([5, 6, 13, 11], 60).inner());
+    let w = primitive(random([7, 6, 3, 3], 61).inner());
+    let dy = primitive(random([5, 7, 13, 11], 62).inner());
+    let gamma = primitive(random([6], 63).inner());
+    let beta = primitive(random([6], 64).inner());
+    let options = ConvOptions::new([1, 1], [1, 1], [1, 1], 1);
+    let run = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        pool.install(|| {
+            let t = |p| values(tensor::<Flex, 4>(p));
+            let norm =
+                Flex::batch_norm_leaky_relu(x.clone(), gamma.clone(), beta.clone(), 1e-5, 0.01);
+            let grads = Flex::batch_norm_leaky_relu_backward(
+                x.clone(),
+                gamma.clone(),
+                norm.mean.clone(),
+                norm.var.clone(),
+                norm.output.clone(),
+                x.clone(),
+                1e-5,
+                0.01,
+            );
+            vec![
+                t(Flex::train_conv2d(
+                    x.clone(),
+                    w.clone(),
+                    None,
+                    options.clone(),
+                )),
+                t(Flex::train_conv2d_x_grad(
+                    x.clone(),
+                    w.clone(),
+                    dy.clone(),
+                    options.clone(),
+                )),
+                t(Flex::train_conv2d_weight_grad(
+                    x.clone(),
+                    w.clone(),
+                    dy.clone(),
+                    options.clone(),
+                )),
+                values(tensor::<Flex, 1>(Flex::train_conv2d_bias_grad(dy.clone()))),
+                t(norm.output),
+                t(grads.x),
+                values(tensor::<Flex, 1>(grads.gamma)),
+            ]
+        })
+    };
+    let (one, three) = (run(1), run(3));
+    for (k, (a, b)) in one.iter().zip(&three).enumerate() {
+        let same = a.iter().zip(b).all(|(a, b)| a.to_bits() == b.to_bits());
+        assert!(same, "output {k} differs between 1 and 3 threads");
+    }
+}
