@@ -11,10 +11,10 @@ use burn::nn::{
 };
 use burn::prelude::*;
 use burn::tensor::activation::leaky_relu;
-use burn::tensor::module::interpolate;
-use burn::tensor::ops::{InterpolateMode, InterpolateOptions};
 
-use crate::kernels::{batch_norm_leaky_relu, conv2d, dropout, max_pool2d, TrainOps};
+use crate::kernels::{
+    batch_norm_leaky_relu, conv2d, dropout, max_pool2d, upsample_conv2d, TrainOps,
+};
 
 /// Negative slope of the network's activations.
 const ACTIVATION_SLOPE: f64 = 0.01;
@@ -265,9 +265,13 @@ impl<B: Backend> UNet<B> {
         x = self.bottleneck.forward(join(x));
         for (conv, block) in self.up_convs.iter().zip(&self.up_blocks) {
             let skip = skips.pop().expect("one skip per stage");
-            let [_, _, h, w] = skip.dims();
-            let up = interpolate(x, [h, w], InterpolateOptions::new(InterpolateMode::Nearest));
-            let up = leaky_relu(conv2d(conv, up), ACTIVATION_SLOPE);
+            let ([_, _, h, w], [_, _, coarse_h, coarse_w]) = (skip.dims(), x.dims());
+            // Every stage halves exactly (128 → 8), so nearest ×2 is the interpolation to the skip's size.
+            assert!(
+                (h, w) == (2 * coarse_h, 2 * coarse_w),
+                "up stage {coarse_h}x{coarse_w} -> {h}x{w} is not x2"
+            );
+            let up = leaky_relu(upsample_conv2d(conv, x), ACTIVATION_SLOPE);
             x = block.forward(Tensor::cat(vec![up, skip], 1));
         }
         conv2d(&self.head, join(x))

@@ -122,6 +122,35 @@ impl<B: TrainOps> Backward<B, 2> for Conv2dNoBias {
     }
 }
 
+#[derive(Debug)]
+struct UpsampleConv2d;
+
+impl<B: TrainOps> Backward<B, 3> for UpsampleConv2d {
+    type State = (NodeId, NodeId);
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 3>,
+        grads: &mut Gradients,
+        checkpointer: &mut Checkpointer,
+    ) {
+        let grad = grads.consume::<B>(&ops.node);
+        let x = checkpointer.retrieve_node_output::<FloatTensor<B>>(ops.state.0);
+        let weight = checkpointer.retrieve_node_output::<FloatTensor<B>>(ops.state.1);
+        let [node_x, node_weight, node_bias] = ops.parents;
+        if let Some(node) = node_bias {
+            grads.register::<B>(node.id, B::train_conv2d_bias_grad(grad.clone()));
+        }
+        if let Some(node) = node_weight {
+            let g = B::train_upsample_conv2d_weight_grad(x.clone(), weight.clone(), grad.clone());
+            grads.register::<B>(node.id, g);
+        }
+        if let Some(node) = node_x {
+            grads.register::<B>(node.id, B::train_upsample_conv2d_x_grad(x, weight, grad));
+        }
+    }
+}
+
 /// What the fused norm's backward needs besides the checkpointed input and scale.
 #[derive(Debug, Clone)]
 struct NormState<B: TrainOps> {
@@ -255,6 +284,34 @@ impl<B: TrainOps, C: CheckpointStrategy> TrainOps for Autodiff<B, C> {
                     argmax: out.argmax,
                 }
             }
+        }
+    }
+
+    fn train_upsample_conv2d(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        bias: Option<FloatTensor<Self>>,
+    ) -> FloatTensor<Self> {
+        // The network's up convolutions all have a bias; without one, compose the stock operations.
+        let Some(bias) = bias else {
+            return super::reference::upsample_conv2d::<Self>(x, weight, None);
+        };
+        match UpsampleConv2d
+            .prepare::<C>([x.node.clone(), weight.node.clone(), bias.node.clone()])
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(mut prep) => {
+                let state = (prep.checkpoint(&x), prep.checkpoint(&weight));
+                let out =
+                    B::train_upsample_conv2d(x.primitive, weight.primitive, Some(bias.primitive));
+                prep.finish(state, out)
+            }
+            OpsKind::UnTracked(prep) => prep.finish(B::train_upsample_conv2d(
+                x.primitive,
+                weight.primitive,
+                Some(bias.primitive),
+            )),
         }
     }
 

@@ -764,3 +764,217 @@ pub fn dropout_backward(
         });
     from_vec(dx, &shape)
 }
+
+/// Rows (or columns) of a 3×3 kernel that fall on each of the two coarse-grid taps of output phase `a` when the
+/// input is first repeated ×2 (nearest): phase 0 reads coarse offsets −1 (kernel row 0) and 0 (rows 1, 2); phase 1
+/// reads 0 (rows 0, 1) and +1 (row 2).
+const PHASE_TAPS: [[&[usize]; 2]; 2] = [[&[0], &[1, 2]], [&[0, 1], &[2]]];
+
+/// The 2×2 coarse-grid convolution of output phase (a, b): same size as the coarse input, padding 1 − a.
+fn phase_shape(s: &ConvShape, a: usize, b: usize) -> ConvShape {
+    ConvShape {
+        kernel: [2, 2],
+        padding: [1 - a, 1 - b],
+        ..*s
+    }
+}
+
+/// `K_ab[o][c][t][u] = Σ W[o][c][ky][kx]` over the kernel rows/columns phase (a, b) folds onto coarse tap (t, u).
+fn phase_kernel(w: &[f32], c_out: usize, c_in: usize, a: usize, b: usize) -> Vec<f32> {
+    let mut k = vec![0.0f32; c_out * c_in * 4];
+    for oc in 0..c_out * c_in {
+        for t in 0..2 {
+            for u in 0..2 {
+                k[oc * 4 + t * 2 + u] = PHASE_TAPS[a][t]
+                    .iter()
+                    .flat_map(|&ky| PHASE_TAPS[b][u].iter().map(move |&kx| (ky, kx)))
+                    .map(|(ky, kx)| w[oc * 9 + ky * 3 + kx])
+                    .sum();
+            }
+        }
+    }
+    k
+}
+
+/// The coarse input and 3×3 weight of a supported up-convolution, as [`conv_operands`] (the coarse shape).
+fn upsample_conv_operands(
+    x: &FlexTensor,
+    weight: &FlexTensor,
+    third: Option<&FlexTensor>,
+) -> Option<(FlexTensor, FlexTensor, Option<FlexTensor>, ConvShape)> {
+    let options = ConvOptions::new([1, 1], [1, 1], [1, 1], 1);
+    let (xc, wc, third, s) = conv_operands(x, weight, third, &options)?;
+    (s.kernel == [3, 3]).then_some((xc, wc, third, s))
+}
+
+/// `conv3×3(nearest×2(x)) + b` computed on the coarse grid: for each of the four output phases a 2×2
+/// convolution with the 3×3 kernel's taps summed where they read the same coarse pixel (4/9 of the
+/// multiply-adds, and no upsampled copy of the input).
+pub fn upsample_conv2d(
+    x: FloatTensor<Flex>,
+    weight: FloatTensor<Flex>,
+    bias: Option<FloatTensor<Flex>>,
+) -> FloatTensor<Flex> {
+    let Some((xc, wc, bias_c, s)) = upsample_conv_operands(&x, &weight, bias.as_ref()) else {
+        return reference::upsample_conv2d::<Flex>(x, weight, bias);
+    };
+    let (xs, bias) = (slice(&xc), bias_c.as_ref().map(slice));
+    let (h, w, hw) = (s.height, s.width, s.positions());
+    let (plane_in, _) = s.planes();
+    let kernels: Vec<Vec<f32>> = (0..4)
+        .map(|p| phase_kernel(slice(&wc), s.c_out, s.c_in, p / 2, p % 2))
+        .collect();
+    let taps = 4 * s.c_in;
+    let mut y = vec![0.0f32; s.batch * s.c_out * 4 * hw];
+    y.par_chunks_mut(s.c_out * 4 * hw)
+        .zip(xs.par_chunks(plane_in))
+        .for_each(|(y, x)| {
+            with_scratch([taps * hw, s.c_out * hw], |col, y_ab| {
+                for (p, k) in kernels.iter().enumerate() {
+                    let (a, b) = (p / 2, p % 2);
+                    phase_shape(&s, a, b).im2col(x, col);
+                    matmul(
+                        [s.c_out, hw, taps],
+                        y_ab,
+                        [hw, 1],
+                        false,
+                        k,
+                        [taps, 1],
+                        col,
+                        [hw, 1],
+                    );
+                    for (o, plane) in y_ab.chunks(hw).enumerate() {
+                        let shift = bias.map_or(0.0, |b| b[o]);
+                        let out = &mut y[o * 4 * hw..(o + 1) * 4 * hw];
+                        for i in 0..h {
+                            let row = &mut out[(2 * i + a) * 2 * w..][..2 * w];
+                            for j in 0..w {
+                                row[2 * j + b] = plane[i * w + j] + shift;
+                            }
+                        }
+                    }
+                }
+            });
+        });
+    from_vec(y, &[s.batch, s.c_out, 2 * h, 2 * w])
+}
+
+/// Phase (a, b) of one sample's `[c_out, 2h, 2w]` gradient as a contiguous `[c_out, h·w]` block.
+fn gather_phase(dy: &[f32], s: &ConvShape, a: usize, b: usize, out: &mut [f32]) {
+    let (h, w, hw) = (s.height, s.width, s.positions());
+    for (o, plane) in out.chunks_mut(hw).enumerate() {
+        let fine = &dy[o * 4 * hw..(o + 1) * 4 * hw];
+        for i in 0..h {
+            let row = &fine[(2 * i + a) * 2 * w..][..2 * w];
+            for j in 0..w {
+                plane[i * w + j] = row[2 * j + b];
+            }
+        }
+    }
+}
+
+pub fn upsample_conv2d_x_grad(
+    x: FloatTensor<Flex>,
+    weight: FloatTensor<Flex>,
+    output_grad: FloatTensor<Flex>,
+) -> FloatTensor<Flex> {
+    let Some((_, wc, Some(dy_c), s)) = upsample_conv_operands(&x, &weight, Some(&output_grad))
+    else {
+        return reference::upsample_conv2d_x_grad::<Flex>(x, weight, output_grad);
+    };
+    let dy = slice(&dy_c);
+    let hw = s.positions();
+    let (plane_in, _) = s.planes();
+    let kernels: Vec<Vec<f32>> = (0..4)
+        .map(|p| phase_kernel(slice(&wc), s.c_out, s.c_in, p / 2, p % 2))
+        .collect();
+    let taps = 4 * s.c_in;
+    let mut dx = vec![0.0f32; s.batch * plane_in];
+    dx.par_chunks_mut(plane_in)
+        .zip(dy.par_chunks(s.c_out * 4 * hw))
+        .for_each(|(dx, dy)| {
+            with_scratch([taps * hw, s.c_out * hw], |col, dy_ab| {
+                for (p, k) in kernels.iter().enumerate() {
+                    let (a, b) = (p / 2, p % 2);
+                    gather_phase(dy, &s, a, b, dy_ab);
+                    // col (taps × hw) = K_abᵀ (taps × c_out) · ∂Y_ab (c_out × hw)
+                    matmul(
+                        [taps, hw, s.c_out],
+                        col,
+                        [hw, 1],
+                        false,
+                        k,
+                        [1, taps],
+                        dy_ab,
+                        [hw, 1],
+                    );
+                    phase_shape(&s, a, b).col2im(col, dx);
+                }
+            });
+        });
+    from_vec(dx, &s.input_shape())
+}
+
+pub fn upsample_conv2d_weight_grad(
+    x: FloatTensor<Flex>,
+    weight: FloatTensor<Flex>,
+    output_grad: FloatTensor<Flex>,
+) -> FloatTensor<Flex> {
+    let Some((xc, _, Some(dy_c), s)) = upsample_conv_operands(&x, &weight, Some(&output_grad))
+    else {
+        return reference::upsample_conv2d_weight_grad::<Flex>(x, weight, output_grad);
+    };
+    let (xs, dy) = (slice(&xc), slice(&dy_c));
+    let hw = s.positions();
+    let (plane_in, _) = s.planes();
+    let (taps, weights) = (4 * s.c_in, s.c_out * s.c_in * 9);
+    // One partial ∂W per sample, summed in sample order (bit-reproducible, as the plain convolution's).
+    let mut partials = vec![0.0f32; s.batch * weights];
+    partials
+        .par_chunks_mut(weights)
+        .zip(xs.par_chunks(plane_in).zip(dy.par_chunks(s.c_out * 4 * hw)))
+        .for_each(|(dw, (x, dy))| {
+            let mut dk_t = vec![0.0f32; taps * s.c_out];
+            with_scratch([taps * hw, 2 * s.c_out * hw], |col, buffers| {
+                let (dy_ab, dy_t) = buffers.split_at_mut(s.c_out * hw);
+                for p in 0..4 {
+                    let (a, b) = (p / 2, p % 2);
+                    phase_shape(&s, a, b).im2col(x, col);
+                    gather_phase(dy, &s, a, b, dy_ab);
+                    transpose(dy_ab, s.c_out, hw, dy_t);
+                    // ∂K_ab (c_out × taps) = ∂Y_ab · colᵀ, stored column-major (taps × c_out)
+                    matmul(
+                        [s.c_out, taps, hw],
+                        &mut dk_t,
+                        [1, s.c_out],
+                        false,
+                        dy_t,
+                        [1, s.c_out],
+                        col,
+                        [1, hw],
+                    );
+                    // Each coarse tap (t, u) of phase (a, b) spreads back onto the 3×3 taps it summed.
+                    for c in 0..s.c_in {
+                        for t in 0..2 {
+                            for u in 0..2 {
+                                let row = &dk_t[((c * 2 + t) * 2 + u) * s.c_out..][..s.c_out];
+                                for &ky in PHASE_TAPS[a][t] {
+                                    for &kx in PHASE_TAPS[b][u] {
+                                        for (o, &g) in row.iter().enumerate() {
+                                            dw[(o * s.c_in + c) * 9 + ky * 3 + kx] += g;
+                                        }
+                                    }
+                                }
+                            }
+                        }
+                    }
+                }
+            });
+        });
+    let mut chunks = partials.chunks_exact(weights);
+    let mut dw = chunks.next().expect("a batch of at least one").to_vec();
+    for partial in chunks {
+        dw.iter_mut().zip(partial).for_each(|(a, b)| *a += b);
+    }
+    from_vec(dw, &[s.c_out, s.c_in, 3, 3])
+}

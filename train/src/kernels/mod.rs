@@ -97,6 +97,34 @@ pub trait TrainOps: Backend {
         Self::conv2d_weight_backward(x, weight, output_grad, options)
     }
 
+    /// `conv3×3(nearest×2(x)) + bias` (stride 1, padding 1): the U-Net's up convolution, `[N, C, h, w]` →
+    /// `[N, C', 2h, 2w]`. Graph node under `Autodiff` with the two gradient methods below.
+    fn train_upsample_conv2d(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        bias: Option<FloatTensor<Self>>,
+    ) -> FloatTensor<Self> {
+        reference::upsample_conv2d::<Self>(x, weight, bias)
+    }
+
+    /// ∂L/∂x (coarse) of [`TrainOps::train_upsample_conv2d`].
+    fn train_upsample_conv2d_x_grad(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        output_grad: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        reference::upsample_conv2d_x_grad::<Self>(x, weight, output_grad)
+    }
+
+    /// ∂L/∂weight of [`TrainOps::train_upsample_conv2d`].
+    fn train_upsample_conv2d_weight_grad(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        output_grad: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        reference::upsample_conv2d_weight_grad::<Self>(x, weight, output_grad)
+    }
+
     /// ∂L/∂bias of a convolution: the output gradient summed over batch and positions, `[C_out]`.
     fn train_conv2d_bias_grad(output_grad: FloatTensor<Self>) -> FloatTensor<Self> {
         reference::channel_sums::<Self>(output_grad)
@@ -214,6 +242,36 @@ impl TrainOps for burn::backend::Flex {
         })
     }
 
+    fn train_upsample_conv2d(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        bias: Option<FloatTensor<Self>>,
+    ) -> FloatTensor<Self> {
+        timed(Kernel::UpConvForward, || {
+            cpu::upsample_conv2d(x, weight, bias)
+        })
+    }
+
+    fn train_upsample_conv2d_x_grad(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        output_grad: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        timed(Kernel::UpConvBackward, || {
+            cpu::upsample_conv2d_x_grad(x, weight, output_grad)
+        })
+    }
+
+    fn train_upsample_conv2d_weight_grad(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        output_grad: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        timed(Kernel::UpConvBackward, || {
+            cpu::upsample_conv2d_weight_grad(x, weight, output_grad)
+        })
+    }
+
     fn train_conv2d_bias_grad(output_grad: FloatTensor<Self>) -> FloatTensor<Self> {
         timed(Kernel::ConvBiasGrad, || cpu::channel_sums(output_grad))
     }
@@ -326,6 +384,24 @@ pub fn dropout<B: TrainOps>(dropout: &Dropout, x: Tensor<B, 4>) -> Tensor<B, 4> 
         return x;
     }
     tensor(B::dropout(primitive(x), dropout.prob).output)
+}
+
+/// `conv.forward(nearest×2(x))` through [`TrainOps::train_upsample_conv2d`]: the up path's convolution, computed
+/// on the coarse grid. Panics unless `conv` is a 3×3, stride-1, padding-1 convolution (what the network builds).
+pub fn upsample_conv2d<B: TrainOps>(conv: &Conv2d<B>, x: Tensor<B, 4>) -> Tensor<B, 4> {
+    assert!(
+        conv.kernel_size == [3, 3]
+            && conv.stride == [1, 1]
+            && conv.dilation == [1, 1]
+            && conv.groups == 1
+            && matches!(conv.padding, PaddingConfig2d::Explicit(1, 1, 1, 1)),
+        "kernels::upsample_conv2d supports the network's 3x3 same convolutions only"
+    );
+    tensor(B::train_upsample_conv2d(
+        primitive(x),
+        primitive(conv.weight.val()),
+        conv.bias.as_ref().map(|b| primitive(b.val())),
+    ))
 }
 
 /// `pool.forward(x)` through [`TrainOps::max_pool2x2`]; the network pools 2 × 2 with stride 2 only (panics on

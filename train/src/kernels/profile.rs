@@ -19,10 +19,13 @@ pub enum Kernel {
     PoolBackward,
     DropoutForward,
     DropoutBackward,
+    /// The up path's nearest ×2 + 3×3 convolution (computed on the coarse grid).
+    UpConvForward,
+    UpConvBackward,
 }
 
 impl Kernel {
-    pub const ALL: [Kernel; 10] = [
+    pub const ALL: [Kernel; 12] = [
         Kernel::ConvForward,
         Kernel::ConvInputGrad,
         Kernel::ConvWeightGrad,
@@ -33,6 +36,8 @@ impl Kernel {
         Kernel::PoolBackward,
         Kernel::DropoutForward,
         Kernel::DropoutBackward,
+        Kernel::UpConvForward,
+        Kernel::UpConvBackward,
     ];
 }
 

@@ -104,3 +104,58 @@ pub fn dropout_backward<B: Backend>(
 ) -> FloatTensor<B> {
     primitive((tensor::<B, 4>(output_grad) * tensor::<B, 4>(mask)) * (1.0 / (1.0 - prob)))
 }
+
+/// Nearest ×2 upsampling (the stock interpolation).
+fn upsample2x<B: Backend>(x: Tensor<B, 4>) -> Tensor<B, 4> {
+    use burn::tensor::ops::{InterpolateMode, InterpolateOptions};
+    let [_, _, h, w] = x.dims();
+    burn::tensor::module::interpolate(
+        x,
+        [2 * h, 2 * w],
+        InterpolateOptions::new(InterpolateMode::Nearest),
+    )
+}
+
+fn same_3x3() -> burn::tensor::ops::ConvOptions<2> {
+    burn::tensor::ops::ConvOptions::new([1, 1], [1, 1], [1, 1], 1)
+}
+
+/// `conv3×3(nearest×2(x)) + b` with stock operations.
+pub fn upsample_conv2d<B: Backend>(
+    x: FloatTensor<B>,
+    weight: FloatTensor<B>,
+    bias: Option<FloatTensor<B>>,
+) -> FloatTensor<B> {
+    B::conv2d(
+        primitive(upsample2x(tensor::<B, 4>(x))),
+        weight,
+        bias,
+        same_3x3(),
+    )
+}
+
+/// ∂L/∂x: the stock convolution's input gradient on the fine grid, each 2 × 2 block summed.
+pub fn upsample_conv2d_x_grad<B: Backend>(
+    x: FloatTensor<B>,
+    weight: FloatTensor<B>,
+    output_grad: FloatTensor<B>,
+) -> FloatTensor<B> {
+    let fine = primitive(upsample2x(tensor::<B, 4>(x)));
+    let g = tensor::<B, 4>(B::conv2d_x_backward(fine, weight, output_grad, same_3x3()));
+    let [n, c, h2, w2] = g.dims();
+    primitive(
+        g.reshape([n, c, h2 / 2, 2, w2 / 2, 2])
+            .sum_dim(5)
+            .sum_dim(3)
+            .reshape([n, c, h2 / 2, w2 / 2]),
+    )
+}
+
+pub fn upsample_conv2d_weight_grad<B: Backend>(
+    x: FloatTensor<B>,
+    weight: FloatTensor<B>,
+    output_grad: FloatTensor<B>,
+) -> FloatTensor<B> {
+    let fine = primitive(upsample2x(tensor::<B, 4>(x)));
+    B::conv2d_weight_backward(fine, weight, output_grad, same_3x3())
+}

@@ -289,3 +289,53 @@ fn kernels_give_the_same_bits_on_any_thread_count() {
         assert!(same, "output {k} differs between 1 and 3 threads");
     }
 }
+
+/// The up convolution on the coarse grid against Burn's nearest interpolation then 3×3 convolution, through
+/// autodiff: output, ∂x (coarse), ∂W, ∂b, on odd coarse sizes.
+#[test]
+fn upsample_conv2d_matches_interpolate_then_conv() {
+    use burn::tensor::module::interpolate;
+    use burn::tensor::ops::{InterpolateMode, InterpolateOptions};
+    let device = Default::default();
+    let (c_in, c_out) = (5, 4);
+    let conv = Conv2dConfig::new([c_in, c_out], [3, 3])
+        .with_padding(PaddingConfig2d::Explicit(1, 1, 1, 1))
+        .init::<Ad>(&device);
+    let weights = random([3, c_out, 14, 10], 71);
+    let run = |fused: bool| {
+        let x = random([3, c_in, 7, 5], 70).require_grad();
+        let y = if fused {
+            upsample_conv2d(&conv, x.clone())
+        } else {
+            let fine = interpolate(
+                x.clone(),
+                [14, 10],
+                InterpolateOptions::new(InterpolateMode::Nearest),
+            );
+            conv.forward(fine)
+        };
+        let grads = (y.clone() * weights.clone()).sum().backward();
+        (
+            values(y),
+            values(x.grad(&grads).unwrap()),
+            values(conv.weight.grad(&grads).unwrap()),
+            values(conv.bias.as_ref().unwrap().grad(&grads).unwrap()),
+        )
+    };
+    let (fused, stock) = (run(true), run(false));
+    assert_close("output", fused.0, stock.0, 1e-5);
+    assert_close("dx", fused.1.clone(), stock.1.clone(), 1e-5);
+    assert_close("dW", fused.2.clone(), stock.2.clone(), 1e-5);
+    assert_close("db", fused.3, stock.3, 1e-5);
+    // The stock-op defaults (CUDA's path) give the same gradients.
+    let inner = |t: Tensor<Ad, 4>| primitive(t.inner());
+    let (x, w, dy) = (
+        inner(random([3, c_in, 7, 5], 70)),
+        inner(conv.weight.val()),
+        inner(weights),
+    );
+    let dx = reference::upsample_conv2d_x_grad::<Flex>(x.clone(), w.clone(), dy.clone());
+    let dw = reference::upsample_conv2d_weight_grad::<Flex>(x, w, dy);
+    assert_close("reference dx", values(tensor::<Flex, 4>(dx)), stock.1, 1e-5);
+    assert_close("reference dW", values(tensor::<Flex, 4>(dw)), stock.2, 1e-5);
+}
