@@ -372,14 +372,21 @@ pub fn conv2d_weight_grad(
                 );
             });
         });
-    let mut chunks = partials.chunks_exact(taps * s.c_out);
-    let mut dw_t = chunks.next().expect("a batch of at least one").to_vec();
-    for partial in chunks {
-        dw_t.iter_mut().zip(partial).for_each(|(a, b)| *a += b);
-    }
+    let dw_t = sum_in_order(&partials, taps * s.c_out);
     let mut dw = vec![0.0f32; s.c_out * taps];
     transpose(&dw_t, taps, s.c_out, &mut dw);
     from_vec(dw, &[s.c_out, s.c_in, s.kernel[0], s.kernel[1]])
+}
+
+/// The sum of consecutive `len`-element partials (one per sample), added in order: the same bits however the
+/// partials were computed in parallel.
+fn sum_in_order(partials: &[f32], len: usize) -> Vec<f32> {
+    let mut chunks = partials.chunks_exact(len);
+    let mut total = chunks.next().expect("a batch of at least one").to_vec();
+    for partial in chunks {
+        total.iter_mut().zip(partial).for_each(|(a, b)| *a += b);
+    }
+    total
 }
 
 /// `dst (cols × rows) = srcᵀ` for a row-major `src (rows × cols)`, in cache-sized tiles.
@@ -971,10 +978,5 @@ pub fn upsample_conv2d_weight_grad(
                 }
             });
         });
-    let mut chunks = partials.chunks_exact(weights);
-    let mut dw = chunks.next().expect("a batch of at least one").to_vec();
-    for partial in chunks {
-        dw.iter_mut().zip(partial).for_each(|(a, b)| *a += b);
-    }
-    from_vec(dw, &[s.c_out, s.c_in, 3, 3])
+    from_vec(sum_in_order(&partials, weights), &[s.c_out, s.c_in, 3, 3])
 }
