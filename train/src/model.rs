@@ -1,4 +1,4 @@
-//! The U-Net of the paper (DESIGN §8): four down stages (16-32-64-128 at width 16) and a 256 bottleneck, each
+//! The U-Net of the paper (docs/design.md, Trainer and evaluation): four down stages (16-32-64-128 at width 16) and a 256 bottleneck, each
 //! block two × (conv3×3 → BatchNorm → LeakyReLU) then dropout by depth; max-pool down, nearest ×2 up + conv3×3,
 //! skip concatenation, 1×1 head to the BRDF's parameter count. ≈ 2.16 M trainable weights at width 16.
 //! `base_width` scales every stage (CPU budgets use 4 or 8; say which).
@@ -175,7 +175,7 @@ impl UNetConfig {
             up_convs,
             up_blocks,
             // Zero head: the first renderings are black instead of O(1) I/F against targets of ~0.03, which the
-            // default init made the first epochs spend on shrinking the output scale (measured in the README).
+            // default init made the first epochs spend on shrinking the output scale (measured: docs/results.md).
             head: if self.zero_head {
                 Conv2dConfig::new([w + self.context_features(), self.out_channels], [1, 1])
                     .with_initializer(Initializer::Zeros)

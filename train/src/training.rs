@@ -839,7 +839,7 @@ pub enum Checkpoint {
     /// The weight average at the last checkpoint when the run kept one (`last/ema`), else `best`, else `last`.
     /// Not the average's best-validation epoch: on the demo's 152 val crops that pick often lands on epoch 0. The
     /// final average scored better on the demo test split for 4 of 5 seeds, and on an unseen world better for 3 of 4
-    /// and within 0.5 % for the fourth (README, "Weight average, five seeds").
+    /// and within 0.5 % for the fourth (docs/results.md, "Weight average, five seeds").
     #[default]
     Auto,
     /// The raw network at its best validation epoch (`best/`).
