@@ -1,4 +1,4 @@
-//! The demo world must be credible enough that learned-vs-Hapke numbers mean something (DESIGN §6).
+//! The demo world must be credible enough that learned-vs-Hapke numbers mean something (docs/design.md, Synthetic world).
 //! The world is generated once per run (about a minute) and shared by the tests in this file.
 
 use std::path::{Path, PathBuf};

@@ -13,7 +13,7 @@
 //!
 //! Why blocks: O(1) box means need summed-area tables, 12 bytes per table entry. Over every pixel of the
 //! 8000 × 8000 tycho-full DEM that was 0.72 GiB, which took the dataset build's peak RSS from 1.8 to 2.5 GiB
-//! (DESIGN §10 asks ≤ 2 GiB regardless of size); over 6 × 6-pixel blocks (512 m cells on a 5 m DEM) it is 21 MB.
+//! (docs/design.md, Performance targets asks ≤ 2 GiB regardless of size); over 6 × 6-pixel blocks (512 m cells on a 5 m DEM) it is 21 MB.
 
 use crate::raster::Raster;
 use crate::schema::CONTEXT_PX;

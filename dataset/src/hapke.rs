@@ -44,7 +44,7 @@ pub struct HapkeParams {
 }
 
 impl HapkeParams {
-    /// Representative lunar highland/mare soil (DESIGN §4 ranges; θ̄ from a Moon-wide fit).
+    /// Representative lunar highland/mare soil (docs/design.md, Photometry ranges; θ̄ from a Moon-wide fit).
     pub fn lunar_typical() -> Self {
         Self {
             w: 0.32,

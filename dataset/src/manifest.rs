@@ -56,7 +56,7 @@ impl FileEntry {
     }
 }
 
-/// `manifest.json` of a published dataset (DESIGN §5).
+/// `manifest.json` of a published dataset (docs/design.md, Data contract).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct DatasetManifest {
     pub schema_version: String,

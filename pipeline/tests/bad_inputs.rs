@@ -1,4 +1,4 @@
-//! Bad input is part of the product (DESIGN §9): each kind gives a one-line error naming the file and the fix,
+//! Bad input is part of the product (docs/design.md, Bad input): each kind gives a one-line error naming the file and the fix,
 //! a non-zero exit, and no finished-looking output (no dataset manifest.json).
 
 use std::path::{Path, PathBuf};

@@ -196,7 +196,7 @@ impl HostBatch {
         self.sample_ids.is_empty()
     }
 
-    /// Assemble a batch, with the network input normalised as `input` says (DESIGN §5).
+    /// Assemble a batch, with the network input normalised as `input` says (docs/design.md, Data contract).
     pub fn from_samples(samples: &[Sample], input: &InputNormalisation) -> Self {
         let mut b = HostBatch {
             input_channels: input.channels(),
@@ -241,7 +241,7 @@ pub fn crop_interior_m(sample: &Sample) -> Vec<f64> {
 /// evaluation and inference on a new DEM feed the network exactly what training did.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct InputNormalisation {
-    /// Train-split DEM std: the relief plane is (height − crop mean) / this (DESIGN §5).
+    /// Train-split DEM std: the relief plane is (height − crop mean) / this (docs/design.md, Data contract).
     pub dem_std_m: f64,
     /// Absolute-elevation plane, (height − mean) / std over train crops, when the run uses one. The relief plane
     /// hides where a crop sits (crater floor, mare plain or rim), and at the crop scale that explains much of the

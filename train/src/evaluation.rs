@@ -1,4 +1,4 @@
-//! `g2r-train eval`: the learned BRDF against the baselines and the oracle on held-out tiles (DESIGN §8).
+//! `g2r-train eval`: the learned BRDF against the baselines and the oracle on held-out tiles (docs/design.md, Trainer and evaluation).
 //!
 //! Every method renders the same crops with the same geometry and lit fraction; only the reflectance model differs:
 //! - **learned**: the run's U-Net → parameter maps → the renderer layer (inference mode);
@@ -9,7 +9,7 @@
 //! - **oracle** (with `--world`): the world's true Hapke maps sampled at each pixel, on the delivered DEM: the floor
 //!   any BRDF rendered from this DEM can reach (the orthos were rendered from the finer true DEM);
 //! - **oracle_morphology** (with `--world`, worlds that carry `truth/w_morphology.tif`): the same without the
-//!   albedo component no terrain can predict (DESIGN §6): about as far as a model that reads the terrain perfectly
+//!   albedo component no terrain can predict (docs/design.md, Synthetic world): about as far as a model that reads the terrain perfectly
 //!   could go, so the gap to it is the part of the error a DEM-driven model can still remove.
 
 use std::collections::BTreeMap;

@@ -1,5 +1,5 @@
 //! Image metrics over the valid pixels of one crop: per-image SSE (the paper's "MSE"), per-pixel MSE, PSNR and
-//! SSIM with data_range = that image's ground-truth range (DESIGN §8).
+//! SSIM with data_range = that image's ground-truth range (docs/design.md, Trainer and evaluation).
 //!
 //! SSIM follows scikit-image's `structural_similarity` defaults: 7×7 uniform window, K1 = 0.01, K2 = 0.03, sample
 //! covariance (N/(N−1)), mean over windows that lie inside the image (its `crop(S, 3)`); here additionally only

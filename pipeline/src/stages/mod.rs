@@ -1,4 +1,4 @@
-//! Pipeline stages (DESIGN §7), in data-flow order: [`ingest`] → [`erode`] → [`sample`] → [`split`] →
+//! Pipeline stages (docs/design.md, Pipeline stages), in data-flow order: [`ingest`] → [`erode`] → [`sample`] → [`split`] →
 //! [`project`] → [`publish`]. Split runs on the sampled footprints, before projection: assignment needs only a
 //! crop's centre and size, and crops straddling two splits (17 % on tycho-full) are then never projected. [`pipeline`] declares them to the [`crate::runner`] with their inputs, params and
 //! outputs; each module holds the algorithm (tested on its own) and the stage function that does the file IO.

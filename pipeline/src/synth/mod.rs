@@ -1,4 +1,4 @@
-//! The seeded synthetic lunar world (DESIGN §6): writes exactly what a real user has — a GeoTIFF DEM, GeoTIFF
+//! The seeded synthetic lunar world (docs/design.md, Synthetic world): writes exactly what a real user has — a GeoTIFF DEM, GeoTIFF
 //! ortho strips with nodata borders, per-ortho acquisition metadata — plus `truth/` that only evaluation may read.
 //!
 //! Data flow: [`units`] (mare/highland) → [`terrain`] (fBm + craters → true DEM, freshness, melt) → [`reflectance`] (true Hapke maps) →

@@ -1,9 +1,9 @@
 //! Geologic units: where the surface is mare (dark, young, flooded basalt plains) and where highland (bright, old,
 //! saturated with craters). One field drives both the terrain and the albedo, as on the Moon, where the two units
 //! differ in topography as well as in reflectance: maria are smoother, lower and carry fewer craters because the
-//! flood buried the older ones. That correlation is what lets a DEM-only model tell the units apart (DESIGN §6:
+//! flood buried the older ones. That correlation is what lets a DEM-only model tell the units apart (docs/design.md, Synthetic world:
 //! reflectance "correlated with morphology but not determined by it"); without it, the unit albedo would be a
-//! ±20 % component no DEM could predict, far past the 5–10 % that DESIGN budgets for.
+//! ±20 % component no DEM could predict, far past the 5–10 % the design notes budget for.
 
 use super::config::ReflectanceConfig;
 use super::noise::Fbm;
