@@ -137,6 +137,72 @@ pub fn iso_utc_from_j2000_seconds(seconds: f64) -> String {
     )
 }
 
+/// Seconds after 2000-01-01T00:00:00Z for an ISO 8601 UTC timestamp (`YYYY-MM-DDThh:mm:ss[.fff][Z]`, the form
+/// PDS labels and LROC index tables use); the inverse of [`iso_utc_from_j2000_seconds`]. `None` when malformed.
+pub fn j2000_seconds_from_iso_utc(text: &str) -> Option<f64> {
+    let text = text.trim().trim_matches('"').trim_end_matches('Z');
+    let (date, time) = text.split_once('T')?;
+    let mut d = date.splitn(3, '-').map(|p| p.parse::<i64>().ok());
+    let (year, month, day) = (d.next()??, d.next()??, d.next()??);
+    let mut t = time.splitn(3, ':');
+    let (hour, minute) = (
+        t.next()?.parse::<i64>().ok()?,
+        t.next()?.parse::<i64>().ok()?,
+    );
+    let second = t.next()?.parse::<f64>().ok()?;
+    let valid = (1..=12).contains(&month)
+        && (1..=31).contains(&day)
+        && (0..24).contains(&hour)
+        && (0..60).contains(&minute)
+        && (0.0..61.0).contains(&second);
+    if !valid {
+        return None;
+    }
+    // Days-from-civil (H. Hinnant), then shift the epoch from 1970-01-01 to 2000-01-01 (day 10957).
+    let y = year - (month <= 2) as i64;
+    let era = y.div_euclid(400);
+    let yoe = y - era * 400;
+    let mp = (month + 9) % 12;
+    let doy = (153 * mp + 2) / 5 + day - 1;
+    let doe = yoe * 365 + yoe / 4 - yoe / 100 + doy;
+    let days = era * 146_097 + doe - 719_468 - 10_957;
+    Some((days * 86_400 + hour * 3600 + minute * 60) as f64 + second)
+}
+
+/// TAI − UTC (leap seconds) in effect at `utc_seconds` after 2000-01-01T00:00:00Z, from the IERS bulletins
+/// (naif0012.tls). LRO data start in 2009; no leap second has been announced after 2017-01-01.
+fn tai_minus_utc_s(utc_seconds: f64) -> f64 {
+    // (first UTC second of the new offset, after 2000-01-01T00:00:00Z; TAI − UTC from then on).
+    const STEPS: [(f64, f64); 5] = [
+        (189_388_800.0, 33.0), // 2006-01-01
+        (284_083_200.0, 34.0), // 2009-01-01
+        (394_329_600.0, 35.0), // 2012-07-01
+        (488_937_600.0, 36.0), // 2015-07-01
+        (536_457_600.0, 37.0), // 2017-01-01
+    ];
+    STEPS
+        .iter()
+        .rev()
+        .find(|(from, _)| utc_seconds >= *from)
+        .map_or(32.0, |&(_, offset)| offset)
+}
+
+/// 2000-01-01T12:00:00 TT is 11:58:55.816 UTC: 43,135.816 s after 2000-01-01T00:00:00Z (when TAI − UTC was 32 s).
+const J2000_EPOCH_UTC_S: f64 = 43_200.0 - 32.184 - 32.0;
+
+/// SPICE ephemeris time (TDB seconds past the J2000 epoch, as in ALE ISDs) of a UTC instant given as seconds after
+/// 2000-01-01T00:00:00Z without leap seconds (the timestamps of [`iso_utc_from_j2000_seconds`]). TDB is taken as
+/// TT: they differ by at most 1.7 ms, which moves an orbiter at 1.6 km/s by under 3 m along its track.
+pub fn ephemeris_time_from_utc_seconds(utc_seconds: f64) -> f64 {
+    utc_seconds - J2000_EPOCH_UTC_S + (tai_minus_utc_s(utc_seconds) - 32.0)
+}
+
+/// The inverse of [`ephemeris_time_from_utc_seconds`] (exact away from the leap second itself).
+pub fn utc_seconds_from_ephemeris_time(et: f64) -> f64 {
+    let guess = et + J2000_EPOCH_UTC_S;
+    et + J2000_EPOCH_UTC_S - (tai_minus_utc_s(guess - (tai_minus_utc_s(guess) - 32.0)) - 32.0)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -165,5 +231,43 @@ mod tests {
             err.contains("m.json") && err.contains("missing field"),
             "{err}"
         );
+    }
+
+    #[test]
+    fn iso_parse_inverts_format() {
+        for s in [
+            0.0,
+            3661.5,
+            4138.0 * 86_400.0 + 12.345,
+            -86_400.0 * 400.0,
+            9.87e8,
+        ] {
+            let text = iso_utc_from_j2000_seconds(s);
+            let back = j2000_seconds_from_iso_utc(&text).unwrap();
+            assert!((back - s).abs() < 1e-3, "{text}: {back} vs {s}");
+        }
+        // PDS labels omit the Z and may carry more digits.
+        assert_eq!(
+            j2000_seconds_from_iso_utc("2000-01-02T00:00:01.25"),
+            Some(86_401.25)
+        );
+        for bad in ["2011-13-01T00:00:00", "2011-05-01", "20110501T000000", ""] {
+            assert_eq!(j2000_seconds_from_iso_utc(bad), None, "{bad}");
+        }
+    }
+
+    #[test]
+    fn ephemeris_time_matches_spice() {
+        // The J2000 epoch is 11:58:55.816 UTC; SPICE str2et('2010-01-01T00:00:00') = 315,576,066.1839 (TDB; TT
+        // differs by ≤ 1.7 ms, the stated approximation).
+        let epoch = j2000_seconds_from_iso_utc("2000-01-01T11:58:55.816").unwrap();
+        assert!(ephemeris_time_from_utc_seconds(epoch).abs() < 1e-9);
+        let utc_2010 = j2000_seconds_from_iso_utc("2010-01-01T00:00:00").unwrap();
+        let et = ephemeris_time_from_utc_seconds(utc_2010);
+        assert!((et - 315_576_066.1839).abs() < 2e-3, "{et}");
+        for utc in [utc_2010, 5.0e8, 6.0e8, 1.0e6] {
+            let back = utc_seconds_from_ephemeris_time(ephemeris_time_from_utc_seconds(utc));
+            assert!((back - utc).abs() < 1e-6, "{utc}: {back}");
+        }
     }
 }

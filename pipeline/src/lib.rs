@@ -2,6 +2,7 @@
 //! lunar world that stands in for real LRO data here: [`manifest`] → [`stages`] run by [`runner`]; the world is in
 //! [`synth`].
 
+pub mod import;
 pub mod manifest;
 /// Keyed ChaCha streams live in the data contract (the trainer's epoch planner uses them too).
 pub use dataset::rng;

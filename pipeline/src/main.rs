@@ -78,6 +78,38 @@ enum Command {
         #[arg(long)]
         force: Vec<String>,
     },
+    /// Write an orthoimage's acquisition metadata JSON from an ALE ISD or an LROC cumulative-index row.
+    ///
+    /// The JSON (Moon body-fixed frame, metres; fields of dataset::acquisition::AcquisitionMetadata) goes next to
+    /// the image by default, where `run` looks for it. From an ISD (`isd_generate` of USGS ALE, with SPICE):
+    /// positions and attitude are rotated from J2000 with the ISD's own lunar orientation, exact to interpolation.
+    /// From CUMINDEX.TAB (+ CUMINDEX.LBL, found next to it) or a CSV of its columns: sun and spacecraft from the
+    /// sub-points, distance and altitude, the spacecraft carried along the track to the first and last lines via
+    /// the corner coordinates, the boresight toward the image centre (docs/bring-your-own-data.md gives the
+    /// errors this implies). Any missing or inconsistent key is an error naming the file and the key.
+    ImportMetadata {
+        /// ALE image support data (JSON) of the image.
+        #[arg(long, required_unless_present = "index", conflicts_with = "index")]
+        isd: Option<PathBuf>,
+        /// Cumulative index table (CUMINDEX.TAB, or a CSV with a header row) holding the image's row.
+        #[arg(long)]
+        index: Option<PathBuf>,
+        /// PDS3 label of the index table (default: the table's name with .LBL, when present).
+        #[arg(long, requires = "index")]
+        label: Option<PathBuf>,
+        /// The orthoimage (any GDAL-readable raster in a lunar projected CRS); its pixel size is the ortho's GSD.
+        #[arg(long)]
+        image: PathBuf,
+        /// PRODUCT_ID of the image (default: the image's file stem, e.g. M1234567890LE).
+        #[arg(long)]
+        product_id: Option<String>,
+        /// Output JSON (default: the image path with .json).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Replace an existing output.
+        #[arg(long)]
+        force: bool,
+    },
     /// Say for each stage whether it is up to date, and if not, why (params, inputs, code version, outputs); list
     /// stray files under stages/ that no stage of this version writes (an older layout's outputs).
     Status {
@@ -154,6 +186,33 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             } else {
                 tracing::info!(stages = ran.join(","), seconds = format!("{:.1}", started.elapsed().as_secs_f64()), out = %manifest.out_dir().display(), "pipeline run");
             }
+        }
+        Command::ImportMetadata {
+            isd,
+            index,
+            label,
+            image,
+            product_id,
+            out,
+            force,
+        } => {
+            let source = match (&isd, &index) {
+                (Some(isd), _) => pipeline::import::Source::Isd(isd),
+                (None, Some(table)) => pipeline::import::Source::Index {
+                    table,
+                    label: label.as_deref(),
+                },
+                (None, None) => unreachable!("clap requires --isd or --index"),
+            };
+            let product_id = product_id.unwrap_or_else(|| {
+                image
+                    .file_stem()
+                    .map(|s| s.to_string_lossy().into_owned())
+                    .unwrap_or_default()
+            });
+            let out = out.unwrap_or_else(|| image.with_extension("json"));
+            let meta = pipeline::import::import(source, &image, &product_id, &out, force)?;
+            tracing::info!(out = %out.display(), product_id, start = meta.start_time_utc, roll_deg = format!("{:.3}", meta.roll_deg), "acquisition metadata written");
         }
         Command::Status { manifest } => {
             let manifest = pipeline::manifest::PipelineManifest::load(&manifest)?;

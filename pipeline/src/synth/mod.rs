@@ -7,6 +7,7 @@
 pub mod acquisition;
 pub mod config;
 pub mod dem_product;
+pub mod lroc_products;
 pub mod noise;
 pub mod reflectance;
 pub mod render;
@@ -139,7 +140,7 @@ pub fn generate(
     if partial.exists() {
         std::fs::remove_dir_all(&partial)?;
     }
-    for sub in ["dem", "ortho", "truth"] {
+    for sub in ["dem", "ortho", "isd", "index", "truth"] {
         std::fs::create_dir_all(partial.join(sub))
             .with_context(|| format!("creating {}", partial.display()))?;
     }
@@ -217,6 +218,7 @@ pub fn generate(
     let strips = acquisition::plan(&config.acquisitions, &fine, &crs, w.base_height_m, seed);
     let scene = render::TruthScene::new(&crs, &fine, &heights, &maps);
     let mut orthos = Vec::new();
+    let mut index_rows = Vec::new();
     for (k, strip) in strips.iter().enumerate() {
         let progress = bar(0, &strip.meta.ortho_id);
         let (image, stats) = render::render_ortho(
@@ -249,6 +251,18 @@ pub fn generate(
                 .join(format!("{}.json", strip.meta.ortho_id)),
             &strip.meta,
         )?;
+        let gsd = strip.grid.gsd_m;
+        write_json_atomic(
+            &partial
+                .join("isd")
+                .join(format!("{}.json", strip.meta.ortho_id)),
+            &lroc_products::isd(
+                &strip.meta,
+                (strip.length_m / gsd).round() as usize,
+                (strip.width_m / gsd).round() as usize,
+            ),
+        )?;
+        index_rows.push(lroc_products::index_row(strip, &crs, w.base_height_m));
         info!(ortho = %strip.meta.ortho_id, incidence_deg = format!("{:.1}", strip.incidence_deg), roll_deg = format!("{:.1}", strip.meta.roll_deg), valid = stats.valid, shadowed = stats.shadowed, occluded = stats.occluded, "ortho rendered");
         orthos.push(OrthoSummary {
             ortho_id: strip.meta.ortho_id.clone(),
@@ -336,9 +350,14 @@ pub fn generate(
         "truth/w_morphology.tif".into(),
         "truth/craters.json".into(),
     ];
+    let (label, table) = lroc_products::index_files(&index_rows);
+    std::fs::write(partial.join("index/CUMINDEX.LBL"), label)?;
+    std::fs::write(partial.join("index/CUMINDEX.TAB"), table)?;
+    relative.extend(["index/CUMINDEX.LBL".into(), "index/CUMINDEX.TAB".into()]);
     for s in &strips {
         relative.push(format!("ortho/{}", s.meta.image_file));
         relative.push(format!("ortho/{}.json", s.meta.ortho_id));
+        relative.push(format!("isd/{}.json", s.meta.ortho_id));
     }
     relative.sort();
     for rel in &relative {

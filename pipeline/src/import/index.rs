@@ -1,0 +1,434 @@
+//! A row of the LROC cumulative index (`INDEX/CUMINDEX.TAB` with its PDS3 label `CUMINDEX.LBL`, or a CSV of the
+//! same columns with a header row) → the acquisition geometry.
+//!
+//! The index gives one sub-spacecraft point and altitude (at the image's centre time), the sub-solar point and
+//! distance, the image centre and its four corners on the reference sphere, and the start and stop times. What is
+//! derived, and so approximated:
+//! - **Spacecraft at the first and last line**: from the sub-spacecraft point, the spacecraft is moved along a
+//!   great circle with the strip's heading (its azimuth at the image centre, from the first line's corners to the
+//!   last line's) by the angles from the image centre to the first and last lines, at the index altitude: it
+//!   flies parallel to the strip it images, as a slewed pushbroom does. Without this, one position for the
+//!   whole strip would put the spacecraft up to half a strip length off along-track: on a 25 km NAC strip seen
+//!   from 50 km, view vectors up to atan(12.5 / 50) = 14° wrong.
+//! - **Attitude**: boresight from the spacecraft at mid-strip to the image centre on the reference sphere, camera
+//!   +x along-track; no pitch or yaw.
+//! - **Field of view**: the angle the first line's corners subtend at the spacecraft.
+//!
+//! Longitudes may be in any domain (LROC uses 0–360° east); latitudes are planetocentric; distances are km.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+use dataset::acquisition::j2000_seconds_from_iso_utc;
+use dataset::crs::{body_fixed_from_lonlat, MOON_RADIUS_M};
+use glam::{DMat3, DQuat, DVec3};
+
+use super::{ImportError, ImportedGeometry};
+
+/// Columns the importer reads, in the order the synthetic world writes them (after `PRODUCT_ID`).
+pub const COLUMNS: [&str; 20] = [
+    "PRODUCT_ID",
+    "FRAME_ID",
+    "START_TIME",
+    "STOP_TIME",
+    "CENTER_LATITUDE",
+    "CENTER_LONGITUDE",
+    "UPPER_LEFT_LATITUDE",
+    "UPPER_LEFT_LONGITUDE",
+    "UPPER_RIGHT_LATITUDE",
+    "UPPER_RIGHT_LONGITUDE",
+    "LOWER_LEFT_LATITUDE",
+    "LOWER_LEFT_LONGITUDE",
+    "LOWER_RIGHT_LATITUDE",
+    "LOWER_RIGHT_LONGITUDE",
+    "SUB_SOLAR_LATITUDE",
+    "SUB_SOLAR_LONGITUDE",
+    "SOLAR_DISTANCE",
+    "SUB_SPACECRAFT_LATITUDE",
+    "SUB_SPACECRAFT_LONGITUDE",
+    "SPACECRAFT_ALTITUDE",
+];
+
+/// An index table: column names (from the label or the header row) and the rows as text fields.
+#[derive(Debug)]
+pub struct IndexTable {
+    path: PathBuf,
+    columns: HashMap<String, usize>,
+    rows: Vec<Vec<String>>,
+}
+
+/// One column of a PDS3 table label.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LabelColumn {
+    pub name: String,
+    /// 1-based, as in the label.
+    pub start_byte: usize,
+    pub bytes: usize,
+}
+
+impl IndexTable {
+    /// Read `path`: with the PDS3 label `label` (or `path` with a `.LBL`/`.lbl` extension, when present) columns
+    /// are cut at the label's byte positions; otherwise the first row must name the columns (CSV).
+    pub fn load(path: &Path, label: Option<&Path>) -> Result<Self, ImportError> {
+        let io = |p: &Path| {
+            let p = p.to_path_buf();
+            move |source| ImportError::Io { path: p, source }
+        };
+        let text = std::fs::read_to_string(path).map_err(io(path))?;
+        let label = label.map(Path::to_path_buf).or_else(|| {
+            ["LBL", "lbl"]
+                .iter()
+                .map(|ext| path.with_extension(ext))
+                .find(|p| p.exists())
+        });
+        let lines = text.lines().filter(|l| !l.trim().is_empty());
+        let (names, rows): (Vec<String>, Vec<Vec<String>>) = match &label {
+            Some(label) => {
+                let columns = parse_label(&std::fs::read_to_string(label).map_err(io(label))?)
+                    .map_err(|problem| ImportError::Invalid {
+                        path: label.clone(),
+                        problem,
+                    })?;
+                let rows = lines
+                    .map(|line| {
+                        columns
+                            .iter()
+                            .map(|c| {
+                                let bytes = line.as_bytes();
+                                let from = (c.start_byte - 1).min(bytes.len());
+                                let to = (from + c.bytes).min(bytes.len());
+                                clean(&String::from_utf8_lossy(&bytes[from..to]))
+                            })
+                            .collect()
+                    })
+                    .collect();
+                (columns.into_iter().map(|c| c.name).collect(), rows)
+            }
+            None => {
+                let mut lines = lines.map(split_csv);
+                let header = lines.next().unwrap_or_default();
+                if !header.iter().any(|h| h == "PRODUCT_ID") {
+                    return Err(ImportError::Invalid {
+                        path: path.to_path_buf(),
+                        problem: "no PDS3 label next to it (CUMINDEX.LBL) and no header row naming PRODUCT_ID: pass --label".into(),
+                    });
+                }
+                (header, lines.collect())
+            }
+        };
+        let columns = names.into_iter().enumerate().map(|(i, n)| (n, i)).collect();
+        Ok(Self {
+            path: path.to_path_buf(),
+            columns,
+            rows,
+        })
+    }
+
+    /// The geometry of the row whose `PRODUCT_ID` is `product_id`.
+    pub fn geometry(&self, product_id: &str) -> Result<ImportedGeometry, ImportError> {
+        let id_column = self.column("PRODUCT_ID")?;
+        let row = self
+            .rows
+            .iter()
+            .find(|r| r.get(id_column).is_some_and(|v| v == product_id))
+            .ok_or_else(|| ImportError::Invalid {
+                path: self.path.clone(),
+                problem: format!("no row with PRODUCT_ID {product_id}"),
+            })?;
+        let row = Row {
+            table: self,
+            row,
+            product_id,
+        };
+        row_geometry(&row)
+    }
+
+    fn column(&self, name: &str) -> Result<usize, ImportError> {
+        self.columns
+            .get(name)
+            .copied()
+            .ok_or_else(|| ImportError::field(&self.path, name, "no such column in the index"))
+    }
+}
+
+struct Row<'a> {
+    table: &'a IndexTable,
+    row: &'a [String],
+    product_id: &'a str,
+}
+
+impl Row<'_> {
+    fn error(&self, key: &str, problem: impl Into<String>) -> ImportError {
+        ImportError::field(
+            &self.table.path,
+            &format!("{key} (PRODUCT_ID {})", self.product_id),
+            problem,
+        )
+    }
+
+    fn text(&self, key: &str) -> Result<&str, ImportError> {
+        let value = self
+            .row
+            .get(self.table.column(key)?)
+            .map(String::as_str)
+            .unwrap_or("");
+        if value.is_empty() {
+            return Err(self.error(key, "empty"));
+        }
+        Ok(value)
+    }
+
+    fn number(
+        &self,
+        key: &str,
+        valid: std::ops::RangeInclusive<f64>,
+        unit: &str,
+    ) -> Result<f64, ImportError> {
+        let text = self.text(key)?;
+        let value: f64 = text
+            .parse()
+            .map_err(|_| self.error(key, format!("'{text}' is not a number")))?;
+        if !valid.contains(&value) {
+            return Err(self.error(
+                key,
+                format!("{value} outside {}–{} {unit}", valid.start(), valid.end()),
+            ));
+        }
+        Ok(value)
+    }
+
+    fn time(&self, key: &str) -> Result<f64, ImportError> {
+        let text = self.text(key)?;
+        j2000_seconds_from_iso_utc(text).ok_or_else(|| {
+            self.error(
+                key,
+                format!("'{text}' is not a UTC time (YYYY-MM-DDThh:mm:ss.sss)"),
+            )
+        })
+    }
+
+    /// A point on the reference sphere from `{prefix}_LATITUDE` / `{prefix}_LONGITUDE`, as a unit vector.
+    fn direction(&self, prefix: &str) -> Result<DVec3, ImportError> {
+        let lat = self.number(&format!("{prefix}_LATITUDE"), -90.0..=90.0, "degrees")?;
+        let lon = self.number(&format!("{prefix}_LONGITUDE"), -360.0..=360.0, "degrees")?;
+        Ok(body_fixed_from_lonlat(lon, lat, 0.0).normalize())
+    }
+}
+
+fn row_geometry(row: &Row) -> Result<ImportedGeometry, ImportError> {
+    let (start, stop) = (row.time("START_TIME")?, row.time("STOP_TIME")?);
+    if stop <= start {
+        return Err(row.error("STOP_TIME", "not after START_TIME"));
+    }
+    let camera_id = match row.text("FRAME_ID")? {
+        "LEFT" => "NAC-L".to_string(),
+        "RIGHT" => "NAC-R".to_string(),
+        other => other.to_string(),
+    };
+    let solar_distance_km =
+        row.number("SOLAR_DISTANCE", 1.0e7..=1.0e9, "km (an AU is 1.496e8 km)")?;
+    let altitude_km = row.number("SPACECRAFT_ALTITUDE", 1.0..=1000.0, "km")?;
+    let sun = row.direction("SUB_SOLAR")? * solar_distance_km * 1000.0;
+    let orbit_radius_m = MOON_RADIUS_M + altitude_km * 1000.0;
+    let spacecraft_mid = row.direction("SUB_SPACECRAFT")? * orbit_radius_m;
+    let centre = row.direction("CENTER")?;
+    let [ul, ur, ll, lr] =
+        ["UPPER_LEFT", "UPPER_RIGHT", "LOWER_LEFT", "LOWER_RIGHT"].map(|c| row.direction(c));
+    let (ul, ur, ll, lr) = (ul?, ur?, ll?, lr?);
+    let first_line = (ul + ur).normalize();
+    let last_line = (ll + lr).normalize();
+    // Carry the mid-strip spacecraft along its track, heading as the strip heads (see the module docs).
+    let heading = tangent_heading(centre, last_line - first_line);
+    let up = spacecraft_mid.normalize();
+    let (east, north) = east_north(up);
+    let track = east * heading.0 + north * heading.1;
+    let along_track = |angle: f64| (up * angle.cos() + track * angle.sin()) * orbit_radius_m;
+    let spacecraft_start = along_track(-angle(centre, first_line));
+    let spacecraft_stop = along_track(angle(centre, last_line));
+    let boresight = (centre * MOON_RADIUS_M - spacecraft_mid).normalize();
+    let along = (spacecraft_stop - spacecraft_start).normalize();
+    let x_axis = (along - boresight * along.dot(boresight)).normalize();
+    let camera_to_body = DQuat::from_mat3(&DMat3::from_cols(
+        x_axis,
+        boresight.cross(x_axis),
+        boresight,
+    ));
+    let to_corner = |c: DVec3| (c * MOON_RADIUS_M - spacecraft_start).normalize();
+    let fov_deg = to_corner(ul)
+        .dot(to_corner(ur))
+        .clamp(-1.0, 1.0)
+        .acos()
+        .to_degrees();
+    Ok(ImportedGeometry {
+        product_id: row.product_id.to_string(),
+        camera_id,
+        start_utc_s: start,
+        stop_utc_s: stop,
+        sun_body_m: sun,
+        spacecraft_start_body_m: spacecraft_start,
+        spacecraft_stop_body_m: spacecraft_stop,
+        camera_to_body: camera_to_body.normalize(),
+        fov_deg,
+    })
+}
+
+/// Local east and north unit vectors at unit vector `up` (body-fixed; +z is the north pole).
+fn east_north(up: DVec3) -> (DVec3, DVec3) {
+    let east = DVec3::Z.cross(up).normalize();
+    (east, up.cross(east))
+}
+
+/// The (east, north) unit components of direction `d` in the tangent plane at unit vector `at`.
+fn tangent_heading(at: DVec3, d: DVec3) -> (f64, f64) {
+    let (east, north) = east_north(at);
+    let (e, n) = (d.dot(east), d.dot(north));
+    let norm = e.hypot(n);
+    (e / norm, n / norm)
+}
+
+/// Angle between two directions, radians.
+fn angle(a: DVec3, b: DVec3) -> f64 {
+    a.cross(b).length().atan2(a.dot(b))
+}
+
+/// Columns of a PDS3 table label: each `OBJECT = COLUMN` with its `NAME`, `START_BYTE` and `BYTES`.
+pub fn parse_label(text: &str) -> Result<Vec<LabelColumn>, String> {
+    let mut columns = Vec::new();
+    let mut current: Option<(Option<String>, Option<usize>, Option<usize>)> = None;
+    for line in text.lines() {
+        let Some((key, value)) = line.split_once('=') else {
+            continue;
+        };
+        let (key, value) = (key.trim(), clean(value));
+        match (key, &mut current) {
+            ("OBJECT", None) if value == "COLUMN" => current = Some((None, None, None)),
+            ("END_OBJECT", Some(_)) if value == "COLUMN" => {
+                let (name, start, bytes) = current.take().unwrap_or_default();
+                match (name, start, bytes) {
+                    (Some(name), Some(start_byte), Some(bytes)) if start_byte >= 1 => {
+                        columns.push(LabelColumn {
+                            name,
+                            start_byte,
+                            bytes,
+                        })
+                    }
+                    (name, ..) => {
+                        return Err(format!(
+                            "COLUMN {} lacks NAME, START_BYTE or BYTES",
+                            name.unwrap_or_else(|| format!("#{}", columns.len() + 1))
+                        ))
+                    }
+                }
+            }
+            ("NAME", Some(c)) => c.0 = Some(value),
+            ("START_BYTE", Some(c)) => c.1 = value.parse().ok(),
+            ("BYTES", Some(c)) => c.2 = value.parse().ok(),
+            _ => {}
+        }
+    }
+    if columns.is_empty() {
+        return Err("no COLUMN objects: not a PDS3 table label".into());
+    }
+    Ok(columns)
+}
+
+/// A PDS3 label of a comma-separated fixed-width table with these columns (each `width` bytes plus quotes for
+/// text), and the rows formatted to match: what the synthetic world writes.
+pub fn write_table(columns: &[(&str, usize, bool)], rows: &[Vec<String>]) -> (String, String) {
+    let mut label = String::from("PDS_VERSION_ID = PDS3\r\nRECORD_TYPE = FIXED_LENGTH\r\n");
+    let mut start = 1;
+    let mut spans = Vec::new();
+    for (name, width, text) in columns {
+        let (field_start, field_bytes) = if *text {
+            (start + 1, *width)
+        } else {
+            (start, *width)
+        };
+        spans.push((*width, *text));
+        label.push_str(&format!(
+            "OBJECT = COLUMN\r\n  NAME = {name}\r\n  DATA_TYPE = {}\r\n  START_BYTE = {field_start}\r\n  BYTES = {field_bytes}\r\nEND_OBJECT = COLUMN\r\n",
+            if *text { "CHARACTER" } else { "ASCII_REAL" }
+        ));
+        start += width + if *text { 2 } else { 0 } + 1;
+    }
+    label.push_str("END\r\n");
+    let table = rows
+        .iter()
+        .map(|row| {
+            let fields: Vec<String> = row
+                .iter()
+                .zip(&spans)
+                .map(|(v, &(w, text))| {
+                    if text {
+                        format!("\"{v:<w$}\"")
+                    } else {
+                        format!("{v:>w$}")
+                    }
+                })
+                .collect();
+            fields.join(",") + "\r\n"
+        })
+        .collect();
+    (label, table)
+}
+
+/// A field without its quotes and padding.
+fn clean(field: &str) -> String {
+    field.trim().trim_matches('"').trim().to_string()
+}
+
+/// One CSV line split on commas outside double quotes.
+fn split_csv(line: &str) -> Vec<String> {
+    let mut fields = vec![String::new()];
+    let mut quoted = false;
+    for c in line.chars() {
+        match c {
+            '"' => quoted = !quoted,
+            ',' if !quoted => fields.push(String::new()),
+            c => fields.last_mut().expect("never empty").push(c),
+        }
+    }
+    fields.iter().map(|f| clean(f)).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn label_and_table_round_trip() {
+        let columns = [
+            ("PRODUCT_ID", 10, true),
+            ("SOLAR_DISTANCE", 14, false),
+            ("FRAME_ID", 5, true),
+        ];
+        let rows = vec![
+            vec!["M1".to_string(), "1.5e8".to_string(), "LEFT".to_string()],
+            vec!["M22, b".to_string(), "-3".to_string(), "RIGHT".to_string()],
+        ];
+        let (label, table) = write_table(&columns, &rows);
+        let parsed = parse_label(&label).unwrap();
+        assert_eq!(parsed.len(), 3);
+        assert_eq!(
+            parsed[0],
+            LabelColumn {
+                name: "PRODUCT_ID".into(),
+                start_byte: 2,
+                bytes: 10
+            }
+        );
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("CUMINDEX.TAB"), &table).unwrap();
+        std::fs::write(dir.path().join("CUMINDEX.LBL"), &label).unwrap();
+        let t = IndexTable::load(&dir.path().join("CUMINDEX.TAB"), None).unwrap();
+        assert_eq!(t.rows, rows);
+        // The same rows as CSV with a header: the comma inside quotes stays in its field.
+        let csv = format!(
+            "PRODUCT_ID,SOLAR_DISTANCE,FRAME_ID\n{}",
+            table.replace("\r\n", "\n")
+        );
+        std::fs::write(dir.path().join("index.csv"), csv).unwrap();
+        let t = IndexTable::load(&dir.path().join("index.csv"), None).unwrap();
+        assert_eq!(t.rows, rows);
+    }
+}
