@@ -123,6 +123,21 @@ AXIS[\"Easting\",EAST],AXIS[\"Northing\",NORTH]]"
         Ok(body_fixed_from_lonlat(lon, lat, h_m))
     }
 
+    /// Whether `other` maps the map points `probes` to the same places as this CRS (longitudes compared modulo
+    /// 360°, to 1e-9°). Formats spell one projection differently (an ISIS3 cube's or a PDS3 label's CRS has
+    /// other names, and LROC writes central meridians in 0–360° east), so CRSs are compared by what they do.
+    pub fn same_map(&self, other: &LunarCrs, probes: &[(f64, f64)]) -> Result<bool, CrsError> {
+        for &(x, y) in probes {
+            let (lon_a, lat_a) = self.to_lonlat_deg(x, y)?;
+            let (lon_b, lat_b) = other.to_lonlat_deg(x, y)?;
+            let dlon = (lon_a - lon_b + 180.0).rem_euclid(360.0) - 180.0;
+            if dlon.abs() > 1e-9 || (lat_a - lat_b).abs() > 1e-9 {
+                return Ok(false);
+            }
+        }
+        Ok(true)
+    }
+
     /// Check that PROJ understands the definition (a cheap early error for bad input).
     pub fn validate(&self) -> Result<(), CrsError> {
         self.with_proj(|_| Ok(()))
@@ -419,5 +434,29 @@ mod tests {
         // An Earth CRS is refused: never assume Earth ellipsoids.
         let err = LunarCrs::new("EPSG:32633").validate().unwrap_err();
         assert!(err.to_string().contains("lunar sphere"), "{err}");
+    }
+
+    #[test]
+    fn same_map_compares_what_crs_do_not_how_they_are_spelled() {
+        let a = LunarCrs::equirectangular(-43.3, -11.36);
+        let probes = [
+            (0.0, -1_300_000.0),
+            (-6000.0, -1_306_000.0),
+            (6000.0, -1_294_000.0),
+        ];
+        let same = [
+            LunarCrs::equirectangular(-43.3, 348.64),
+            LunarCrs::new("+proj=eqc +lat_ts=-43.3 +lon_0=-11.36 +R=1737400 +units=m +no_defs"),
+        ];
+        for b in &same {
+            assert!(a.same_map(b, &probes).unwrap(), "{}", b.definition);
+        }
+        let different = [
+            LunarCrs::equirectangular(-43.3, -11.0),
+            LunarCrs::equirectangular(-40.0, -11.36),
+        ];
+        for b in &different {
+            assert!(!a.same_map(b, &probes).unwrap(), "{}", b.definition);
+        }
     }
 }

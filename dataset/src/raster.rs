@@ -165,6 +165,12 @@ pub enum RasterError {
     NoCrs { path: PathBuf },
     #[error("{path}: CRS is not the lunar sphere (semi-major axis {semi_major_m} m, expected {MOON_RADIUS_M} m); reproject with gdalwarp -t_srs to a lunar CRS (IAU_2015:30100 family)")]
     NotLunar { path: PathBuf, semi_major_m: f64 },
+    #[error("{path}: CRS {crs} is in {units}, not metres; project it onto a metric lunar grid, e.g. gdalwarp -t_srs '+proj=eqc +R=1737400 +units=m' (pixel sizes and heights are metres throughout)")]
+    NotMetric {
+        path: PathBuf,
+        crs: String,
+        units: String,
+    },
     #[error("{path}: geotransform is rotated or missing; warp to a north-up grid with gdalwarp")]
     NotNorthUp { path: PathBuf },
     #[error("{path}: GDAL error ({reason})")]
@@ -178,13 +184,33 @@ fn gdal_err(path: &Path) -> impl Fn(gdal::errors::GdalError) -> RasterError + '_
     }
 }
 
-/// Check a GDAL spatial reference is on the lunar sphere (any projection).
+/// Check a GDAL spatial reference is on the lunar sphere, in a projection with metre units.
 fn check_lunar(path: &Path, srs: &SpatialRef) -> Result<(), RasterError> {
     let semi_major_m = srs.semi_major().map_err(gdal_err(path))?;
     if (semi_major_m - MOON_RADIUS_M).abs() > 1.0 {
         return Err(RasterError::NotLunar {
             path: path.to_path_buf(),
             semi_major_m,
+        });
+    }
+    let crs = srs.name().unwrap_or_else(|| "(unnamed)".into());
+    if srs.is_geographic() || !srs.is_projected() {
+        return Err(RasterError::NotMetric {
+            path: path.to_path_buf(),
+            crs,
+            units: "degrees (a geographic CRS)".into(),
+        });
+    }
+    if (srs.linear_units() - 1.0).abs() > 1e-12 {
+        return Err(RasterError::NotMetric {
+            path: path.to_path_buf(),
+            crs,
+            units: format!(
+                "{} ({} m per unit)",
+                srs.linear_units_name()
+                    .unwrap_or_else(|| "unknown units".into()),
+                srs.linear_units()
+            ),
         });
     }
     Ok(())
@@ -589,5 +615,57 @@ mod tests {
                 "height {k}: {got} vs {want}"
             );
         }
+    }
+
+    /// What cannot be interpreted is refused by name: no CRS, not the Moon, not metres.
+    #[test]
+    fn uninterpretable_georeferencing_is_refused_by_name() {
+        use gdal::DriverManager;
+        let dir = tempfile::tempdir().unwrap();
+        let write = |name: &str, srs: Option<&str>, gsd: f64| {
+            let path = dir.path().join(name);
+            let driver = DriverManager::get_driver_by_name("GTiff").unwrap();
+            let mut ds = driver
+                .create_with_band_type::<f32, _>(&path, 4, 4, 1)
+                .unwrap();
+            ds.set_geo_transform(&GeoTransform::north_up(10.0, 20.0, gsd).to_gdal())
+                .unwrap();
+            if let Some(srs) = srs {
+                ds.set_spatial_ref(&SpatialRef::from_proj4(srs).unwrap())
+                    .unwrap();
+            }
+            path
+        };
+        let cases = [
+            ("no-crs.tif", None, 5.0, "has no CRS"),
+            (
+                "earth.tif",
+                Some("+proj=eqc +ellps=WGS84 +units=m"),
+                5.0,
+                "not the lunar sphere",
+            ),
+            (
+                "degrees.tif",
+                Some("+proj=longlat +R=1737400 +no_defs"),
+                1e-4,
+                "degrees",
+            ),
+            (
+                "km.tif",
+                Some("+proj=eqc +R=1737400 +units=km"),
+                0.005,
+                "not metres",
+            ),
+        ];
+        for (name, srs, gsd, expected) in cases {
+            let err = open_lunar(&write(name, srs, gsd)).unwrap_err().to_string();
+            assert!(
+                err.contains(name) && err.contains(expected),
+                "{name}: {err}"
+            );
+        }
+        // The same grid in metres opens.
+        let ok = write("m.tif", Some("+proj=eqc +R=1737400 +units=m"), 5.0);
+        assert_eq!(open_lunar(&ok).unwrap().1.transform.gsd_m(), 5.0);
     }
 }

@@ -332,33 +332,45 @@ pub fn parse_label(text: &str) -> Result<Vec<LabelColumn>, String> {
     Ok(columns)
 }
 
-/// A PDS3 label of a comma-separated fixed-width table with these columns (each `width` bytes plus quotes for
-/// text), and the rows formatted to match: what the synthetic world writes.
-pub fn write_table(columns: &[(&str, usize, bool)], rows: &[Vec<String>]) -> (String, String) {
-    let mut label = String::from("PDS_VERSION_ID = PDS3\r\nRECORD_TYPE = FIXED_LENGTH\r\n");
+/// A PDS3 label (`CUMINDEX.LBL`, describing `table_file`) of a comma-separated fixed-width table with these
+/// columns (name, width in bytes, text?), and the rows formatted to match: what the synthetic world writes. Text
+/// fields are quoted and left-aligned, numbers right-aligned; rows end in CR LF, as PDS3 tables do.
+pub fn write_table(
+    table_file: &str,
+    columns: &[(&str, usize, bool)],
+    rows: &[Vec<String>],
+) -> (String, String) {
+    let mut objects = String::new();
     let mut start = 1;
-    let mut spans = Vec::new();
     for (name, width, text) in columns {
-        let (field_start, field_bytes) = if *text {
-            (start + 1, *width)
-        } else {
-            (start, *width)
+        let data_type = match (*text, name.ends_with("_TIME")) {
+            (true, _) => "CHARACTER",
+            (false, true) => "TIME",
+            (false, false) => "ASCII_REAL",
         };
-        spans.push((*width, *text));
-        label.push_str(&format!(
-            "OBJECT = COLUMN\r\n  NAME = {name}\r\n  DATA_TYPE = {}\r\n  START_BYTE = {field_start}\r\n  BYTES = {field_bytes}\r\nEND_OBJECT = COLUMN\r\n",
-            if *text { "CHARACTER" } else { "ASCII_REAL" }
+        // A text field's bytes start after its opening quote.
+        let field_start = start + *text as usize;
+        objects.push_str(&format!(
+            "  OBJECT = COLUMN\r\n    NAME = {name}\r\n    DATA_TYPE = {data_type}\r\n    START_BYTE = {field_start}\r\n    BYTES = {width}\r\n  END_OBJECT = COLUMN\r\n"
         ));
-        start += width + if *text { 2 } else { 0 } + 1;
+        start += width + 2 * *text as usize + 1;
     }
-    label.push_str("END\r\n");
+    // `start` − 1 counts every field and one comma after each; a row has one comma fewer, plus CR LF.
+    let row_bytes = start - 1 - 1 + 2;
+    let label = format!(
+        "PDS_VERSION_ID = PDS3\r\nRECORD_TYPE = FIXED_LENGTH\r\nRECORD_BYTES = {row_bytes}\r\nFILE_RECORDS = {rows}\r\n\
+^INDEX_TABLE = \"{table_file}\"\r\nOBJECT = INDEX_TABLE\r\n  INTERCHANGE_FORMAT = ASCII\r\n  ROWS = {rows}\r\n\
+  ROW_BYTES = {row_bytes}\r\n  COLUMNS = {columns}\r\n{objects}END_OBJECT = INDEX_TABLE\r\nEND\r\n",
+        rows = rows.len(),
+        columns = columns.len(),
+    );
     let table = rows
         .iter()
         .map(|row| {
             let fields: Vec<String> = row
                 .iter()
-                .zip(&spans)
-                .map(|(v, &(w, text))| {
+                .zip(columns)
+                .map(|(v, &(_, w, text))| {
                     if text {
                         format!("\"{v:<w$}\"")
                     } else {
@@ -406,7 +418,11 @@ mod tests {
             vec!["M1".to_string(), "1.5e8".to_string(), "LEFT".to_string()],
             vec!["M22, b".to_string(), "-3".to_string(), "RIGHT".to_string()],
         ];
-        let (label, table) = write_table(&columns, &rows);
+        let (label, table) = write_table("CUMINDEX.TAB", &columns, &rows);
+        assert!(table
+            .lines()
+            .all(|l| l.len() + 2 == 10 + 2 + 1 + 14 + 1 + 5 + 2 + 2));
+        assert!(label.contains("ROW_BYTES = 37"), "{label}");
         let parsed = parse_label(&label).unwrap();
         assert_eq!(parsed.len(), 3);
         assert_eq!(

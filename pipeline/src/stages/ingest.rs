@@ -79,7 +79,6 @@ pub fn run(dem_path: &Path, ortho_dir: &Path, out: &Path) -> anyhow::Result<()> 
     {
         bail!("{}: DEM pixels are not square ({} × {} m); resample with gdalwarp -tr to square pixels", dem_path.display(), dem.transform.pixel_width, -dem.transform.pixel_height);
     }
-    let dem_srs = dem_ds.spatial_ref()?;
     struct Row {
         ortho_id: String,
         metadata_file: String,
@@ -100,14 +99,15 @@ pub fn run(dem_path: &Path, ortho_dir: &Path, out: &Path) -> anyhow::Result<()> 
             );
         }
         let image_path = meta_path.with_file_name(&meta.image_file);
-        let (ds, info) = open_lunar(&image_path)?;
-        if ds.spatial_ref()? != dem_srs {
+        let (_, info) = open_lunar(&image_path)?;
+        let (x0, y0, x1, y1) = info.transform.bounds(info.width, info.height);
+        let probes = [(x0, y0), (x1, y1), (x0, y1), (x1, y0)];
+        if !dem.crs.same_map(&info.crs, &probes)? {
             bail!("{}: CRS differs from the DEM's ({}); reproject with gdalwarp -t_srs to the DEM's CRS", image_path.display(), dem_path.display());
         }
         if info.transform.gsd_m() > dem.transform.gsd_m() + 1e-9 {
             bail!("{}: pixel size {} m is coarser than the DEM's {} m; orthos must be at least as fine as the DEM", image_path.display(), info.transform.gsd_m(), dem.transform.gsd_m());
         }
-        let (x0, y0, x1, y1) = info.transform.bounds(info.width, info.height);
         if x1 <= dem_x0 || x0 >= dem_x1 || y1 <= dem_y0 || y0 >= dem_y1 {
             bail!(
                 "{}: does not overlap the DEM {}; check that both are in the same area and CRS",

@@ -222,5 +222,5 @@ fn sphere_intersection(origin: DVec3, direction: DVec3) -> DVec3 {
 
 /// `CUMINDEX.LBL` and `CUMINDEX.TAB` for these rows.
 pub fn index_files(rows: &[Vec<String>]) -> (String, String) {
-    index::write_table(&index_columns(), rows)
+    index::write_table("CUMINDEX.TAB", &index_columns(), rows)
 }
