@@ -95,7 +95,7 @@ fn imports_reproduce_the_world_metadata() {
     let out_dir = tmp.path().join("imported");
     std::fs::create_dir_all(&out_dir).unwrap();
     let mut worst_index = [0.0f64; 4];
-    for id in ortho_ids(&world) {
+    for id in ortho_ids(world) {
         let truth = AcquisitionMetadata::load(&world.join(format!("ortho/{id}.json"))).unwrap();
         let image = world.join(format!("ortho/{id}.tif"));
 
@@ -138,14 +138,15 @@ fn imports_reproduce_the_world_metadata() {
     }
     let [position, sun, attitude, fov] = worst_index;
     eprintln!("index path, worst: spacecraft {position:.3} m, sun {sun:.2e} rad, attitude {attitude:.2e} rad, fov {fov:.2e}°");
-    // The index path's stated tolerances (docs/bring-your-own-data.md). Measured on this world: spacecraft 0.52 m,
-    // sun 6e-9 rad, attitude 1.9e-4 rad, field of view 0.016°. The world's field of view is a flat-ground formula
-    // (strip width × cos roll over the slant range); the index measures the angle the first line's corners
-    // subtend, which is what the camera saw.
-    assert!(position <= 1.0, "spacecraft off by {position} m");
+    // The index path's stated tolerances (docs/bring-your-own-data.md). Measured on this world (3.9 km strips):
+    // spacecraft 0.52 m, sun 6e-9 rad, attitude 1.9e-4 rad, field of view 0.016°; on the demo world (11 km
+    // strips): 1.06 m, 1e-8 rad, 1.6e-4 rad, 0.026°. The world's field of view is a flat-ground formula (strip
+    // width × cos roll over the slant range); the index measures the angle the first line's corners subtend,
+    // which is what the camera saw.
+    assert!(position <= 2.0, "spacecraft off by {position} m");
     assert!(sun <= 1e-6, "sun off by {sun} rad");
     assert!(attitude <= 5e-4, "attitude off by {attitude} rad");
-    assert!(fov <= 0.02, "fov off by {fov}°");
+    assert!(fov <= 0.03, "fov off by {fov}°");
 }
 
 /// Import from `source` must fail with an error naming the file and every one of `expected`, writing nothing.
@@ -256,6 +257,9 @@ fn malformed_isds_are_refused_by_name() {
     }
 }
 
+/// Rows of text fields.
+type Table = Vec<Vec<String>>;
+
 #[test]
 fn malformed_index_rows_are_refused_by_name() {
     let world = world();
@@ -269,7 +273,7 @@ fn malformed_index_rows_are_refused_by_name() {
         .map(|c| c.name)
         .collect();
     let table = std::fs::read_to_string(world.join("index/CUMINDEX.TAB")).unwrap();
-    let csv = |edit: &dyn Fn(&mut Vec<String>, &mut Vec<Vec<String>>)| {
+    let csv = |edit: &dyn Fn(&mut Vec<String>, &mut Table)| {
         let mut header = names.clone();
         let mut rows: Vec<Vec<String>> = table
             .lines()
@@ -345,10 +349,31 @@ fn malformed_index_rows_are_refused_by_name() {
 /// The tiny dataset built in `dir` from the world's DEM and an ortho directory that `fill(dir, id)` stocks with
 /// each ortho's image and metadata; its samples in shard order.
 fn build_dataset(dir: &Path, fill: impl Fn(&Path, &str)) -> Vec<Sample> {
+    build_dataset_with_dem(dir, false, fill)
+}
+
+/// [`build_dataset`], with the DEM as an Int32 raster in millimetres (band scale 0.001) when `integer_dem`.
+fn build_dataset_with_dem(
+    dir: &Path,
+    integer_dem: bool,
+    fill: impl Fn(&Path, &str),
+) -> Vec<Sample> {
     let world = world();
     let ortho_dir = dir.join("world/ortho");
     std::fs::create_dir_all(&ortho_dir).unwrap();
-    std::os::unix::fs::symlink(world.join("dem"), dir.join("world/dem")).unwrap();
+    if integer_dem {
+        std::fs::create_dir_all(dir.join("world/dem")).unwrap();
+        let nodata = i32::MIN as f64;
+        write_integer_copy::<i32>(
+            &world.join("dem/dem.tif"),
+            &dir.join("world/dem/dem.tif"),
+            1e-3,
+            0.0,
+            nodata,
+        );
+    } else {
+        std::os::unix::fs::symlink(world.join("dem"), dir.join("world/dem")).unwrap();
+    }
     for id in ortho_ids(world) {
         fill(&ortho_dir, &id);
     }
@@ -516,6 +541,93 @@ fn datasets_from_imported_metadata_and_isis_pds_orthos_match_the_world() {
         position == 0.0 && emission == 0.0,
         "ISIS/PDS: camera {position} m, emission {emission}°"
     );
+}
+
+#[test]
+fn integer_scaled_rasters_build_the_same_dataset_to_their_quantisation() {
+    let tmp = tempfile::tempdir().unwrap();
+    let world = world();
+    let build = |name: &str, scaled: bool| {
+        build_dataset_with_dem(&tmp.path().join(name), scaled, |dir, id| {
+            let tif = world.join(format!("ortho/{id}.tif"));
+            if scaled {
+                // LROC's Int16 "Scaled I/F": I/F = raw / 32767, −32768 nodata.
+                write_integer_copy::<i16>(
+                    &tif,
+                    &dir.join(format!("{id}.tif")),
+                    1.0 / 32767.0,
+                    0.0,
+                    -32768.0,
+                );
+            } else {
+                std::os::unix::fs::symlink(&tif, dir.join(format!("{id}.tif"))).unwrap();
+            }
+            copy_metadata(dir, id, &format!("{id}.tif"));
+        })
+    };
+    let (float, integer) = (build("float", false), build("integer", true));
+    assert_eq!(float.len(), integer.len());
+    let (mut image_err, mut dem_err) = (0.0f64, 0.0f64);
+    for (a, b) in float.iter().zip(&integer) {
+        assert_eq!(a.sample_id, b.sample_id);
+        assert_eq!(a.valid, b.valid, "{}: nodata differs", a.sample_id);
+        for (x, y) in a.image.iter().zip(&b.image) {
+            image_err = image_err.max((x - y).abs() as f64);
+        }
+        for (x, y) in a.dem_m.iter().zip(&b.dem_m) {
+            dem_err = dem_err.max((x - y).abs() as f64);
+        }
+    }
+    // Half a quantisation step, plus f32 rounding of the stored values (I/F ≤ 1: 6e-8; heights ≤ 5 km: 5e-4 m).
+    assert!(
+        image_err <= 0.5 / 32767.0 + 1e-7,
+        "image off by {image_err}"
+    );
+    assert!(dem_err <= 0.5e-3 + 6e-4, "DEM off by {dem_err} m");
+}
+
+/// An integer copy of a float32 GeoTIFF: raw = round((value − offset) / scale), nodata → `nodata`, with GDAL's band
+/// scale and offset set, so readers that apply them get the values back to half a step.
+fn write_integer_copy<T: gdal::raster::GdalType + Copy + TryFrom<i64>>(
+    src: &Path,
+    dst: &Path,
+    scale: f64,
+    offset: f64,
+    nodata: f64,
+) where
+    <T as TryFrom<i64>>::Error: std::fmt::Debug,
+{
+    let src = gdal::Dataset::open(src).unwrap();
+    let (width, height) = src.raster_size();
+    let band = src.rasterband(1).unwrap();
+    let source_nodata = band.no_data_value();
+    let values = band
+        .read_as::<f64>((0, 0), (width, height), (width, height), None)
+        .unwrap();
+    let raw: Vec<T> = values
+        .data()
+        .iter()
+        .map(|&v| {
+            let q = if v.is_nan() || Some(v) == source_nodata {
+                nodata
+            } else {
+                ((v - offset) / scale).round()
+            };
+            T::try_from(q as i64).unwrap()
+        })
+        .collect();
+    let driver = gdal::DriverManager::get_driver_by_name("GTiff").unwrap();
+    let mut ds = driver
+        .create_with_band_type::<T, _>(dst, width, height, 1)
+        .unwrap();
+    ds.set_geo_transform(&src.geo_transform().unwrap()).unwrap();
+    ds.set_spatial_ref(&src.spatial_ref().unwrap()).unwrap();
+    let mut out = ds.rasterband(1).unwrap();
+    out.set_scale(scale).unwrap();
+    out.set_offset(offset).unwrap();
+    out.set_no_data_value(Some(nodata)).unwrap();
+    let mut buffer = gdal::raster::Buffer::new((width, height), raw);
+    out.write((0, 0), (width, height), &mut buffer).unwrap();
 }
 
 /// A PDS3 image of a float32 GeoTIFF: its raw little-endian samples in `img` and a detached label `lbl` in the

@@ -162,7 +162,7 @@ impl Isd {
                 "empty: the time of each image line is unknown".into(),
             );
         }
-        if self.line_scan_rate.iter().any(|r| !(r[2] > 0.0)) {
+        if self.line_scan_rate.iter().any(|r| !is_positive(r[2])) {
             return bad("line_scan_rate", "seconds per line must be positive".into());
         }
         if self.line_scan_rate.windows(2).any(|w| w[1][0] <= w[0][0]) {
@@ -191,7 +191,7 @@ impl Isd {
             )?;
             for (i, q) in rotations.quaternions.iter().enumerate() {
                 let norm = q.iter().map(|v| v * v).sum::<f64>().sqrt();
-                if !((norm - 1.0).abs() <= 1e-6) {
+                if !is_within(norm - 1.0, 1e-6) {
                     return bad(
                         &format!("{key}.quaternions[{i}]"),
                         format!("norm {norm}, not a unit quaternion (w, x, y, z)"),
@@ -262,7 +262,7 @@ impl Isd {
                 );
             }
         }
-        if !(self.focal_length_model.focal_length > 0.0) {
+        if !is_positive(self.focal_length_model.focal_length) {
             return bad(
                 "focal_length_model.focal_length",
                 "must be positive (mm)".into(),
@@ -274,7 +274,7 @@ impl Isd {
                 "no sample scale (pixels per mm)".into(),
             );
         }
-        if !(self.detector_sample_summing >= 1.0) {
+        if self.detector_sample_summing.is_nan() || self.detector_sample_summing < 1.0 {
             return bad("detector_sample_summing", "must be ≥ 1".into());
         }
         Ok(())
@@ -334,6 +334,16 @@ impl Isd {
     }
 }
 
+/// `x > 0`, false for NaN: every check here must fail on NaN.
+fn is_positive(x: f64) -> bool {
+    x > 0.0
+}
+
+/// `|x| ≤ tolerance`, false for NaN.
+fn is_within(x: f64, tolerance: f64) -> bool {
+    x.abs() <= tolerance
+}
+
 fn check_reference_frame(path: &Path, key: &str, frame: i64) -> Result<(), ImportError> {
     if frame != J2000 {
         return Err(ImportError::field(
@@ -357,7 +367,7 @@ fn check_times(path: &Path, key: &str, times: &[f64], values: usize) -> Result<(
             format!("{} times for {values} samples", times.len()),
         ));
     }
-    if let Some(i) = times.windows(2).position(|w| !(w[1] > w[0])) {
+    if let Some(i) = times.windows(2).position(|w| !is_positive(w[1] - w[0])) {
         return Err(ImportError::field(
             path,
             &key,
