@@ -5,6 +5,9 @@ use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
 
+/// The media type of Arrow IPC streams: `/v1/shards/{name}/row-groups/{i}` and `/v1/stream` answer it.
+pub const ARROW_STREAM: &str = "application/vnd.apache.arrow.stream";
+
 /// One response, body read in full.
 #[derive(Debug)]
 pub struct HttpResponse {

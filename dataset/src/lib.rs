@@ -6,12 +6,14 @@
 
 pub mod acquisition;
 pub mod brdf;
+#[cfg(feature = "client")]
 pub mod client;
 pub mod context;
 pub mod crs;
 pub mod geometry;
 pub mod hapke;
 pub mod horizon;
+#[cfg(feature = "client")]
 pub mod loadtest;
 pub mod manifest;
 pub mod planner;
@@ -20,6 +22,7 @@ pub mod raster;
 pub mod resample;
 pub mod rng;
 pub mod schema;
+#[cfg(feature = "server")]
 pub mod server;
 pub mod shard;
 pub mod testing;

@@ -134,7 +134,7 @@ impl SampleSource for HttpSource {
         let path = format!("/v1/shards/{}/row-groups/{}", group.shard, group.row_group);
         let response = self
             .client
-            .get_ok(&path, &[("Accept", dataset::server::ARROW_STREAM)])?;
+            .get_ok(&path, &[("Accept", dataset::client::ARROW_STREAM)])?;
         let samples =
             dataset::shard::samples_from_ipc_stream(&response.body).with_context(|| {
                 format!(

@@ -45,7 +45,8 @@ use preview::Preview;
 pub const MAX_ROWS_PER_REQUEST: usize = 100;
 /// Most rows `/v1/filter` lists (it returns the total count too).
 pub const MAX_FILTER_ROWS: usize = 1000;
-pub const ARROW_STREAM: &str = "application/vnd.apache.arrow.stream";
+/// The media type of Arrow IPC streams (row groups, epoch streams); one home, shared with the client.
+pub use crate::client::ARROW_STREAM;
 /// Most row groups one `/v1/stream` window may hold (≈ 55 MB decoded each).
 pub const MAX_STREAM_WINDOW: usize = 8;
 /// Epoch streams running at once; more wait their turn (each holds up to a window, a few hundred MB).
