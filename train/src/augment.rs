@@ -160,7 +160,7 @@ mod tests {
     #[test]
     fn the_context_window_turns_and_mirrors_with_the_crop() {
         let (a, b, g) = (0.3, -0.7, 512.0);
-        let mut sample = crate::bench::synthetic_samples(1, 3).remove(0);
+        let mut sample = crate::testing::synthetic_samples(1, 3).remove(0);
         // DEM pixel (c, r) centre: ((c − 64.5)·5, (64.5 − r)·5); context cell (i, j): ((j − 15.5)·g, (15.5 − i)·g).
         sample.dem_m = (0..DEM_PX * DEM_PX)
             .map(|k| {
@@ -228,9 +228,9 @@ mod tests {
 
     #[test]
     fn rendering_a_transformed_sample_equals_transforming_the_rendering() {
-        use crate::bench::{synthetic_samples, test_params};
         use crate::data::{HostBatch, InputNormalisation};
-        use crate::render::reference_render;
+        use crate::renderer_layer::reference_render;
+        use crate::testing::{synthetic_samples, test_params};
         use dataset::brdf::BrdfModel;
         let sample = &synthetic_samples(1, 9)[0];
         let npx = CROP_PX * CROP_PX;

@@ -101,7 +101,7 @@ mod tests {
 
     #[test]
     fn uniform_hapke_of_a_sample_is_finite_and_zero_where_unlit() {
-        let mut sample = crate::bench::synthetic_samples(1, 3).remove(0);
+        let mut sample = crate::testing::synthetic_samples(1, 3).remove(0);
         sample.sun_lit[5] = 0.0;
         let r = hapke_render(&sample, &HapkeParams::lunar_typical());
         assert!(r.iter().all(|v| v.is_finite() && *v >= 0.0));

@@ -24,7 +24,7 @@ pub const DEFAULT_OVERLAP: usize = 32;
 pub struct InferOptions {
     pub overlap: usize,
     pub batch_size: usize,
-    /// The run's network input normalisation (`training::run_input`).
+    /// The run's network input normalisation (`run::run_input`).
     pub input: InputNormalisation,
 }
 

@@ -1,12 +1,19 @@
-//! `train`: the Burn side. Read in data-flow order: [`data`] (shards → host batches, epoch order, prefetch) with
-//! [`augment`] → [`model`] (U-Net) → [`render`] (differentiable renderer layer, the batched twin of
-//! `dataset::brdf`) → [`metrics`] → [`training`] (fit loop, checkpoints, exact resume; [`averaging`]: the weight average) →
-//! [`bench`].
+//! `train`: the Burn side. Read in data-flow order:
+//! - [`data`] (shards → host batches, epoch order, prefetch) with [`augment`];
+//! - [`model`] (U-Net, its hot operations in [`kernels`]) → [`renderer_layer`] (the differentiable renderer layer,
+//!   the batched twin of `dataset::brdf`) → [`metrics`];
+//! - [`training`] (the fit loop) writing a [`run`] directory (config, history, checkpoints, loading), with
+//!   [`averaging`] (the weight average) and [`calibration`] (uniform least-squares fits);
+//! - [`prediction`] (inference-mode renderings, symmetry means, ensembles) → [`evaluation`] (against baselines,
+//!   [`baseline`], and the oracle; [`features`] matching) and [`inference`] (parameter GeoTIFFs from a DEM);
+//! - [`report`] (speed against error, [`plot`]), [`views`] (the novel-view ray caster), [`bench`];
+//! - [`testing`]: fixtures for tests and benches.
 
 pub mod augment;
 pub mod averaging;
 pub mod baseline;
 pub mod bench;
+pub mod calibration;
 pub mod data;
 pub mod evaluation;
 pub mod features;
@@ -15,9 +22,10 @@ pub mod kernels;
 pub mod metrics;
 pub mod model;
 pub mod plot;
-pub mod raycast;
-pub mod render;
-pub mod render_views;
+pub mod prediction;
+pub mod renderer_layer;
 pub mod report;
+pub mod run;
+pub mod testing;
 pub mod training;
-pub mod trajectory;
+pub mod views;

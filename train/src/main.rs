@@ -8,7 +8,8 @@ use anyhow::{bail, Result};
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use dataset::brdf::BrdfModel;
 use train::data::{open_source, SampleSource, StreamConfig};
-use train::training::{fit, FitConfig};
+use train::run::FitConfig;
+use train::training::fit;
 
 #[derive(Parser)]
 #[command(
@@ -71,11 +72,11 @@ struct TrainArgs {
     backend: BackendKind,
     /// Learning-rate schedule: constant, or cosine decay from --lr to 0 over the run.
     #[arg(long, value_enum, default_value = "constant")]
-    lr_schedule: train::training::LrSchedule,
+    lr_schedule: train::run::LrSchedule,
     /// Head initialisation: uniform (bias = the model's uniform least-squares fit on 256 train crops, so training
     /// starts at the honest uniform baseline) or zero (black first renderings).
     #[arg(long, value_enum, default_value = "uniform")]
-    init: train::training::HeadInit,
+    init: train::run::HeadInit,
     /// Add absolute elevation as a second input plane (normalised by the mean and std of 256 spread train
     /// crops). The paper's input is relief only (crop mean removed), which hides whether a crop lies on a crater
     /// floor, a mare plain or a highland rim; at the crop scale that explains much of the albedo. Meaningful
@@ -218,7 +219,7 @@ enum Command {
         /// Which checkpoint of each run: auto (ema-last when the run kept a weight average, else best, else last),
         /// best, last, ema-best or ema-last.
         #[arg(long, value_enum, default_value = "auto")]
-        checkpoint: train::training::Checkpoint,
+        checkpoint: train::run::Checkpoint,
         #[arg(long, value_enum, default_value = "flex")]
         backend: BackendKind,
     },
@@ -248,7 +249,7 @@ enum Command {
         /// Which checkpoint of each run: auto (ema-last when the run kept a weight average, else best, else last),
         /// best, last, ema-best or ema-last.
         #[arg(long, value_enum, default_value = "auto")]
-        checkpoint: train::training::Checkpoint,
+        checkpoint: train::run::Checkpoint,
         #[arg(long, value_enum, default_value = "flex")]
         backend: BackendKind,
     },
@@ -274,7 +275,7 @@ enum Command {
         /// Which checkpoint of each run: auto (ema-last when the run kept a weight average, else best, else last),
         /// best, last, ema-best or ema-last.
         #[arg(long, value_enum, default_value = "auto")]
-        checkpoint: train::training::Checkpoint,
+        checkpoint: train::run::Checkpoint,
         /// DEM GeoTIFF for the renderer section (and, with --run, the inference-overlap section).
         #[arg(long)]
         dem: Option<PathBuf>,
@@ -442,7 +443,7 @@ fn run(cli: Cli) -> Result<()> {
                 type Inner = <B as burn::tensor::backend::AutodiffBackend>::InnerBackend;
                 let device = Default::default();
                 let paths: Vec<&Path> = std::iter::once(&run).chain(&ensemble).map(|p| p.as_path()).collect();
-                let runs = train::training::load_ensemble::<Inner>(&paths, checkpoint, false, &device)?;
+                let runs = train::run::load_ensemble::<Inner>(&paths, checkpoint, false, &device)?;
                 // Only once every run has loaded: a mistyped run directory must not leave an empty eval folder.
                 std::fs::create_dir_all(&panel_dir)?;
                 let options = train::evaluation::EvalOptions {
@@ -453,7 +454,7 @@ fn run(cli: Cli) -> Result<()> {
                     panels,
                     symmetry_mean,
                 };
-                let calibration = train::evaluation::calibrate(
+                let calibration = train::calibration::calibrate(
                     source.as_ref(),
                     calibration_samples,
                     runs[0].config.model,
@@ -498,7 +499,7 @@ fn run(cli: Cli) -> Result<()> {
                 type Inner = <B as burn::tensor::backend::AutodiffBackend>::InnerBackend;
                 let device = Default::default();
                 let paths: Vec<&Path> = std::iter::once(&run).chain(&ensemble).map(|p| p.as_path()).collect();
-                let runs = train::training::load_ensemble::<Inner>(&paths, checkpoint, true, &device)?;
+                let runs = train::run::load_ensemble::<Inner>(&paths, checkpoint, true, &device)?;
                 let mut members = Vec::new();
                 for (member, trained) in paths.iter().zip(runs) {
                     let mut input = trained.input;
@@ -562,7 +563,7 @@ fn run(cli: Cli) -> Result<()> {
                 (Some(run), Some(raster)) => with_backend!(backend, B => {
                     type Inner = <B as burn::tensor::backend::AutodiffBackend>::InnerBackend;
                     let device = Default::default();
-                    let trained = train::training::load_trained::<Inner>(&run, checkpoint, &device)?;
+                    let trained = train::run::load_trained::<Inner>(&run, checkpoint, &device)?;
                     train::report::overlap_rows::<Inner>(&trained.net, trained.config.model, raster, &trained.input, &overlaps, &device)
                 })?,
                 _ => Vec::new(),
@@ -613,13 +614,13 @@ fn run(cli: Cli) -> Result<()> {
                     sun.len()
                 );
             }
-            train::render_views::run(&train::render_views::RenderJob {
+            train::views::run(&train::views::RenderJob {
                 dem: &dem,
                 params: params.as_deref(),
                 trajectory: &trajectory,
                 sun_body: glam::DVec3::new(sun[0], sun[1], sun[2]),
                 out: &out,
-                options: train::raycast::ViewOptions {
+                options: train::views::raycast::ViewOptions {
                     width,
                     height,
                     fov_deg: fov,

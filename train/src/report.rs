@@ -23,8 +23,8 @@ use dataset::raster::Raster;
 use dataset::schema::Sample;
 
 use crate::baseline::hapke_from_geometry;
+use crate::calibration::{calibrate, lunar_lambert_from_geometry, model_uniform_from_geometry};
 use crate::data::{for_each_sample_group, InputNormalisation, SampleSource};
-use crate::evaluation::{calibrate, lunar_lambert_from_geometry, model_uniform_from_geometry};
 use crate::inference::{infer_params, render_maps, seam_score, InferOptions};
 use crate::kernels::TrainOps;
 use crate::model::UNet;
@@ -210,14 +210,14 @@ pub fn overlap_rows<B: TrainOps>(
 /// Renderer rows: a nadir 128 × 128 view of the DEM centre (45° FOV covering half the DEM's width) under a sun
 /// 50° from zenith in the east, at several rays/pixel with and without shadows, against a 16-ray reference.
 pub fn renderer_rows(dem: &Raster) -> Result<Vec<RenderRow>> {
-    use crate::raycast::{render_view, Heightfield, Reflectance, ViewOptions};
+    use crate::views::raycast::{render_view, Heightfield, Reflectance, ViewOptions};
     let mut dem = dem.clone();
-    crate::raycast::fill_holes(&mut dem);
+    crate::views::raycast::fill_holes(&mut dem);
     let field = Heightfield::new(&dem)?;
     let f = &field.frame;
     let half_width_m = dem.width as f64 * dem.transform.gsd_m() / 4.0;
     let altitude = f.origin_height_m + half_width_m / 22.5f64.to_radians().tan();
-    let pose = crate::trajectory::pose_from_lonlat(
+    let pose = crate::views::trajectory::pose_from_lonlat(
         f.origin_lon_deg,
         f.origin_lat_deg,
         altitude,

@@ -66,10 +66,10 @@ fn bad_inputs_fail_with_one_line_naming_the_file_and_the_fix() {
         -1200.0,
     );
     dataset::raster::write_raster(&d.join("dem.tif"), &dem, &[]).unwrap();
-    train::bench::write_synthetic_dataset(
+    train::testing::write_synthetic_dataset(
         &d.join("data"),
-        train::bench::synthetic_samples(2, 1),
-        train::bench::synthetic_samples(2, 2),
+        train::testing::synthetic_samples(2, 1),
+        train::testing::synthetic_samples(2, 2),
     );
     let cases: Vec<(Vec<String>, Vec<&str>)> = vec![
         (

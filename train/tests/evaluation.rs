@@ -9,12 +9,15 @@ use dataset::brdf::BrdfModel;
 use dataset::hapke::HapkeParams;
 use dataset::schema::CROP_PX;
 use train::baseline::{hapke_render, normalise_like_paper};
-use train::bench::{synthetic_samples, write_synthetic_dataset};
+use train::calibration::calibrate;
 use train::data::{HostBatch, InputNormalisation, LocalSource, SampleSource, StreamConfig};
-use train::evaluation::{calibrate, evaluate, panel_png, write_report, EvalOptions};
+use train::evaluation::{evaluate, panel_png, write_report, EvalOptions};
 use train::metrics::image_metrics;
 use train::model::UNetConfig;
-use train::training::{predict_images, validate, FitConfig, TrainedRun};
+use train::prediction::predict_images;
+use train::run::{FitConfig, TrainedRun};
+use train::testing::{synthetic_samples, write_synthetic_dataset};
+use train::training::validate;
 
 /// The FitConfig of the small untrained M2 networks these tests evaluate.
 fn m2_config() -> FitConfig {
@@ -32,8 +35,8 @@ fn m2_config() -> FitConfig {
             max_samples: None,
         },
         max_val_samples: None,
-        lr_schedule: train::training::LrSchedule::Constant,
-        head_init: train::training::HeadInit::Zero,
+        lr_schedule: train::run::LrSchedule::Constant,
+        head_init: train::run::HeadInit::Zero,
         elevation_input: false,
         context_input: false,
         ema_decay: None,
@@ -322,7 +325,7 @@ fn uniform_model_fit_recovers_the_coefficients_that_rendered_the_images() {
     let truth = [0.021, 0.008, 0.004];
     let mut train = synthetic_samples(4, 5);
     for s in &mut train {
-        let rendered = train::evaluation::model_uniform_render(s, BrdfModel::M2, &truth);
+        let rendered = train::calibration::model_uniform_render(s, BrdfModel::M2, &truth);
         s.image = rendered.iter().map(|&v| v as f32).collect();
     }
     write_synthetic_dataset(dir.path(), train, synthetic_samples(2, 6));

@@ -8,7 +8,6 @@ use dataset::crs::LunarCrs;
 use dataset::raster::{read_bands, write_raster, GeoTransform, Raster};
 use dataset::schema::{Sample, CROP_PX};
 use train::augment::Dihedral;
-use train::bench::synthetic_samples;
 use train::data::HostBatch;
 use train::data::{
     ContextNormalisation, ElevationNormalisation, InputNormalisation, CONTEXT_CHANNELS,
@@ -18,7 +17,8 @@ use train::inference::{
     DEFAULT_OVERLAP,
 };
 use train::model::{UNet, UNetConfig};
-use train::training::{predict_images, predict_images_symmetry_mean};
+use train::prediction::{predict_images, predict_images_symmetry_mean};
+use train::testing::synthetic_samples;
 
 type B = Flex;
 

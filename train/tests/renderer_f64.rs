@@ -7,9 +7,9 @@ use burn::prelude::*;
 use burn::tensor::{set_default_dtypes, FloatDType, IntDType};
 use dataset::brdf::BrdfModel;
 use dataset::schema::CROP_PX;
-use train::bench::{hard_case_samples, synthetic_samples, test_params};
 use train::data::{HostBatch, InputNormalisation};
-use train::render::{masked_mse, reference_render, render, SceneTerms};
+use train::renderer_layer::{masked_mse, reference_render, render, SceneTerms};
+use train::testing::{hard_case_samples, synthetic_samples, test_params};
 
 type Ad = Autodiff<Flex>;
 

@@ -10,11 +10,13 @@ use burn::module::Module;
 use burn::record::{FullPrecisionSettings, NamedMpkFileRecorder};
 use dataset::brdf::{inverse_leaky_relu, BrdfModel};
 use dataset::schema::CROP_PX;
-use train::bench::synthetic_samples;
 use train::data::{HostBatch, InputNormalisation, LocalSource, SampleSource, StreamConfig};
 use train::model::UNetConfig;
-use train::render::reference_render;
-use train::training::{fit, predict_images, FitConfig};
+use train::prediction::predict_images;
+use train::renderer_layer::reference_render;
+use train::run::FitConfig;
+use train::testing::synthetic_samples;
+use train::training::fit;
 
 type Ad = Autodiff<Flex>;
 
@@ -42,8 +44,8 @@ fn config(
             max_samples: Some(max_samples),
         },
         max_val_samples: Some(4),
-        lr_schedule: train::training::LrSchedule::Constant,
-        head_init: train::training::HeadInit::Zero,
+        lr_schedule: train::run::LrSchedule::Constant,
+        head_init: train::run::HeadInit::Zero,
         elevation_input: false,
         context_input: false,
         ema_decay: None,
@@ -90,7 +92,7 @@ fn a_head_bias_renders_the_uniform_model_before_any_step() {
 fn overfitting_a_handful_of_samples_drops_the_loss_tenfold() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let tmp = tempfile::tempdir().unwrap();
-    train::bench::write_synthetic_dataset(
+    train::testing::write_synthetic_dataset(
         tmp.path(),
         synthetic_samples(4, 1),
         synthetic_samples(4, 2),
@@ -148,7 +150,7 @@ fn fingerprint_of(run: &Path, checkpoint: &str, cfg: &FitConfig) -> Vec<f64> {
             &device,
         )
         .unwrap();
-    let input = train::training::run_input(run, cfg).unwrap();
+    let input = train::run::run_input(run, cfg).unwrap();
     predict_images(
         &net,
         cfg.model,
@@ -162,7 +164,7 @@ fn stopping_and_resuming_gives_the_same_network_as_an_uninterrupted_run() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let tmp = tempfile::tempdir().unwrap();
     // 300 train rows = 2 row groups (256 + 44), so the window shuffle spans groups; 12 per epoch.
-    train::bench::write_synthetic_dataset(
+    train::testing::write_synthetic_dataset(
         tmp.path(),
         synthetic_samples(300, 5),
         synthetic_samples(4, 6),
@@ -171,8 +173,8 @@ fn stopping_and_resuming_gives_the_same_network_as_an_uninterrupted_run() {
     // Cosine schedule: the resumed half must continue the decay from the saved step, not restart it. With the
     // elevation plane and the context input, the resumed half must feed the network what the first half did.
     let cfg = FitConfig {
-        lr_schedule: train::training::LrSchedule::Cosine,
-        head_init: train::training::HeadInit::Uniform,
+        lr_schedule: train::run::LrSchedule::Cosine,
+        head_init: train::run::HeadInit::Uniform,
         elevation_input: true,
         context_input: true,
         ema_decay: Some(0.9),
@@ -203,12 +205,8 @@ fn stopping_and_resuming_gives_the_same_network_as_an_uninterrupted_run() {
     assert_eq!(ema(&straight), ema(&split));
     assert_ne!(ema(&straight), fingerprint(&straight, &cfg));
     assert!(a.history.iter().all(|m| m.ema_val.is_some()));
-    let auto = train::training::load_trained::<Flex>(
-        &straight,
-        train::training::Checkpoint::Auto,
-        &device,
-    )
-    .unwrap();
+    let auto =
+        train::run::load_trained::<Flex>(&straight, train::run::Checkpoint::Auto, &device).unwrap();
     assert_eq!(auto.checkpoint, "last/ema.mpk");
 
     // Resuming with another BRDF model is refused with the fix in the message.
@@ -229,7 +227,7 @@ fn stopping_and_resuming_gives_the_same_network_as_an_uninterrupted_run() {
 fn an_ensemble_loads_every_member_first_and_map_averaging_refuses_mixed_models() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let tmp = tempfile::tempdir().unwrap();
-    train::bench::write_synthetic_dataset(
+    train::testing::write_synthetic_dataset(
         tmp.path(),
         synthetic_samples(8, 21),
         synthetic_samples(4, 22),
@@ -257,9 +255,9 @@ fn an_ensemble_loads_every_member_first_and_map_averaging_refuses_mixed_models()
     }
     let missing = tmp.path().join("no-such-run");
     let load = |runs: &[&Path], one_model| {
-        train::training::load_ensemble::<Flex>(
+        train::run::load_ensemble::<Flex>(
             runs,
-            train::training::Checkpoint::Auto,
+            train::run::Checkpoint::Auto,
             one_model,
             &Default::default(),
         )
@@ -297,7 +295,7 @@ fn an_ensemble_loads_every_member_first_and_map_averaging_refuses_mixed_models()
     assert_eq!(same[0].checkpoint, "last/model.mpk");
     let err = format!(
         "{:#}",
-        train::training::load_trained::<Flex>(&m2, train::training::Checkpoint::EmaBest, &device)
+        train::run::load_trained::<Flex>(&m2, train::run::Checkpoint::EmaBest, &device)
             .err()
             .expect("no average kept")
     );

@@ -2,15 +2,15 @@
 //! ortho strips with nodata borders, per-ortho acquisition metadata — plus `truth/` that only evaluation may read.
 //!
 //! Data flow: [`units`] (mare/highland) → [`terrain`] (fBm + craters → true DEM, freshness, melt) → [`reflectance`] (true Hapke maps) →
-//! [`acquisition`] (strip plans + metadata) → [`render`] (orthos from the truth) → [`dem_product`] (degraded DEM).
+//! [`acquisition`] (strip plans + metadata) → [`orthos`] (orthos from the truth) → [`dem_product`] (degraded DEM).
 
 pub mod acquisition;
 pub mod config;
 pub mod dem_product;
 pub mod lroc_products;
 pub mod noise;
+pub mod orthos;
 pub mod reflectance;
-pub mod render;
 pub mod terrain;
 pub mod units;
 
@@ -89,7 +89,7 @@ pub struct OrthoSummary {
     pub roll_deg: f64,
     pub width: usize,
     pub height: usize,
-    pub stats: render::RenderStats,
+    pub stats: orthos::RenderStats,
 }
 
 #[derive(Serialize)]
@@ -216,12 +216,12 @@ pub fn generate(
 
     // Acquisitions and orthos.
     let strips = acquisition::plan(&config.acquisitions, &fine, &crs, w.base_height_m, seed);
-    let scene = render::TruthScene::new(&crs, &fine, &heights, &maps);
+    let scene = orthos::TruthScene::new(&crs, &fine, &heights, &maps);
     let mut orthos = Vec::new();
     let mut index_rows = Vec::new();
     for (k, strip) in strips.iter().enumerate() {
         let progress = bar(0, &strip.meta.ortho_id);
-        let (image, stats) = render::render_ortho(
+        let (image, stats) = orthos::render_ortho(
             &scene,
             &config.reflectance,
             &config.acquisitions,

@@ -1,5 +1,9 @@
-//! `g2r-train render`: read the DEM, the optional parameter maps and the trajectory; render every view with
-//! [`crate::raycast`]; write 16-bit PNGs on one I/F scale shared by all views and methods, plus `views.json`.
+//! The novel-view renderer: [`raycast`] (ray marching over the DEM with cast shadows) and [`trajectory`] (camera
+//! poses). This module is `g2r-train render`: read the DEM, the optional parameter maps and the trajectory; render
+//! every view; write 16-bit PNGs on one I/F scale shared by all views and methods, plus `views.json`.
+
+pub mod raycast;
+pub mod trajectory;
 
 use std::path::Path;
 use std::time::Instant;
@@ -8,8 +12,8 @@ use anyhow::{bail, Context, Result};
 use dataset::hapke::HapkeParams;
 use glam::DVec3;
 
-use crate::raycast::{render_view, Heightfield, Reflectance, ViewOptions, ViewStats};
-use crate::trajectory::read_trajectory;
+use crate::views::raycast::{render_view, Heightfield, Reflectance, ViewOptions, ViewStats};
+use crate::views::trajectory::read_trajectory;
 
 pub struct RenderJob<'a> {
     pub dem: &'a Path,
@@ -42,7 +46,7 @@ pub fn run(job: &RenderJob) -> Result<()> {
     }
     let poses = read_trajectory(job.trajectory)?;
     let mut dem = dataset::raster::read_raster(job.dem)?;
-    let filled = crate::raycast::fill_holes(&mut dem);
+    let filled = crate::views::raycast::fill_holes(&mut dem);
     if filled > 0 {
         tracing::warn!(
             filled,
@@ -66,7 +70,7 @@ pub fn run(job: &RenderJob) -> Result<()> {
         }
         // The maps are NaN where the DEM had holes; the DEM was filled above, so fill the maps the same way.
         for band in &mut bands {
-            crate::raycast::fill_holes(band);
+            crate::views::raycast::fill_holes(band);
         }
         let learned =
             Reflectance::from_param_bands(bands).with_context(|| format!("{}", path.display()))?;

@@ -106,7 +106,7 @@ pub fn masked_mse<B: Backend>(
 }
 
 /// The scalar f64 reference ([`dataset::geometry::crop_pixel_geometry`] + [`dataset::brdf::render_crop`]) applied
-/// to a host batch, sample by sample: what [`render`] must reproduce. `planar_params` is `N × P × 128²`.
+/// to a host batch, sample by sample: what [`renderer_layer`] must reproduce. `planar_params` is `N × P × 128²`.
 pub fn reference_render(model: BrdfModel, batch: &HostBatch, planar_params: &[f64]) -> Vec<f64> {
     let (npx, p) = (CROP_PX * CROP_PX, model.param_count());
     let mut out = Vec::with_capacity(batch.len() * npx);
@@ -153,8 +153,8 @@ fn sample_frame(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::bench::{hard_case_samples, synthetic_samples, test_params};
     use crate::data::InputNormalisation;
+    use crate::testing::{hard_case_samples, synthetic_samples, test_params};
 
     type Cpu = burn::backend::Flex;
 

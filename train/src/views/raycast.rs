@@ -19,7 +19,7 @@ use dataset::rng::keyed_rng;
 use glam::{DVec2, DVec3};
 use rand::Rng;
 
-use crate::trajectory::Pose;
+use crate::views::trajectory::Pose;
 
 /// Angular radius of the sun seen from the Moon.
 const SUN_RADIUS_RAD: f64 = 0.2666 * std::f64::consts::PI / 180.0;
@@ -480,7 +480,7 @@ mod tests {
 
     fn nadir_pose(field: &Heightfield, altitude: f64, pitch_deg: f64) -> Pose {
         let f = &field.frame;
-        crate::trajectory::pose_from_lonlat(
+        crate::views::trajectory::pose_from_lonlat(
             f.origin_lon_deg,
             f.origin_lat_deg,
             altitude,

@@ -1,0 +1,184 @@
+//! Uniform fits on train crops: one least-squares coefficient set for a BRDF model (what spatial variation
+//! must beat, and the head's `--init uniform`), honest scales for uniform Hapke and Lunar-Lambert.
+
+use anyhow::{bail, Result};
+use dataset::brdf::BrdfModel;
+use dataset::geometry::PixelGeometry;
+use dataset::hapke::{lunar_lambert_i_over_f, HapkeParams};
+use dataset::schema::Sample;
+
+use crate::baseline::{hapke_render, truth_and_valid};
+use crate::data::{for_each_sample_group, SampleSource};
+
+/// Lunar-Lambert I/F with albedo 1 (lit fraction × LL): scale by the fitted albedo.
+pub fn lunar_lambert_render(sample: &Sample) -> Vec<f64> {
+    lunar_lambert_from_geometry(&sample.pixel_geometry(), &sample.sun_lit, 1.0)
+}
+
+/// Lunar-Lambert I/F with `albedo` on precomputed geometry.
+pub fn lunar_lambert_from_geometry(
+    geometry: &[PixelGeometry],
+    sun_lit: &[f32],
+    albedo: f64,
+) -> Vec<f64> {
+    geometry
+        .iter()
+        .zip(sun_lit)
+        .map(|(g, &lit)| {
+            let c = &g.cosines;
+            lit as f64 * lunar_lambert_i_over_f(albedo, c.cos_i, c.cos_e, c.cos_g)
+        })
+        .collect()
+}
+
+/// Least-squares scale s minimising Σ (s·x − t)² over valid pixels: Σ x·t / Σ x².
+#[derive(Debug, Default, Clone, Copy)]
+pub struct ScaleFit {
+    xt: f64,
+    xx: f64,
+}
+
+impl ScaleFit {
+    pub fn add(&mut self, rendered: &[f64], truth: &[f64], valid: &[bool]) {
+        for ((&x, &t), &ok) in rendered.iter().zip(truth).zip(valid) {
+            if ok && x.is_finite() {
+                self.xt += x * t;
+                self.xx += x * x;
+            }
+        }
+    }
+    pub fn scale(&self) -> f64 {
+        if self.xx > 0.0 {
+            self.xt / self.xx
+        } else {
+            0.0
+        }
+    }
+}
+
+/// Honest single scales fitted on train crops.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct Calibration {
+    pub samples: usize,
+    pub hapke_scale: f64,
+    pub lunar_lambert_albedo: f64,
+    pub model: BrdfModel,
+    /// One coefficient per term of `model` (no activation), least squares over the same crops.
+    pub model_uniform: Vec<f64>,
+}
+
+/// Per-pixel design rows of `model`: lit × term_k where the pixel faces sun and camera, else 0.
+fn model_terms(geometry: &[PixelGeometry], sun_lit: &[f32], model: BrdfModel) -> Vec<[f64; 4]> {
+    geometry
+        .iter()
+        .zip(sun_lit)
+        .map(|(g, &lit)| {
+            if g.cosines.cos_i <= 0.0 || g.cosines.cos_e <= 0.0 {
+                [0.0; 4]
+            } else {
+                model
+                    .terms(&g.cosines, &g.half_diff)
+                    .map(|t| t * lit as f64)
+            }
+        })
+        .collect()
+}
+
+/// I/F from precomputed geometry with one coefficient set for `model` (see [`Calibration::model_uniform`]).
+pub fn model_uniform_from_geometry(
+    geometry: &[PixelGeometry],
+    sun_lit: &[f32],
+    model: BrdfModel,
+    coefficients: &[f64],
+) -> Vec<f64> {
+    model_terms(geometry, sun_lit, model)
+        .iter()
+        .map(|t| t.iter().zip(coefficients).map(|(t, c)| t * c).sum())
+        .collect()
+}
+
+/// A crop rendered with one coefficient set for `model`.
+pub fn model_uniform_render(sample: &Sample, model: BrdfModel, coefficients: &[f64]) -> Vec<f64> {
+    model_uniform_from_geometry(
+        &sample.pixel_geometry(),
+        &sample.sun_lit,
+        model,
+        coefficients,
+    )
+}
+
+/// Solve the small symmetric system `a x = b` (Gaussian elimination with partial pivoting); singular directions
+/// (a term that is zero on every pixel) get 0.
+fn solve(mut a: Vec<Vec<f64>>, mut b: Vec<f64>) -> Vec<f64> {
+    let n = b.len();
+    for col in 0..n {
+        let pivot = (col..n)
+            .max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))
+            .expect("non-empty");
+        a.swap(col, pivot);
+        b.swap(col, pivot);
+        if a[col][col].abs() < 1e-300 {
+            continue;
+        }
+        for row in col + 1..n {
+            let f = a[row][col] / a[col][col];
+            let (upper, lower) = a.split_at_mut(row);
+            for (x, p) in lower[0][col..].iter_mut().zip(&upper[col][col..]) {
+                *x -= f * p;
+            }
+            b[row] -= f * b[col];
+        }
+    }
+    let mut x = vec![0.0; n];
+    for row in (0..n).rev() {
+        if a[row][row].abs() < 1e-300 {
+            continue;
+        }
+        let rest: f64 = (row + 1..n).map(|k| a[row][k] * x[k]).sum();
+        x[row] = (b[row] - rest) / a[row][row];
+    }
+    x
+}
+
+pub fn calibrate(
+    source: &dyn SampleSource,
+    samples: usize,
+    model: BrdfModel,
+) -> Result<Calibration> {
+    let params = HapkeParams::lunar_typical();
+    let (mut hapke, mut ll, mut seen) = (ScaleFit::default(), ScaleFit::default(), 0);
+    let p = model.param_count();
+    let (mut ata, mut atb) = (vec![vec![0.0; p]; p], vec![0.0; p]);
+    for_each_sample_group(source, "train", Some(samples), |group| {
+        for s in group {
+            let (truth, valid) = truth_and_valid(s);
+            hapke.add(&hapke_render(s, &params), &truth, &valid);
+            ll.add(&lunar_lambert_render(s), &truth, &valid);
+            let rows = model_terms(&s.pixel_geometry(), &s.sun_lit, model);
+            for ((row, &t), &ok) in rows.iter().zip(&truth).zip(&valid) {
+                if ok {
+                    for i in 0..p {
+                        atb[i] += row[i] * t;
+                        for j in 0..p {
+                            ata[i][j] += row[i] * row[j];
+                        }
+                    }
+                }
+            }
+            seen += 1;
+        }
+    })?;
+    if seen == 0 {
+        bail!(
+            "{}: no train crops to fit the honest baselines on: the train split is empty or --calibration-samples is 0",
+            source.describe()
+        );
+    }
+    Ok(Calibration {
+        samples: seen,
+        hapke_scale: hapke.scale(),
+        lunar_lambert_albedo: ll.scale(),
+        model,
+        model_uniform: solve(ata, atb),
+    })
+}

@@ -1,0 +1,80 @@
+//! The methods `eval` compares, and their renderings of one crop.
+
+use dataset::hapke::HapkeParams;
+use dataset::schema::Sample;
+
+use crate::baseline::{hapke_render, normalise_like_paper, truth_and_valid};
+use crate::calibration::{lunar_lambert_render, model_uniform_render, Calibration};
+
+use super::truth::{TrueAlbedo, TruthMaps};
+
+/// The methods, in report order.
+pub const METHODS: [(&str, &str); 8] = [
+    ("learned", "U-Net → SVBRDF parameters → renderer layer"),
+    (
+        "learned_paper_norm",
+        "the learned rendering with the same per-image affine normalisation as hapke_paper (peeks at the GT; \
+         compares the two on equal terms: spatial pattern only, no per-image brightness level)",
+    ),
+    (
+        "model_uniform",
+        "the run's BRDF model with one parameter set for the whole Moon, least squares on train crops (what the \
+         spatial variation has to beat)",
+    ),
+    (
+        "hapke_paper",
+        "uniform Hapke, affine-normalised per image to the GT's mean and range (peeks at the GT, as the paper did)",
+    ),
+    ("hapke_scaled", "uniform Hapke × one scale fitted on train crops (honest)"),
+    ("lunar_lambert", "Lunar-Lambert with one albedo fitted on train crops (honest)"),
+    ("oracle", "the world's true Hapke maps on the delivered DEM (needs --world)"),
+    (
+        "oracle_morphology",
+        "the oracle without the world's independent albedo component, which no terrain predicts (units, \
+         freshness, slope and melt only; needs --world)",
+    ),
+];
+
+/// Renderings of one sample by every method that runs (learned supplied by the caller, batched).
+pub(super) fn method_renderings(
+    sample: &Sample,
+    learned: &[f64],
+    calibration: &Calibration,
+    truth_maps: Option<&TruthMaps>,
+) -> Vec<(&'static str, Vec<f64>)> {
+    let (truth, valid) = truth_and_valid(sample);
+    let hapke = hapke_render(sample, &HapkeParams::lunar_typical());
+    let mut out = vec![
+        ("learned", learned.to_vec()),
+        (
+            "learned_paper_norm",
+            normalise_like_paper(learned, &truth, &valid),
+        ),
+        (
+            "model_uniform",
+            model_uniform_render(sample, calibration.model, &calibration.model_uniform),
+        ),
+        ("hapke_paper", normalise_like_paper(&hapke, &truth, &valid)),
+        (
+            "hapke_scaled",
+            hapke.iter().map(|x| x * calibration.hapke_scale).collect(),
+        ),
+        (
+            "lunar_lambert",
+            lunar_lambert_render(sample)
+                .iter()
+                .map(|x| x * calibration.lunar_lambert_albedo)
+                .collect(),
+        ),
+    ];
+    if let Some(maps) = truth_maps {
+        out.push(("oracle", maps.render(sample, TrueAlbedo::Full)));
+        if maps.has_morphology() {
+            out.push((
+                "oracle_morphology",
+                maps.render(sample, TrueAlbedo::Morphology),
+            ));
+        }
+    }
+    out
+}
