@@ -72,10 +72,10 @@ enum Command {
         /// Pipeline manifest (TOML), e.g. manifests/demo.toml.
         manifest: PathBuf,
         /// Stop after this stage (ingest, erode, sample, split, project, publish).
-        #[arg(long)]
+        #[arg(long, value_parser = clap::builder::PossibleValuesParser::new(pipeline::stages::STAGES))]
         until: Option<String>,
         /// Re-run this stage even if it is up to date (repeatable); later stages follow.
-        #[arg(long)]
+        #[arg(long, value_parser = clap::builder::PossibleValuesParser::new(pipeline::stages::STAGES))]
         force: Vec<String>,
     },
     /// Write an orthoimage's acquisition metadata JSON from an ALE ISD or an LROC cumulative-index row.

@@ -7,6 +7,8 @@
 //!   geotransform and CRS, crops are placed by integer pixel offsets (no half-crop shift), and borders are
 //!   reflect-padded so the first and last rows and columns get full crops.
 
+use std::path::Path;
+
 use anyhow::{bail, Context, Result};
 use burn::prelude::*;
 use dataset::brdf::{inverse_leaky_relu, leaky_relu, BrdfModel, LEAKY_SLOPE};
@@ -16,6 +18,7 @@ use dataset::schema::{CONTEXT_PX, CROP_PX};
 use crate::data::{InputNormalisation, CONTEXT_CHANNELS};
 use crate::kernels::TrainOps;
 use crate::model::UNet;
+use crate::run::{load_ensemble, Checkpoint};
 
 /// Default overlap between neighbouring crops, pixels (a quarter crop).
 pub const DEFAULT_OVERLAP: usize = 32;
@@ -250,6 +253,53 @@ pub fn infer_params<B: TrainOps>(
 
 /// Write the maps as a GeoTIFF on the DEM's grid: same CRS and geotransform, NaN nodata, band descriptions naming
 /// each parameter's term and stating that the activation is applied.
+/// `g2r-train infer` as data.
+pub struct InferJob<'a> {
+    /// The run, then the further members of an ensemble (one BRDF model: their maps are averaged).
+    pub runs: &'a [&'a Path],
+    pub checkpoint: Checkpoint,
+    pub dem: &'a Raster,
+    /// The DEM's file, named in errors about it.
+    pub dem_path: &'a Path,
+    pub overlap: usize,
+    pub batch_size: usize,
+    /// Overrides the relief plane's DEM std of every run (default: each run's `normalisation.json`).
+    pub dem_std_m: Option<f64>,
+}
+
+/// Every member's parameter maps over the whole DEM, averaged. `progress(member, done, total)` reports batches.
+pub fn run_job<B: TrainOps>(
+    job: &InferJob,
+    device: &B::Device,
+    mut progress: impl FnMut(&Path, usize, usize),
+) -> Result<ParamMaps> {
+    let runs = load_ensemble::<B>(job.runs, job.checkpoint, true, device)?;
+    let mut members = Vec::new();
+    for (member, trained) in job.runs.iter().zip(runs) {
+        let mut input = trained.input;
+        if let Some(dem_std_m) = job.dem_std_m {
+            input.dem_std_m = dem_std_m;
+        }
+        let options = InferOptions {
+            overlap: job.overlap,
+            batch_size: job.batch_size,
+            input,
+        };
+        members.push(
+            infer_params::<B>(
+                &trained.net,
+                trained.config.model,
+                job.dem,
+                &options,
+                device,
+                |done, total| progress(member, done, total),
+            )
+            .map_err(|e| anyhow::anyhow!("{}: {e:#}", job.dem_path.display()))?,
+        );
+    }
+    ParamMaps::mean(members)
+}
+
 pub fn write_params_geotiff(
     maps: &ParamMaps,
     dem: &Raster,

@@ -4,7 +4,7 @@
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use anyhow::{bail, Result};
+use anyhow::Result;
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use dataset::brdf::BrdfModel;
 use train::data::{open_source, SampleSource, StreamConfig};
@@ -33,6 +33,33 @@ enum BackendKind {
     Flex,
     /// NVIDIA GPU (build with `--features cuda`; needs only the driver at run time).
     Cuda,
+}
+
+/// The trained network(s) a command loads: one run, or a seed ensemble.
+#[derive(Args, Debug, Clone)]
+struct RunsArgs {
+    /// Run directory written by `fit` (config.json, normalisation.json and checkpoints).
+    #[arg(long)]
+    run: PathBuf,
+    /// Further run directories (repeat the flag): a seed ensemble. `eval` scores the mean of all the runs'
+    /// renderings (its squared error on each image is at most the members' mean; runs may differ in model and input
+    /// planes); `infer` writes the mean of their maps (runs of one BRDF model), which renders exactly as that mean.
+    #[arg(long, value_name = "RUN")]
+    ensemble: Vec<PathBuf>,
+    /// Which checkpoint of each run: auto (ema-last when the run kept a weight average, else best, else last),
+    /// best, last, ema-best or ema-last.
+    #[arg(long, value_enum, default_value = "auto")]
+    checkpoint: train::run::Checkpoint,
+    #[arg(long, value_enum, default_value = "flex")]
+    backend: BackendKind,
+}
+
+impl RunsArgs {
+    fn paths(&self) -> Vec<&Path> {
+        std::iter::once(self.run.as_path())
+            .chain(self.ensemble.iter().map(PathBuf::as_path))
+            .collect()
+    }
 }
 
 #[derive(Args, Debug, Clone)]
@@ -94,6 +121,22 @@ struct TrainArgs {
     /// last/ema (the final average) by default.
     #[arg(long, value_name = "DECAY", value_parser = parse_ema_decay)]
     ema: Option<f64>,
+}
+
+/// `X,Y,Z` (body-fixed metres) as a vector.
+fn parse_body_vector(text: &str) -> Result<glam::DVec3, String> {
+    let parts: Vec<f64> = text
+        .split(',')
+        .map(|p| p.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|e| format!("'{text}': {e}; expected X,Y,Z in body-fixed metres"))?;
+    match parts[..] {
+        [x, y, z] => Ok(glam::DVec3::new(x, y, z)),
+        _ => Err(format!(
+            "'{text}' has {} numbers; expected three, X,Y,Z in body-fixed metres",
+            parts.len()
+        )),
+    }
 }
 
 fn parse_ema_decay(text: &str) -> Result<f64, String> {
@@ -181,9 +224,8 @@ enum Command {
     /// Evaluate a run on held-out tiles against the Hapke baselines, Lunar-Lambert and (with --world) the oracle;
     /// writes metrics.json, metrics.md and PNG panels (GT | each method | |learned - GT|).
     Eval {
-        /// Run directory written by `fit` (config.json + best/ or last/).
-        #[arg(long)]
-        run: PathBuf,
+        #[command(flatten)]
+        runs: RunsArgs,
         /// Dataset directory or server URL.
         #[arg(long)]
         data: String,
@@ -211,23 +253,12 @@ enum Command {
         /// ensemble from one network: its error is at most the members' mean; costs 8× network and renderer time.
         #[arg(long)]
         symmetry_mean: bool,
-        /// Further run directories (repeat the flag): "learned" becomes the mean of all the runs' renderings, a
-        /// seed ensemble. Its squared error on each image is at most the members' mean; each member costs one
-        /// network pass and one render. Runs may differ in model and input planes.
-        #[arg(long, value_name = "RUN")]
-        ensemble: Vec<PathBuf>,
-        /// Which checkpoint of each run: auto (ema-last when the run kept a weight average, else best, else last),
-        /// best, last, ema-best or ema-last.
-        #[arg(long, value_enum, default_value = "auto")]
-        checkpoint: train::run::Checkpoint,
-        #[arg(long, value_enum, default_value = "flex")]
-        backend: BackendKind,
     },
     /// BRDF parameter maps for a whole DEM: overlapping crops blended seamlessly, written as a GeoTIFF on the
     /// DEM's exact grid (same CRS and geotransform; one band per parameter, LeakyReLU applied; NaN nodata).
     Infer {
-        #[arg(long)]
-        run: PathBuf,
+        #[command(flatten)]
+        runs: RunsArgs,
         /// DEM GeoTIFF with a lunar CRS (any size; 5 m/px like the training crops).
         #[arg(long)]
         dem: PathBuf,
@@ -242,16 +273,6 @@ enum Command {
         /// Override the relief plane's DEM std (default: the run's normalisation.json).
         #[arg(long)]
         dem_std_m: Option<f64>,
-        /// Further run directories of the same BRDF model (repeat the flag): the bands are the mean of all the runs'
-        /// maps, which renders exactly as `eval --ensemble` scores (every model is linear in its parameters).
-        #[arg(long, value_name = "RUN")]
-        ensemble: Vec<PathBuf>,
-        /// Which checkpoint of each run: auto (ema-last when the run kept a weight average, else best, else last),
-        /// best, last, ema-best or ema-last.
-        #[arg(long, value_enum, default_value = "auto")]
-        checkpoint: train::run::Checkpoint,
-        #[arg(long, value_enum, default_value = "flex")]
-        backend: BackendKind,
     },
     /// Speed against error, measured in one run: BRDF models (M1-M6, L2-L4 and H1 uniform fits, Hapke, Lunar-Lambert: pixel
     /// MSE vs ns/pixel); with --dem the renderer (rays/pixel, shadows); with --run and --dem inference overlap
@@ -306,13 +327,8 @@ enum Command {
         #[arg(long)]
         trajectory: PathBuf,
         /// Sun position in body-fixed metres, X,Y,Z (only its direction matters).
-        #[arg(
-            long,
-            value_delimiter = ',',
-            allow_hyphen_values = true,
-            required = true
-        )]
-        sun: Vec<f64>,
+        #[arg(long, allow_hyphen_values = true, value_parser = parse_body_vector)]
+        sun: glam::DVec3,
         #[arg(long)]
         out: PathBuf,
         #[arg(long, default_value_t = 256)]
@@ -365,6 +381,9 @@ Measure on an idle machine; compare only figures from the same sitting."
 }
 
 #[cfg(not(feature = "cuda"))]
+/// The inference backend under an autodiff backend `B`.
+type Inner<B> = <B as burn::tensor::backend::AutodiffBackend>::InnerBackend;
+
 fn no_cuda() -> anyhow::Error {
     anyhow::anyhow!(
         "this g2r-train was built without CUDA: rebuild with `cargo build --release -p g2r-train --features cuda`"
@@ -401,12 +420,6 @@ fn run_fit(
     with_backend!(args.backend, B => fit::<B>(source, &config, out, resume, stop, &Default::default(), true))
 }
 
-fn ssim_text(ssim: Option<f64>) -> String {
-    ssim.map_or("n/a (no fully valid 7x7 window)".into(), |s| {
-        format!("{s:.3}")
-    })
-}
-
 fn main() {
     dataset::init_logging();
     if let Err(e) = run(Cli::parse()) {
@@ -418,7 +431,7 @@ fn main() {
 fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Eval {
-            run,
+            runs,
             data,
             split,
             world,
@@ -428,49 +441,28 @@ fn run(cli: Cli) -> Result<()> {
             calibration_samples,
             panels,
             symmetry_mean,
-            ensemble,
-            checkpoint,
-            backend,
         } => {
             let source = open_source(&data)?;
-            let out = out.unwrap_or_else(|| run.join(format!("eval-{split}")));
-            let panel_dir = out.join("panels");
-            let truth = world
-                .as_deref()
-                .map(train::evaluation::TruthMaps::open)
-                .transpose()?;
-            let report = with_backend!(backend, B => {
-                type Inner = <B as burn::tensor::backend::AutodiffBackend>::InnerBackend;
-                let device = Default::default();
-                let paths: Vec<&Path> = std::iter::once(&run).chain(&ensemble).map(|p| p.as_path()).collect();
-                let runs = train::run::load_ensemble::<Inner>(&paths, checkpoint, false, &device)?;
-                // Only once every run has loaded: a mistyped run directory must not leave an empty eval folder.
-                std::fs::create_dir_all(&panel_dir)?;
-                let options = train::evaluation::EvalOptions {
-                    split: split.clone(),
+            let out = out.unwrap_or_else(|| runs.run.join(format!("eval-{split}")));
+            let paths = runs.paths();
+            let job = train::evaluation::EvalJob {
+                runs: &paths,
+                checkpoint: runs.checkpoint,
+                source: source.as_ref(),
+                world: world.as_deref(),
+                out: &out,
+                options: train::evaluation::EvalOptions {
+                    split,
                     max_samples,
                     batch_size: batch.max(1),
                     calibration_samples,
                     panels,
                     symmetry_mean,
-                };
-                let calibration = train::calibration::calibrate(
-                    source.as_ref(),
-                    calibration_samples,
-                    runs[0].config.model,
-                )?;
-                train::evaluation::evaluate::<Inner>(
-                    &runs, source.as_ref(), &options, calibration, truth.as_ref(), &device,
-                    |i, sample, renderings| {
-                        if i < options.panels {
-                            let name = format!("{i:03}_{}.png", sample.sample_id.replace(':', "_"));
-                            train::evaluation::panel_png(sample, renderings, &panel_dir.join(name))?;
-                        }
-                        Ok(())
-                    },
-                )
+                },
+            };
+            let report = with_backend!(runs.backend, B => {
+                train::evaluation::run_job::<Inner<B>>(&job, &Default::default())
             })?;
-            train::evaluation::write_report(&report, &out)?;
             print!("{}", train::evaluation::markdown(&report));
             println!(
                 "\nwrote {}/metrics.json, metrics.md and panels/",
@@ -478,15 +470,12 @@ fn run(cli: Cli) -> Result<()> {
             );
         }
         Command::Infer {
-            run,
+            runs,
             dem,
             out,
             overlap,
             batch,
             dem_std_m,
-            ensemble,
-            checkpoint,
-            backend,
         } => {
             let progress = indicatif::ProgressBar::new(0).with_style(
                 indicatif::ProgressStyle::with_template(
@@ -495,26 +484,22 @@ fn run(cli: Cli) -> Result<()> {
                 .expect("valid template"),
             );
             let raster = dataset::raster::read_raster(&dem)?;
-            let maps = with_backend!(backend, B => {
-                type Inner = <B as burn::tensor::backend::AutodiffBackend>::InnerBackend;
-                let device = Default::default();
-                let paths: Vec<&Path> = std::iter::once(&run).chain(&ensemble).map(|p| p.as_path()).collect();
-                let runs = train::run::load_ensemble::<Inner>(&paths, checkpoint, true, &device)?;
-                let mut members = Vec::new();
-                for (member, trained) in paths.iter().zip(runs) {
-                    let mut input = trained.input;
-                    if let Some(dem_std_m) = dem_std_m {
-                        input.dem_std_m = dem_std_m;
-                    }
-                    let options = train::inference::InferOptions { overlap, batch_size: batch, input };
+            let paths = runs.paths();
+            let job = train::inference::InferJob {
+                runs: &paths,
+                checkpoint: runs.checkpoint,
+                dem: &raster,
+                dem_path: &dem,
+                overlap,
+                batch_size: batch,
+                dem_std_m,
+            };
+            let maps = with_backend!(runs.backend, B => {
+                train::inference::run_job::<Inner<B>>(&job, &Default::default(), |member, done, total| {
                     progress.set_message(member.display().to_string());
-                    members.push(train::inference::infer_params::<Inner>(&trained.net, trained.config.model, &raster, &options, &device, |done, total| {
-                        progress.set_length(total as u64);
-                        progress.set_position(done as u64);
-                    })
-                    .map_err(|e| anyhow::anyhow!("{}: {e:#}", dem.display()))?);
-                }
-                train::inference::ParamMaps::mean(members)
+                    progress.set_length(total as u64);
+                    progress.set_position(done as u64);
+                })
             })?;
             progress.finish_and_clear();
             train::inference::write_params_geotiff(&maps, &raster, overlap, &out)?;
@@ -543,54 +528,20 @@ fn run(cli: Cli) -> Result<()> {
             backend,
         } => {
             let source = open_source(&data)?;
-            let (brdf_models, images, pixels, geometry_ns_per_pixel) =
-                train::report::brdf_model_rows(
-                    source.as_ref(),
-                    &split,
-                    max_samples,
-                    calibration_samples,
-                )?;
-            let raster = dem
-                .as_deref()
-                .map(dataset::raster::read_raster)
-                .transpose()?;
-            let renderer = raster
-                .as_ref()
-                .map(train::report::renderer_rows)
-                .transpose()?
-                .unwrap_or_default();
-            let inference_overlap = match (run, raster.as_ref()) {
-                (Some(run), Some(raster)) => with_backend!(backend, B => {
-                    type Inner = <B as burn::tensor::backend::AutodiffBackend>::InnerBackend;
-                    let device = Default::default();
-                    let trained = train::run::load_trained::<Inner>(&run, checkpoint, &device)?;
-                    train::report::overlap_rows::<Inner>(&trained.net, trained.config.model, raster, &trained.input, &overlaps, &device)
-                })?,
-                _ => Vec::new(),
-            };
-            let resampling = match (ortho, raster.as_ref()) {
-                (Some(ortho), Some(raster)) => {
-                    let image = dataset::raster::read_raster(&ortho)?;
-                    anyhow::ensure!(
-                        image.crs == raster.crs,
-                        "{}: its CRS differs from the DEM's; pass an ortho on the DEM's map grid (as the pipeline requires)",
-                        ortho.display()
-                    );
-                    train::report::resampling_rows(&image, &raster.transform, resampling_crops)
-                }
-                _ => Vec::new(),
-            };
-            let report = train::report::Report {
+            let job = train::report::ReportJob {
+                source: source.as_ref(),
                 split,
-                images,
-                pixels,
+                max_samples,
                 calibration_samples,
-                geometry_ns_per_pixel,
-                brdf_models,
-                inference_overlap,
-                renderer,
-                resampling,
+                run: run.as_deref().map(|run| (run, checkpoint)),
+                dem: dem.as_deref(),
+                overlaps: &overlaps,
+                ortho: ortho.as_deref(),
+                resampling_crops,
             };
+            let report = with_backend!(backend, B => {
+                train::report::run_job::<Inner<B>>(&job, &Default::default())
+            })?;
             train::report::write(&report, &out)?;
             print!("{}", train::report::markdown(&report));
         }
@@ -608,17 +559,11 @@ fn run(cli: Cli) -> Result<()> {
             psf_sigma,
             seed,
         } => {
-            if sun.len() != 3 {
-                bail!(
-                    "--sun takes three comma-separated numbers X,Y,Z (body-fixed metres), got {}",
-                    sun.len()
-                );
-            }
             train::views::run(&train::views::RenderJob {
                 dem: &dem,
                 params: params.as_deref(),
                 trajectory: &trajectory,
-                sun_body: glam::DVec3::new(sun[0], sun[1], sun[2]),
+                sun_body: sun,
                 out: &out,
                 options: train::views::raycast::ViewOptions {
                     width,
@@ -663,53 +608,18 @@ fn run(cli: Cli) -> Result<()> {
                     "last epoch: val per-pixel MSE {:.4e}, PSNR {:.2} dB, SSIM {}",
                     last.val_pixel_mse,
                     last.val_psnr_db,
-                    ssim_text(last.val_ssim)
+                    train::metrics::ssim_text(last.val_ssim)
                 );
             }
         }
         Command::CompareModels { data, out, train } => {
             let source = open_source(&data)?;
-            let mut rows = Vec::new();
-            let mut table = String::from("| model | params/pixel | trainable weights | val loss (pixel MSE) | val PSNR dB | val SSIM | s/step |\n|---|---|---|---|---|---|---|\n");
-            for model in BrdfModel::ALL {
-                let mut args = train.clone();
-                args.model = model;
-                let run_dir = out.join(model.name());
-                if run_dir.join("last").exists() {
-                    bail!(
-                        "{}: already holds a run: remove it or choose a new --out",
-                        run_dir.display()
-                    );
-                }
-                let outcome = run_fit(source.clone(), &args, &run_dir, false, None)?;
-                let last = outcome.history.last().cloned();
-                if let Some(m) = &last {
-                    table.push_str(&format!(
-                        "| {} | {} | {} | {:.4e} | {:.2} | {} | {:.3} |\n",
-                        model.name(),
-                        model.param_count(),
-                        outcome.trainable_params,
-                        m.val_loss,
-                        m.val_psnr_db,
-                        ssim_text(m.val_ssim),
-                        outcome.seconds_per_step
-                    ));
-                }
-                rows.push(serde_json::json!({"model": model.name(), "trainable_params": outcome.trainable_params, "seconds_per_step": outcome.seconds_per_step, "last_epoch": last}));
-            }
-            let budget = format!(
-                "Budget: {} epochs x {} train samples, batch {}, width {}, lr {}, seed {}, backend {:?}.\n\n",
-                train.epochs,
-                train.max_train_samples.map_or("all".to_string(), |m| m.to_string()),
-                train.batch, train.width, train.lr, train.seed, train.backend
-            );
-            std::fs::create_dir_all(&out)?;
-            std::fs::write(
-                out.join("compare.md"),
-                format!("# BRDF model comparison\n\n{budget}{table}"),
-            )?;
-            dataset::manifest::write_json_atomic(&out.join("compare.json"), &rows)?;
-            print!("{budget}{table}");
+            let backend = format!("{:?}", train.backend);
+            let config = train.fit_config();
+            let markdown = with_backend!(train.backend, B => {
+                train::training::compare_models::<B>(source, &config, &backend, &out)
+            })?;
+            print!("{markdown}");
         }
         Command::Baseline {
             data,

@@ -158,6 +158,13 @@ pub fn ssim(x: &[f64], y: &[f64], valid: &[bool], edge: usize, data_range: f64) 
     (count > 0).then(|| total / count as f64)
 }
 
+/// An SSIM for tables: three decimals, or why there is none.
+pub fn ssim_text(ssim: Option<f64>) -> String {
+    ssim.map_or("n/a (no fully valid 7x7 window)".into(), |s| {
+        format!("{s:.3}")
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -29,6 +29,7 @@ use crate::inference::{infer_params, render_maps, seam_score, InferOptions};
 use crate::kernels::TrainOps;
 use crate::model::UNet;
 use crate::plot::{write_scatter, Point, Scatter};
+use crate::run::{load_trained, Checkpoint};
 
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct ModelRow {
@@ -478,6 +479,75 @@ fn plots(report: &Report) -> Vec<(&'static str, &'static str, &'static str, Vec<
         ));
     }
     out
+}
+
+/// `g2r-train report` as data: which sections to measure, on what.
+pub struct ReportJob<'a> {
+    pub source: &'a dyn SampleSource,
+    pub split: String,
+    pub max_samples: Option<usize>,
+    pub calibration_samples: usize,
+    /// With `dem`: the run whose inference overlap is timed against its seam score.
+    pub run: Option<(&'a Path, Checkpoint)>,
+    /// Enables the renderer section, and with `run` or `ortho` theirs.
+    pub dem: Option<&'a Path>,
+    pub overlaps: &'a [usize],
+    /// With `dem`: an ortho on the DEM's grid whose resampling kernels are compared.
+    pub ortho: Option<&'a Path>,
+    pub resampling_crops: usize,
+}
+
+/// Measure every section the job enables (see [`ReportJob`]).
+pub fn run_job<B: TrainOps>(job: &ReportJob, device: &B::Device) -> Result<Report> {
+    let (brdf_models, images, pixels, geometry_ns_per_pixel) = brdf_model_rows(
+        job.source,
+        &job.split,
+        job.max_samples,
+        job.calibration_samples,
+    )?;
+    let raster = job.dem.map(dataset::raster::read_raster).transpose()?;
+    let renderer = raster
+        .as_ref()
+        .map(renderer_rows)
+        .transpose()?
+        .unwrap_or_default();
+    let inference_overlap = match (job.run, raster.as_ref()) {
+        (Some((run, checkpoint)), Some(raster)) => {
+            let trained = load_trained::<B>(run, checkpoint, device)?;
+            overlap_rows::<B>(
+                &trained.net,
+                trained.config.model,
+                raster,
+                &trained.input,
+                job.overlaps,
+                device,
+            )?
+        }
+        _ => Vec::new(),
+    };
+    let resampling = match (job.ortho, raster.as_ref()) {
+        (Some(ortho), Some(raster)) => {
+            let image = dataset::raster::read_raster(ortho)?;
+            anyhow::ensure!(
+                image.crs == raster.crs,
+                "{}: its CRS differs from the DEM's; pass an ortho on the DEM's map grid (as the pipeline requires)",
+                ortho.display()
+            );
+            resampling_rows(&image, &raster.transform, job.resampling_crops)
+        }
+        _ => Vec::new(),
+    };
+    Ok(Report {
+        split: job.split.clone(),
+        images,
+        pixels,
+        calibration_samples: job.calibration_samples,
+        geometry_ns_per_pixel,
+        brdf_models,
+        inference_overlap,
+        renderer,
+        resampling,
+    })
 }
 
 /// Write `report.json`, `report.md` and one PNG per measured section into `out`.

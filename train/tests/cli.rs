@@ -144,7 +144,7 @@ fn bad_inputs_fail_with_one_line_naming_the_file_and_the_fix() {
                 "--out".into(),
                 path("views"),
             ],
-            vec!["--sun takes three"],
+            vec!["--sun", "expected three", "X,Y,Z"],
         ),
         (
             vec![

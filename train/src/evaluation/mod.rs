@@ -29,13 +29,13 @@ use anyhow::{bail, Context, Result};
 use dataset::schema::{Sample, CROP_PX};
 
 use crate::baseline::truth_and_valid;
-use crate::calibration::Calibration;
+use crate::calibration::{calibrate, Calibration};
 use crate::data::{for_each_sample_group, SampleSource};
 use crate::features::{FeatureMatcher, MatchStats};
 use crate::kernels::TrainOps;
 use crate::metrics::{image_metrics, MetricsAccumulator};
 use crate::prediction::predict_ensemble;
-use crate::run::TrainedRun;
+use crate::run::{load_ensemble, Checkpoint, TrainedRun};
 
 #[derive(Debug, Clone)]
 pub struct EvalOptions {
@@ -178,6 +178,50 @@ pub fn evaluate<B: TrainOps>(
 }
 
 /// Write `metrics.json` and `metrics.md` into `out` (atomically).
+/// `g2r-train eval` as data: which runs, on which data, with which options, into which directory.
+pub struct EvalJob<'a> {
+    /// The run, then the further members of a seed ensemble.
+    pub runs: &'a [&'a Path],
+    pub checkpoint: Checkpoint,
+    pub source: &'a dyn SampleSource,
+    /// The synthetic world, for the oracle rows (only evaluation reads `truth/`).
+    pub world: Option<&'a Path>,
+    pub out: &'a Path,
+    pub options: EvalOptions,
+}
+
+/// Load every run (before anything is written: a mistyped run directory leaves no empty output), fit the uniform
+/// baselines on train crops, evaluate, and write `metrics.json`, `metrics.md` and `panels/` into `job.out`.
+pub fn run_job<B: TrainOps>(job: &EvalJob, device: &B::Device) -> Result<EvalReport> {
+    let truth = job.world.map(TruthMaps::open).transpose()?;
+    let runs = load_ensemble::<B>(job.runs, job.checkpoint, false, device)?;
+    let panel_dir = job.out.join("panels");
+    std::fs::create_dir_all(&panel_dir)?;
+    let calibration = calibrate(
+        job.source,
+        job.options.calibration_samples,
+        runs[0].config.model,
+    )?;
+    let panels = job.options.panels;
+    let report = evaluate::<B>(
+        &runs,
+        job.source,
+        &job.options,
+        calibration,
+        truth.as_ref(),
+        device,
+        |i, sample, renderings| {
+            if i < panels {
+                let name = format!("{i:03}_{}.png", sample.sample_id.replace(':', "_"));
+                panel_png(sample, renderings, &panel_dir.join(name))?;
+            }
+            Ok(())
+        },
+    )?;
+    write_report(&report, job.out)?;
+    Ok(report)
+}
+
 pub fn write_report(report: &EvalReport, out: &Path) -> Result<()> {
     std::fs::create_dir_all(out)?;
     dataset::manifest::write_json_atomic(&out.join("metrics.json"), report)?;

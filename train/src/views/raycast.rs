@@ -20,9 +20,8 @@ use glam::{DVec2, DVec3};
 use rand::Rng;
 
 use crate::views::trajectory::Pose;
+use dataset::horizon::SUN_ANGULAR_RADIUS_RAD;
 
-/// Angular radius of the sun seen from the Moon.
-const SUN_RADIUS_RAD: f64 = 0.2666 * std::f64::consts::PI / 180.0;
 const MAX_STEPS: usize = 200_000;
 
 /// Fill nodata (NaN) pixels from their valid neighbours, ring by ring inward (each pass sets a hole pixel to the
@@ -405,7 +404,7 @@ pub fn render_view(
                         rng.random::<f64>() * std::f64::consts::TAU,
                         rng.random::<f64>().sqrt(),
                     );
-                    let jitter = SUN_RADIUS_RAD * b;
+                    let jitter = SUN_ANGULAR_RADIUS_RAD * b;
                     let towards =
                         (sun + jitter * (a.cos() * across.0 + a.sin() * across.1)).normalize();
                     if field.intersect(hit + 0.05 * normal, towards).is_some() {
