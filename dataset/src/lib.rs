@@ -26,6 +26,7 @@ pub mod schema;
 pub mod server;
 pub mod shard;
 pub mod testing;
+pub mod world;
 
 /// Initialise structured logging for the binaries (`RUST_LOG` overrides the default `info`), and route GDAL's own
 /// messages into it: by default GDAL prints `ERROR 4: …` lines to stderr next to our one-line errors, which

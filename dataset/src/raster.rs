@@ -277,6 +277,16 @@ pub fn open_lunar(path: &Path) -> Result<(Dataset, RasterInfo), RasterError> {
     ))
 }
 
+/// A dataset-level metadata item of a raster (GDAL's default domain), `None` when absent: how this project's own
+/// GeoTIFFs say what they hold (e.g. `G2R_BRDF_MODEL` on `g2r-train infer` output), rather than in band text.
+pub fn read_metadata_item(path: &Path, key: &str) -> Result<Option<String>, RasterError> {
+    let ds = Dataset::open(path).map_err(|e| RasterError::Open {
+        path: path.to_path_buf(),
+        reason: e.to_string(),
+    })?;
+    Ok(ds.metadata_item(key, ""))
+}
+
 /// Read band 1 of a lunar raster (any format GDAL reads); nodata values become NaN and the band's scale and
 /// offset are applied, so values are physical (I/F, metres) whatever the stored type.
 pub fn read_raster(path: &Path) -> Result<Raster, RasterError> {

@@ -253,6 +253,9 @@ pub fn infer_params<B: TrainOps>(
 
 /// Write the maps as a GeoTIFF on the DEM's grid: same CRS and geotransform, NaN nodata, band descriptions naming
 /// each parameter's term and stating that the activation is applied.
+/// The metadata item of a parameter GeoTIFF naming its BRDF model (`BrdfModel::name`); `render` reads it back.
+pub const BRDF_MODEL_KEY: &str = "G2R_BRDF_MODEL";
+
 /// `g2r-train infer` as data.
 pub struct InferJob<'a> {
     /// The run, then the further members of an ensemble (one BRDF model: their maps are averaged).
@@ -334,7 +337,7 @@ pub fn write_params_geotiff(
         &layout,
         &bands,
         &[
-            ("G2R_BRDF_MODEL", maps.model.name().to_string()),
+            (BRDF_MODEL_KEY, maps.model.name().to_string()),
             (
                 "G2R_ACTIVATION",
                 format!("LeakyReLU({LEAKY_SLOPE}) applied; I/F = lit * sum_k p_k * term_k"),

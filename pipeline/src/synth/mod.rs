@@ -20,6 +20,7 @@ use anyhow::{bail, Context};
 use dataset::crs::LunarCrs;
 use dataset::manifest::{write_json_atomic, FileEntry};
 use dataset::raster::{write_geotiff, BandOut, BandValues, GeoTransform, RasterLayout};
+use dataset::world as layout;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 use tracing::info;
@@ -232,7 +233,7 @@ pub fn generate(
         );
         progress.finish_and_clear();
         let g = &strip.grid;
-        let path = partial.join("ortho").join(&strip.meta.image_file);
+        let path = partial.join(layout::ORTHO_DIR).join(&strip.meta.image_file);
         write_geotiff(
             &path,
             &g.layout(&crs, -1.0),
@@ -247,14 +248,14 @@ pub fn generate(
         )?;
         write_json_atomic(
             &partial
-                .join("ortho")
+                .join(layout::ORTHO_DIR)
                 .join(format!("{}.json", strip.meta.ortho_id)),
             &strip.meta,
         )?;
         let gsd = strip.grid.gsd_m;
         write_json_atomic(
             &partial
-                .join("isd")
+                .join(layout::ISD_DIR)
                 .join(format!("{}.json", strip.meta.ortho_id)),
             &lroc_products::isd(
                 &strip.meta,
@@ -278,7 +279,7 @@ pub fn generate(
     let dem = dem_product::degrade(&config.dem_product, &fine, &heights, &dem_grid, seed);
     let height_desc = "height_m above the 1737400 m lunar sphere";
     write_geotiff(
-        &partial.join("dem/dem.tif"),
+        &partial.join(layout::DEM),
         &dem_grid.layout(&crs, -32768.0),
         &[BandOut {
             values: BandValues::Grid(&dem),
@@ -288,7 +289,7 @@ pub fn generate(
     )?;
     drop(dem);
     write_geotiff(
-        &partial.join("truth/dem_true.tif"),
+        &partial.join(layout::TRUE_DEM),
         &fine.layout(&crs, -32768.0),
         &[BandOut {
             values: BandValues::Grid(&heights),
@@ -325,13 +326,13 @@ pub fn generate(
         },
     ];
     write_geotiff(
-        &partial.join("truth/hapke_params.tif"),
+        &partial.join(layout::TRUE_HAPKE),
         &fine.layout(&crs, -1.0),
         &bands,
         &[("HAPKE_FORM", "Hapke 2012 IMSA, H-function 2002, K=1".into())],
     )?;
     write_geotiff(
-        &partial.join("truth/w_morphology.tif"),
+        &partial.join(layout::TRUE_W_MORPHOLOGY),
         &fine.layout(&crs, -1.0),
         &[BandOut {
             values: BandValues::Grid(&maps.w_morphology),
@@ -340,24 +341,24 @@ pub fn generate(
         }],
         &[],
     )?;
-    write_json_atomic(&partial.join("truth/craters.json"), &craters)?;
+    write_json_atomic(&partial.join(layout::TRUE_CRATERS), &craters)?;
 
     let mut files = Vec::new();
     let mut relative: Vec<String> = vec![
-        "dem/dem.tif".into(),
-        "truth/dem_true.tif".into(),
-        "truth/hapke_params.tif".into(),
-        "truth/w_morphology.tif".into(),
-        "truth/craters.json".into(),
+        layout::DEM.into(),
+        layout::TRUE_DEM.into(),
+        layout::TRUE_HAPKE.into(),
+        layout::TRUE_W_MORPHOLOGY.into(),
+        layout::TRUE_CRATERS.into(),
     ];
     let (label, table) = lroc_products::index_files(&index_rows);
-    std::fs::write(partial.join("index/CUMINDEX.LBL"), label)?;
-    std::fs::write(partial.join("index/CUMINDEX.TAB"), table)?;
-    relative.extend(["index/CUMINDEX.LBL".into(), "index/CUMINDEX.TAB".into()]);
+    std::fs::write(partial.join(layout::INDEX_LABEL), label)?;
+    std::fs::write(partial.join(layout::INDEX_TABLE), table)?;
+    relative.extend([layout::INDEX_LABEL.into(), layout::INDEX_TABLE.into()]);
     for s in &strips {
-        relative.push(format!("ortho/{}", s.meta.image_file));
-        relative.push(format!("ortho/{}.json", s.meta.ortho_id));
-        relative.push(format!("isd/{}.json", s.meta.ortho_id));
+        relative.push(format!("{}/{}", layout::ORTHO_DIR, s.meta.image_file));
+        relative.push(format!("{}/{}.json", layout::ORTHO_DIR, s.meta.ortho_id));
+        relative.push(format!("{}/{}.json", layout::ISD_DIR, s.meta.ortho_id));
     }
     relative.sort();
     for rel in &relative {
@@ -375,7 +376,7 @@ pub fn generate(
         config,
         files,
     };
-    write_json_atomic(&partial.join("world.json"), &manifest)?;
+    write_json_atomic(&partial.join(layout::MANIFEST), &manifest)?;
     std::fs::rename(&partial, out)
         .with_context(|| format!("renaming {} to {}", partial.display(), out.display()))?;
     Ok(out.to_path_buf())

@@ -25,7 +25,7 @@ pub enum TrueAlbedo {
 
 impl TruthMaps {
     pub fn open(world: &Path) -> Result<Self> {
-        let path = world.join("truth").join("hapke_params.tif");
+        let path = world.join(dataset::world::TRUE_HAPKE);
         if !path.exists() {
             bail!(
                 "{}: missing: --world must be a synthetic world directory (g2r-pipeline synth --out) with truth/",
@@ -41,7 +41,7 @@ impl TruthMaps {
             );
         }
         // Worlds generated before the morphology map existed have only the full oracle.
-        let morphology_path = world.join("truth").join("w_morphology.tif");
+        let morphology_path = world.join(dataset::world::TRUE_W_MORPHOLOGY);
         let w_morphology = if morphology_path.exists() {
             let morphology = read_bands(&morphology_path)?.remove(0);
             let full = &bands[0];

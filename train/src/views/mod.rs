@@ -9,6 +9,7 @@ use std::path::Path;
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
+use dataset::brdf::BrdfModel;
 use dataset::hapke::HapkeParams;
 use glam::DVec3;
 
@@ -72,8 +73,18 @@ pub fn run(job: &RenderJob) -> Result<()> {
         for band in &mut bands {
             crate::views::raycast::fill_holes(band);
         }
-        let learned =
-            Reflectance::from_param_bands(bands).with_context(|| format!("{}", path.display()))?;
+        let model = dataset::raster::read_metadata_item(path, crate::inference::BRDF_MODEL_KEY)?
+            .with_context(|| {
+                format!(
+                    "{}: no {} metadata item: pass a GeoTIFF written by `g2r-train infer`",
+                    path.display(),
+                    crate::inference::BRDF_MODEL_KEY
+                )
+            })?
+            .parse::<BrdfModel>()
+            .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+        let learned = Reflectance::from_param_bands(model, bands)
+            .with_context(|| format!("{}", path.display()))?;
         methods.push(("learned", learned));
     }
     std::fs::create_dir_all(job.out)?;

@@ -297,25 +297,15 @@ pub enum Reflectance {
 }
 
 impl Reflectance {
-    /// The BRDF model whose term list matches the bands' descriptions ("p0: coefficient of cos_i …").
-    pub fn from_param_bands(bands: Vec<Raster>) -> Result<Self> {
-        let terms: Vec<String> = bands
-            .iter()
-            .map(|b| {
-                b.description
-                    .split("coefficient of ")
-                    .nth(1)
-                    .and_then(|rest| rest.split(' ').next())
-                    .unwrap_or("")
-                    .to_string()
-            })
-            .collect();
-        let model = BrdfModel::ALL
-            .into_iter()
-            .find(|m| m.term_names().iter().map(|t| t.to_string()).collect::<Vec<_>>() == terms)
-            .ok_or_else(|| {
-                anyhow::anyhow!("band descriptions {terms:?} name no BRDF model: pass a GeoTIFF written by `g2r-train infer`")
-            })?;
+    /// Parameter maps of `model` (one band per parameter, in the model's term order).
+    pub fn from_param_bands(model: BrdfModel, bands: Vec<Raster>) -> Result<Self> {
+        anyhow::ensure!(
+            bands.len() == model.param_count(),
+            "{} bands, but {} has {} parameters: pass a GeoTIFF written by `g2r-train infer`",
+            bands.len(),
+            model.name(),
+            model.param_count()
+        );
         Ok(Self::Params { model, bands })
     }
 
