@@ -11,7 +11,7 @@ use std::sync::{Arc, OnceLock};
 
 use dataset::client::HttpClient;
 use dataset::planner::plan_epoch;
-use dataset::schema::{Sample, CROP_PX, SCHEMA_VERSION};
+use dataset::schema::{Sample, Split, CROP_PX, SCHEMA_VERSION};
 use dataset::shard::read_shard;
 use train::data::{
     ContextNormalisation, ElevationNormalisation, EpochStream, HttpSource, InputNormalisation,
@@ -33,7 +33,7 @@ fn sample(split_index: usize, split: &str, i: usize) -> Sample {
     let y = tile.1 as f64 * TILE_M + 300.0 + (i % 5) as f64 * 150.0;
     Sample {
         sample_id: format!("M{split_index}:{i}:{}", i * 7 % 1000),
-        split: split.into(),
+        split: split.parse().expect("a split name"),
         tile_id: format!("t_{}_{}", tile.0, tile.1),
         ortho_id: format!("M{split_index}"),
         center_x_m: x,
@@ -301,7 +301,7 @@ fn every_endpoint_answers_with_its_documented_shape() {
 fn epoch_stream_serves_rows_in_the_planners_order() {
     let (f, _serial) = fixture();
     let local = LocalSource::open(&f.dir).unwrap();
-    let groups = local.row_groups("train").unwrap();
+    let groups = local.row_groups(Split::Train).unwrap();
     let by_group: Vec<Vec<Sample>> = groups
         .iter()
         .map(|g| local.read_row_group(g).unwrap())
@@ -564,8 +564,8 @@ fn trainer_over_http_gets_the_same_first_epoch_batches_as_from_local_files() {
     let remote: Arc<dyn SampleSource> = Arc::new(HttpSource::open(&f.url()).unwrap());
     assert_eq!(local.manifest(), remote.manifest());
     assert_eq!(
-        local.row_groups("train").unwrap(),
-        remote.row_groups("train").unwrap()
+        local.row_groups(Split::Train).unwrap(),
+        remote.row_groups(Split::Train).unwrap()
     );
     // Every input: the elevation plane and the context window are carried over HTTP too.
     let input = InputNormalisation {
@@ -579,11 +579,11 @@ fn trainer_over_http_gets_the_same_first_epoch_batches_as_from_local_files() {
             std_m: 150.0,
         }),
     };
-    let from_local: Vec<_> = EpochStream::start(local, "train", config, input, 0, 0)
+    let from_local: Vec<_> = EpochStream::start(local, Split::Train, config, input, 0, 0)
         .unwrap()
         .map(Result::unwrap)
         .collect();
-    let from_http: Vec<_> = EpochStream::start(remote, "train", config, input, 0, 0)
+    let from_http: Vec<_> = EpochStream::start(remote, Split::Train, config, input, 0, 0)
         .unwrap()
         .map(Result::unwrap)
         .collect();
@@ -763,7 +763,7 @@ fn a_schema_1_1_dataset_serves_and_streams_its_rows_without_context() {
         .collect();
     let local = LocalSource::open(&dir).unwrap();
     assert_eq!(local.manifest().schema_version, "1.1.0");
-    let groups = local.row_groups("train").unwrap();
+    let groups = local.row_groups(Split::Train).unwrap();
     assert_eq!(local.read_row_group(&groups[0]).unwrap(), without_context);
 
     let url = serve_in_background(dir.clone());

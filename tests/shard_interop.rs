@@ -2,7 +2,7 @@
 
 use std::process::Command;
 
-use dataset::schema::{ContextWindow, Sample, CONTEXT_PX, CROP_PX, DEM_PX};
+use dataset::schema::{ContextWindow, Sample, Split, CONTEXT_PX, CROP_PX, DEM_PX};
 use dataset::shard::ShardWriter;
 
 fn sample(i: usize) -> Sample {
@@ -10,9 +10,9 @@ fn sample(i: usize) -> Sample {
     Sample {
         sample_id: format!("M0000001:{i}:7"),
         split: if i.is_multiple_of(2) {
-            "train".into()
+            Split::Train
         } else {
-            "val".into()
+            Split::Val
         },
         tile_id: "t_0_0".into(),
         ortho_id: "M0000001".into(),

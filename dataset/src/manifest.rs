@@ -126,7 +126,7 @@ impl DatasetManifest {
     }
 
     /// Shard file names of one split, sorted: the fixed order every reader (trainer, server) lists rows in.
-    pub fn split_shards(&self, split: &str) -> Vec<&str> {
+    pub fn split_shards(&self, split: impl std::fmt::Display) -> Vec<&str> {
         let prefix = format!("{split}-");
         let mut names: Vec<&str> = self
             .shards

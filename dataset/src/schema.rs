@@ -30,12 +30,53 @@ pub struct ContextWindow {
     pub heights_m: Vec<f32>,
 }
 
+/// Which part of a dataset a sample belongs to: tiles are assigned to one split, so no crop footprint touches two.
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, serde::Serialize, serde::Deserialize,
+)]
+#[serde(rename_all = "lowercase")]
+pub enum Split {
+    Train,
+    Val,
+    Test,
+}
+
+impl Split {
+    /// In the order shards and tables list them.
+    pub const ALL: [Split; 3] = [Split::Train, Split::Val, Split::Test];
+
+    /// The name in shard names, the `split` column, manifests and command lines.
+    pub fn name(self) -> &'static str {
+        match self {
+            Split::Train => "train",
+            Split::Val => "val",
+            Split::Test => "test",
+        }
+    }
+}
+
+impl std::fmt::Display for Split {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for Split {
+    type Err = String;
+    fn from_str(text: &str) -> Result<Self, String> {
+        Split::ALL
+            .into_iter()
+            .find(|s| s.name() == text)
+            .ok_or_else(|| format!("unknown split '{text}': use train, val or test"))
+    }
+}
+
 /// One training sample. Tensors are row-major, north row first.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Sample {
     /// Stable id: `{ortho_id}:{center_col}:{center_row}` in DEM pixels.
     pub sample_id: String,
-    pub split: String,
+    pub split: Split,
     pub tile_id: String,
     pub ortho_id: String,
     pub center_x_m: f64,
@@ -285,6 +326,8 @@ pub enum SchemaError {
         "sample '{0}' has no context window; every written sample carries one (dataset::context)"
     )]
     MissingContext(String),
+    #[error("sample '{sample}' has split '{split}'; a split is train, val or test")]
+    Split { sample: String, split: String },
     #[error(transparent)]
     Arrow(#[from] arrow::error::ArrowError),
 }
@@ -354,7 +397,7 @@ pub fn samples_to_batch(samples: &[Sample]) -> Result<RecordBatch, SchemaError> 
         .collect();
     let columns: Vec<ArrayRef> = vec![
         strings(samples.iter().map(|s| s.sample_id.as_str())),
-        strings(samples.iter().map(|s| s.split.as_str())),
+        strings(samples.iter().map(|s| s.split.name())),
         strings(samples.iter().map(|s| s.tile_id.as_str())),
         strings(samples.iter().map(|s| s.ortho_id.as_str())),
         f64s(samples.iter().map(|s| s.center_x_m)),
@@ -486,10 +529,21 @@ fn decode(batch: &RecordBatch, tensors: bool) -> Result<Vec<Sample>, SchemaError
     let (att, _) = list_values::<Float64Array>(batch, "camera_att")?;
     let (jacobian, _) = list_values::<Float64Array>(batch, "map_to_en")?;
     let arr = |a: &Float64Array, i: usize, n: usize| a.values()[i * n..(i + 1) * n].to_vec();
+    let splits = (0..batch.num_rows())
+        .map(|i| {
+            split
+                .value(i)
+                .parse::<Split>()
+                .map_err(|_| SchemaError::Split {
+                    sample: sample_id.value(i).to_string(),
+                    split: split.value(i).to_string(),
+                })
+        })
+        .collect::<Result<Vec<Split>, _>>()?;
     Ok((0..batch.num_rows())
         .map(|i| Sample {
             sample_id: sample_id.value(i).to_string(),
-            split: split.value(i).to_string(),
+            split: splits[i],
             tile_id: tile_id.value(i).to_string(),
             ortho_id: ortho_id.value(i).to_string(),
             center_x_m: cx.value(i),

@@ -5,7 +5,7 @@ use std::collections::BTreeMap;
 use std::path::Path;
 
 use crate::manifest::{write_json_atomic, DatasetManifest};
-use crate::schema::{ContextWindow, Sample, CONTEXT_PX, CROP_PX, DEM_PX, SCHEMA_VERSION};
+use crate::schema::{ContextWindow, Sample, Split, CONTEXT_PX, CROP_PX, DEM_PX, SCHEMA_VERSION};
 use crate::shard::{shard_name, ShardWriter};
 
 /// Sample `i`: every field set, rasters varying with `i` (split "train", tile "t_3_4").
@@ -13,7 +13,7 @@ pub fn synthetic_sample(i: usize) -> Sample {
     let n = CROP_PX * CROP_PX;
     Sample {
         sample_id: format!("ortho_{i}:{}:{}", 100 + i, 200 + i),
-        split: "train".into(),
+        split: Split::Train,
         tile_id: "t_3_4".into(),
         ortho_id: format!("ortho_{i}"),
         center_x_m: 1000.0 + i as f64,

@@ -6,7 +6,7 @@
 use anyhow::Result;
 use dataset::geometry::PixelGeometry;
 use dataset::hapke::{hapke_i_over_f, HFunction, HapkeParams};
-use dataset::schema::{Sample, CROP_PX};
+use dataset::schema::{Sample, Split, CROP_PX};
 
 use crate::data::{for_each_sample_group, SampleSource};
 use crate::metrics::{AggregateMetrics, MetricsAccumulator};
@@ -68,7 +68,7 @@ pub fn normalise_like_paper(rendered: &[f64], truth: &[f64], valid: &[bool]) -> 
 /// Metrics of the normalised uniform-Hapke baseline over (up to `max`) samples of a split.
 pub fn normalised_hapke_metrics(
     source: &dyn SampleSource,
-    split: &str,
+    split: Split,
     max: Option<usize>,
 ) -> Result<AggregateMetrics> {
     let params = HapkeParams::lunar_typical();

@@ -5,7 +5,7 @@ use anyhow::{bail, Result};
 use dataset::brdf::BrdfModel;
 use dataset::geometry::PixelGeometry;
 use dataset::hapke::{lunar_lambert_i_over_f, HapkeParams};
-use dataset::schema::Sample;
+use dataset::schema::{Sample, Split};
 
 use crate::baseline::{hapke_render, truth_and_valid};
 use crate::data::{for_each_sample_group, SampleSource};
@@ -149,7 +149,7 @@ pub fn calibrate(
     let (mut hapke, mut ll, mut seen) = (ScaleFit::default(), ScaleFit::default(), 0);
     let p = model.param_count();
     let (mut ata, mut atb) = (vec![vec![0.0; p]; p], vec![0.0; p]);
-    for_each_sample_group(source, "train", Some(samples), |group| {
+    for_each_sample_group(source, Split::Train, Some(samples), |group| {
         for s in group {
             let (truth, valid) = truth_and_valid(s);
             hapke.add(&hapke_render(s, &params), &truth, &valid);

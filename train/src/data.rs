@@ -12,7 +12,7 @@ use anyhow::{bail, Context, Result};
 use dataset::manifest::DatasetManifest;
 use dataset::planner::{plan_epoch, RowGroupRef};
 use dataset::rng::keyed_rng;
-use dataset::schema::{Sample, CONTEXT_PX, CROP_PX, DEM_PX};
+use dataset::schema::{Sample, Split, CONTEXT_PX, CROP_PX, DEM_PX};
 use rand::Rng;
 
 use crate::augment::Dihedral;
@@ -24,7 +24,7 @@ pub trait SampleSource: Send + Sync {
     fn describe(&self) -> String;
     fn manifest(&self) -> &DatasetManifest;
     /// Row groups of one split, in a fixed order (shard name, then row-group index).
-    fn row_groups(&self, split: &str) -> Result<Vec<RowGroupRef>>;
+    fn row_groups(&self, split: Split) -> Result<Vec<RowGroupRef>>;
     fn read_row_group(&self, group: &RowGroupRef) -> Result<Vec<Sample>>;
 }
 
@@ -53,7 +53,7 @@ impl SampleSource for LocalSource {
         &self.manifest
     }
 
-    fn row_groups(&self, split: &str) -> Result<Vec<RowGroupRef>> {
+    fn row_groups(&self, split: Split) -> Result<Vec<RowGroupRef>> {
         let mut groups = Vec::new();
         for shard in self.manifest.split_shards(split) {
             let sizes = dataset::shard::row_group_sizes(&self.dir.join(shard))?;
@@ -105,7 +105,7 @@ impl SampleSource for HttpSource {
         &self.manifest
     }
 
-    fn row_groups(&self, split: &str) -> Result<Vec<RowGroupRef>> {
+    fn row_groups(&self, split: Split) -> Result<Vec<RowGroupRef>> {
         #[derive(serde::Deserialize)]
         struct Listed {
             shard: String,
@@ -449,7 +449,7 @@ pub struct EpochStream {
 impl EpochStream {
     pub fn start(
         source: Arc<dyn SampleSource>,
-        split: &str,
+        split: Split,
         config: StreamConfig,
         input: InputNormalisation,
         epoch: u64,
@@ -539,7 +539,7 @@ impl Iterator for EpochStream {
 /// subsets then see every ortho and tile.
 pub fn for_each_sample_group(
     source: &dyn SampleSource,
-    split: &str,
+    split: Split,
     max: Option<usize>,
     mut f: impl FnMut(&[Sample]),
 ) -> Result<()> {

@@ -216,7 +216,7 @@ enum Command {
         #[arg(long)]
         data: String,
         #[arg(long, default_value = "val")]
-        split: String,
+        split: dataset::schema::Split,
         /// Samples to evaluate, spread evenly over the split (default: all of it).
         #[arg(long)]
         max_samples: Option<usize>,
@@ -230,7 +230,7 @@ enum Command {
         #[arg(long)]
         data: String,
         #[arg(long, default_value = "test")]
-        split: String,
+        split: dataset::schema::Split,
         /// Synthetic world directory: adds the oracle (its true Hapke maps). Only evaluation reads truth/.
         #[arg(long)]
         world: Option<PathBuf>,
@@ -285,7 +285,7 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
         #[arg(long, default_value = "test")]
-        split: String,
+        split: dataset::schema::Split,
         #[arg(long)]
         max_samples: Option<usize>,
         #[arg(long, default_value_t = 256)]
@@ -628,7 +628,7 @@ fn run(cli: Cli) -> Result<()> {
         } => {
             let source = open_source(&data)?;
             let metrics =
-                train::baseline::normalised_hapke_metrics(source.as_ref(), &split, max_samples)?;
+                train::baseline::normalised_hapke_metrics(source.as_ref(), split, max_samples)?;
             println!("{}", serde_json::to_string_pretty(&metrics)?);
         }
         Command::Bench {

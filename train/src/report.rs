@@ -20,7 +20,7 @@ use dataset::brdf::BrdfModel;
 use dataset::geometry::PixelGeometry;
 use dataset::hapke::HapkeParams;
 use dataset::raster::Raster;
-use dataset::schema::Sample;
+use dataset::schema::{Sample, Split};
 
 use crate::baseline::hapke_from_geometry;
 use crate::calibration::{calibrate, lunar_lambert_from_geometry, model_uniform_from_geometry};
@@ -71,7 +71,7 @@ pub struct ResampleRow {
 
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct Report {
-    pub split: String,
+    pub split: Split,
     pub images: usize,
     pub pixels: usize,
     pub calibration_samples: usize,
@@ -130,7 +130,7 @@ fn candidates(source: &dyn SampleSource, calibration_samples: usize) -> Result<V
 /// BRDF-model rows over (up to `max_samples`) crops of `split`.
 pub fn brdf_model_rows(
     source: &dyn SampleSource,
-    split: &str,
+    split: Split,
     max_samples: Option<usize>,
     calibration_samples: usize,
 ) -> Result<(Vec<ModelRow>, usize, usize, f64)> {
@@ -484,7 +484,7 @@ fn plots(report: &Report) -> Vec<(&'static str, &'static str, &'static str, Vec<
 /// `g2r-train report` as data: which sections to measure, on what.
 pub struct ReportJob<'a> {
     pub source: &'a dyn SampleSource,
-    pub split: String,
+    pub split: Split,
     pub max_samples: Option<usize>,
     pub calibration_samples: usize,
     /// With `dem`: the run whose inference overlap is timed against its seam score.
@@ -501,7 +501,7 @@ pub struct ReportJob<'a> {
 pub fn run_job<B: TrainOps>(job: &ReportJob, device: &B::Device) -> Result<Report> {
     let (brdf_models, images, pixels, geometry_ns_per_pixel) = brdf_model_rows(
         job.source,
-        &job.split,
+        job.split,
         job.max_samples,
         job.calibration_samples,
     )?;
@@ -538,7 +538,7 @@ pub fn run_job<B: TrainOps>(job: &ReportJob, device: &B::Device) -> Result<Repor
         _ => Vec::new(),
     };
     Ok(Report {
-        split: job.split.clone(),
+        split: job.split,
         images,
         pixels,
         calibration_samples: job.calibration_samples,

@@ -3,7 +3,7 @@
 
 use dataset::brdf::{render_crop, BrdfModel};
 use dataset::geometry::{crop_pixel_geometry, CropGrid};
-use dataset::schema::{ContextWindow, Sample, CONTEXT_PX, CROP_PX, DEM_PX};
+use dataset::schema::{ContextWindow, Sample, Split, CONTEXT_PX, CROP_PX, DEM_PX};
 use rand::Rng;
 
 use crate::data::{HostBatch, InputNormalisation};
@@ -57,7 +57,7 @@ pub fn synthetic_samples(n: usize, seed: u64) -> Vec<Sample> {
             let image = render_crop(BrdfModel::M2, &truth, &geometry, &lit, 1.0);
             Sample {
                 sample_id: format!("synthetic:{seed}:{i}"),
-                split: "train".into(),
+                split: Split::Train,
                 tile_id: "t0".into(),
                 ortho_id: "synthetic".into(),
                 center_x_m: 0.0,
@@ -146,11 +146,11 @@ pub fn test_params(model: BrdfModel, n: usize, seed: u64) -> Vec<f64> {
 
 /// Publish `train` and `val` samples as a dataset directory (one shard each; DEM std 20 m) for tests.
 pub fn write_synthetic_dataset(dir: &std::path::Path, train: Vec<Sample>, val: Vec<Sample>) {
-    let splits: Vec<(&str, Vec<Vec<Sample>>)> = [("train", train), ("val", val)]
+    let splits: Vec<(&str, Vec<Vec<Sample>>)> = [(Split::Train, train), (Split::Val, val)]
         .into_iter()
         .map(|(split, mut samples)| {
-            samples.iter_mut().for_each(|s| s.split = split.into());
-            (split, vec![samples])
+            samples.iter_mut().for_each(|s| s.split = split);
+            (split.name(), vec![samples])
         })
         .collect();
     dataset::testing::write_dataset(dir, "synthetic", &splits, serde_json::Value::Null)

@@ -28,7 +28,7 @@ use crate::kernels::{TrainBackend, TrainOps};
 use crate::metrics::{AggregateMetrics, MetricsAccumulator};
 use crate::model::{UNet, UNetConfig};
 use crate::renderer_layer::masked_mse;
-use dataset::schema::CROP_PX;
+use dataset::schema::{Split, CROP_PX};
 
 use crate::prediction::{predict_images, render_batch};
 use crate::run::{
@@ -53,7 +53,7 @@ pub fn input_normalisation(
     let mut samples = Vec::new();
     for_each_sample_group(
         source,
-        "train",
+        Split::Train,
         Some(ELEVATION_NORMALISATION_SAMPLES),
         |group| samples.extend(group.iter().cloned()),
     )?;
@@ -117,7 +117,7 @@ pub fn validate<B: TrainOps>(
 ) -> Result<AggregateMetrics> {
     input.check_dataset(source)?;
     let mut metrics = MetricsAccumulator::default();
-    for_each_sample_group(source, "val", max, |samples| {
+    for_each_sample_group(source, Split::Val, max, |samples| {
         for chunk in samples.chunks(batch_size) {
             let batch = HostBatch::from_samples(chunk, input);
             let rendered = predict_images(net, model, &batch, device);
@@ -261,7 +261,7 @@ pub fn fit<B: TrainBackend>(
         let epoch = cursor.epoch;
         let stream = EpochStream::start(
             source.clone(),
-            "train",
+            Split::Train,
             config.stream,
             input,
             epoch as u64,

@@ -7,7 +7,7 @@ use burn::module::Module;
 use burn::prelude::Backend;
 use dataset::brdf::BrdfModel;
 use dataset::hapke::HapkeParams;
-use dataset::schema::CROP_PX;
+use dataset::schema::{Split, CROP_PX};
 use train::baseline::{hapke_render, normalise_like_paper};
 use train::calibration::calibrate;
 use train::data::{HostBatch, InputNormalisation, LocalSource, SampleSource, StreamConfig};
@@ -58,7 +58,7 @@ fn eval_rows_equal_validation_and_direct_baselines() {
     let _ = net.num_params();
     let config = m2_config();
     let options = EvalOptions {
-        split: "val".into(),
+        split: Split::Val,
         max_samples: None,
         batch_size: 2,
         calibration_samples: 6,
@@ -236,7 +236,7 @@ fn ensemble_learned_is_the_mean_of_its_members_renderings() {
         })
         .collect();
     let options = EvalOptions {
-        split: "val".into(),
+        split: Split::Val,
         max_samples: None,
         batch_size: 4,
         calibration_samples: 6,
@@ -345,7 +345,7 @@ fn report_rows_cover_every_model_and_the_plot_is_written() {
     write_synthetic_dataset(dir.path(), synthetic_samples(6, 1), synthetic_samples(3, 2));
     let source = LocalSource::open(dir.path()).unwrap();
     let (rows, images, pixels, geometry_ns) =
-        train::report::brdf_model_rows(&source, "val", None, 6).unwrap();
+        train::report::brdf_model_rows(&source, Split::Val, None, 6).unwrap();
     assert_eq!(images, 3);
     let names: Vec<&str> = rows.iter().map(|r| r.name.as_str()).collect();
     for model in BrdfModel::ALL {
@@ -358,7 +358,7 @@ fn report_rows_cover_every_model_and_the_plot_is_written() {
     let (h1, hapke) = (mse("h1 uniform"), mse("Hapke (uniform, scaled)"));
     assert!((h1 - hapke).abs() <= 1e-9 * hapke, "{h1:e} vs {hapke:e}");
     let report = train::report::Report {
-        split: "val".into(),
+        split: Split::Val,
         images,
         pixels,
         calibration_samples: 6,
@@ -413,9 +413,9 @@ fn report_resampling_section_measures_point_kernels_against_the_area_average() {
     write_synthetic_dataset(dir.path(), synthetic_samples(4, 1), synthetic_samples(3, 2));
     let source = LocalSource::open(dir.path()).unwrap();
     let (brdf_models, images, pixels, geometry_ns) =
-        train::report::brdf_model_rows(&source, "val", None, 4).unwrap();
+        train::report::brdf_model_rows(&source, Split::Val, None, 4).unwrap();
     let report = train::report::Report {
-        split: "val".into(),
+        split: Split::Val,
         images,
         pixels,
         calibration_samples: 4,

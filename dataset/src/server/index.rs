@@ -139,7 +139,7 @@ impl DatasetIndex {
                                 file.path().display()
                             )
                         })?;
-                        if meta.split != *split {
+                        if meta.split.name() != split.as_str() {
                             bail!(
                                 "{}: row {row} of row group {row_group} says split '{}'; re-publish the dataset",
                                 file.path().display(),
@@ -195,7 +195,7 @@ impl DatasetIndex {
                 .entry(r.meta.tile_id.clone())
                 .or_insert_with(|| TileEntry {
                     tile_id: r.meta.tile_id.clone(),
-                    split: r.meta.split.clone(),
+                    split: r.meta.split.name().to_string(),
                     count: 0,
                     centres_bbox_m: [x, y, x, y],
                     rect_m: tile_size_m.zip(parse_tile_id(&r.meta.tile_id)).map(

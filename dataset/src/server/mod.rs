@@ -331,7 +331,7 @@ async fn filter(State(index): Shared, Query(params): Params) -> ApiResult<Json<s
     let matches: Vec<usize> = (0..index.rows.len())
         .filter(|&i| {
             let s = &index.rows[i].meta;
-            split.is_none_or(|v| s.split == v)
+            split.is_none_or(|v| s.split.name() == v)
                 && tile.is_none_or(|v| s.tile_id == v)
                 && bbox.is_none_or(|b| {
                     (b[0]..=b[2]).contains(&s.center_lon_deg)

@@ -206,7 +206,8 @@ impl<'a> OrthoProjector<'a> {
         ];
         Ok(Sample {
             sample_id: format!("{}:{col}:{row}", self.meta.ortho_id),
-            split: String::new(),
+            // The caller places the sample: split and tile come from the assignment table.
+            split: dataset::schema::Split::Train,
             tile_id: String::new(),
             ortho_id: self.meta.ortho_id.clone(),
             center_x_m: cx,
@@ -416,7 +417,7 @@ pub fn run(
                                 gsd_m: params.context_gsd_m,
                                 heights_m: context.window(sample.center_x_m, sample.center_y_m),
                             });
-                            sample.split = splits[i].clone();
+                            sample.split = Split::ALL[split_of[i]];
                             sample.tile_id = tiles[i].clone();
                             Ok((split_of[i], sample))
                         })

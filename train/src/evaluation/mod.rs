@@ -26,7 +26,7 @@ use std::collections::BTreeMap;
 use std::path::Path;
 
 use anyhow::{bail, Context, Result};
-use dataset::schema::{Sample, CROP_PX};
+use dataset::schema::{Sample, Split, CROP_PX};
 
 use crate::baseline::truth_and_valid;
 use crate::calibration::{calibrate, Calibration};
@@ -39,7 +39,7 @@ use crate::run::{load_ensemble, Checkpoint, TrainedRun};
 
 #[derive(Debug, Clone)]
 pub struct EvalOptions {
-    pub split: String,
+    pub split: Split,
     pub max_samples: Option<usize>,
     pub batch_size: usize,
     /// Train crops used to fit the honest scales.
@@ -75,7 +75,7 @@ pub fn evaluate<B: TrainOps>(
     let mut matches: BTreeMap<&str, MatchStats> = BTreeMap::new();
     let mut per_image = Vec::new();
     let mut failure: Option<anyhow::Error> = None;
-    for_each_sample_group(source, &options.split, options.max_samples, |samples| {
+    for_each_sample_group(source, options.split, options.max_samples, |samples| {
         for chunk in samples.chunks(options.batch_size) {
             let learned = predict_ensemble(runs, chunk, options.symmetry_mean, device);
             for (i, sample) in chunk.iter().enumerate() {
@@ -151,7 +151,7 @@ pub fn evaluate<B: TrainOps>(
     let paper = sse("hapke_paper").context("no Hapke metrics")?;
     let scaled = sse("hapke_scaled").context("no Hapke metrics")?;
     Ok(EvalReport {
-        split: options.split.clone(),
+        split: options.split,
         run_model: config.model.name().to_string(),
         images: per_image.len(),
         learned_symmetry_mean: options.symmetry_mean,

@@ -1,5 +1,6 @@
 //! The evaluation report: per-image and per-ortho results, aggregated tables, Markdown.
 
+use dataset::schema::Split;
 use std::collections::BTreeMap;
 
 use crate::calibration::Calibration;
@@ -61,7 +62,7 @@ pub struct MethodResult {
 
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct EvalReport {
-    pub split: String,
+    pub split: Split,
     pub run_model: String,
     pub images: usize,
     /// "learned" is the mean of the network's 8 dihedral views (`--symmetry-mean`).
