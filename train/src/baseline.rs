@@ -4,7 +4,7 @@
 //! valid pixels. That normalisation **peeks at the ground truth**: it is the paper's baseline, not a fair one.
 
 use anyhow::Result;
-use dataset::geometry::PixelGeometry;
+use dataset::geometry::{Cosines, PixelGeometry};
 use dataset::hapke::{hapke_i_over_f, HFunction, HapkeParams};
 use dataset::schema::{Sample, Split, CROP_PX};
 
@@ -22,13 +22,21 @@ pub fn hapke_from_geometry(
     sun_lit: &[f32],
     params: &HapkeParams,
 ) -> Vec<f64> {
+    lit_render(geometry, sun_lit, |c| {
+        hapke_i_over_f(params, c.cos_i, c.cos_e, c.cos_g, HFunction::Hapke2002)
+    })
+}
+
+/// I/F of a uniform reflectance model on precomputed geometry: lit fraction × `i_over_f(cosines)` per pixel.
+pub fn lit_render(
+    geometry: &[PixelGeometry],
+    sun_lit: &[f32],
+    i_over_f: impl Fn(&Cosines) -> f64,
+) -> Vec<f64> {
     geometry
         .iter()
         .zip(sun_lit)
-        .map(|(g, &lit)| {
-            let c = &g.cosines;
-            lit as f64 * hapke_i_over_f(params, c.cos_i, c.cos_e, c.cos_g, HFunction::Hapke2002)
-        })
+        .map(|(g, &lit)| lit as f64 * i_over_f(&g.cosines))
         .collect()
 }
 

@@ -7,7 +7,7 @@ use dataset::geometry::PixelGeometry;
 use dataset::hapke::{lunar_lambert_i_over_f, HapkeParams};
 use dataset::schema::{Sample, Split};
 
-use crate::baseline::{hapke_render, truth_and_valid};
+use crate::baseline::{hapke_render, lit_render, truth_and_valid};
 use crate::data::{for_each_sample_group, SampleSource};
 
 /// Lunar-Lambert I/F with albedo 1 (lit fraction × LL): scale by the fitted albedo.
@@ -21,14 +21,9 @@ pub fn lunar_lambert_from_geometry(
     sun_lit: &[f32],
     albedo: f64,
 ) -> Vec<f64> {
-    geometry
-        .iter()
-        .zip(sun_lit)
-        .map(|(g, &lit)| {
-            let c = &g.cosines;
-            lit as f64 * lunar_lambert_i_over_f(albedo, c.cos_i, c.cos_e, c.cos_g)
-        })
-        .collect()
+    lit_render(geometry, sun_lit, |c| {
+        lunar_lambert_i_over_f(albedo, c.cos_i, c.cos_e, c.cos_g)
+    })
 }
 
 /// Least-squares scale s minimising Σ (s·x − t)² over valid pixels: Σ x·t / Σ x².

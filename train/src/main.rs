@@ -380,10 +380,10 @@ Measure on an idle machine; compare only figures from the same sitting."
     },
 }
 
-#[cfg(not(feature = "cuda"))]
 /// The inference backend under an autodiff backend `B`.
 type Inner<B> = <B as burn::tensor::backend::AutodiffBackend>::InnerBackend;
 
+#[cfg(not(feature = "cuda"))]
 fn no_cuda() -> anyhow::Error {
     anyhow::anyhow!(
         "this g2r-train was built without CUDA: rebuild with `cargo build --release -p g2r-train --features cuda`"
