@@ -3,13 +3,9 @@
 //! image as the reference paper did — an affine map giving the rendering the ground truth's mean and range over
 //! valid pixels. That normalisation **peeks at the ground truth**: it is the paper's baseline, not a fair one.
 
-use anyhow::Result;
 use dataset::geometry::{Cosines, PixelGeometry};
 use dataset::hapke::{hapke_i_over_f, HFunction, HapkeParams};
-use dataset::schema::{Sample, Split, CROP_PX};
-
-use crate::data::{for_each_sample_group, SampleSource};
-use crate::metrics::{AggregateMetrics, MetricsAccumulator};
+use dataset::schema::Sample;
 
 /// I/F of the sample under uniform Hapke: lit fraction × Hapke (which carries the cos i factor itself).
 pub fn hapke_render(sample: &Sample, params: &HapkeParams) -> Vec<f64> {
@@ -71,24 +67,6 @@ pub fn normalise_like_paper(rendered: &[f64], truth: &[f64], valid: &[bool]) -> 
         .iter()
         .map(|&x| (x - mean_x) * scale + mean_t)
         .collect()
-}
-
-/// Metrics of the normalised uniform-Hapke baseline over (up to `max`) samples of a split.
-pub fn normalised_hapke_metrics(
-    source: &dyn SampleSource,
-    split: Split,
-    max: Option<usize>,
-) -> Result<AggregateMetrics> {
-    let params = HapkeParams::lunar_typical();
-    let mut metrics = MetricsAccumulator::default();
-    for_each_sample_group(source, split, max, |samples| {
-        for sample in samples {
-            let (truth, valid) = truth_and_valid(sample);
-            let rendered = normalise_like_paper(&hapke_render(sample, &params), &truth, &valid);
-            metrics.add(&rendered, &truth, &valid, CROP_PX);
-        }
-    })?;
-    Ok(metrics.finish())
 }
 
 #[cfg(test)]

@@ -209,18 +209,6 @@ enum Command {
         #[command(flatten)]
         train: TrainArgs,
     },
-    /// Metrics of the uniform-Hapke baseline, normalised per image as the paper did (affine to the ground truth's
-    /// mean and range: it peeks at the ground truth), on a split: compare with a run's val metrics.
-    Baseline {
-        /// Dataset directory or server URL, as for `fit`.
-        #[arg(long)]
-        data: String,
-        #[arg(long, default_value = "val")]
-        split: dataset::schema::Split,
-        /// Samples to evaluate, spread evenly over the split (default: all of it).
-        #[arg(long)]
-        max_samples: Option<usize>,
-    },
     /// Evaluate a run on held-out tiles against the Hapke baselines, Lunar-Lambert and (with --world) the oracle;
     /// writes metrics.json, metrics.md and PNG panels (GT | each method | |learned - GT|).
     Eval {
@@ -620,16 +608,6 @@ fn run(cli: Cli) -> Result<()> {
                 train::training::compare_models::<B>(source, &config, &backend, &out)
             })?;
             print!("{markdown}");
-        }
-        Command::Baseline {
-            data,
-            split,
-            max_samples,
-        } => {
-            let source = open_source(&data)?;
-            let metrics =
-                train::baseline::normalised_hapke_metrics(source.as_ref(), split, max_samples)?;
-            println!("{}", serde_json::to_string_pretty(&metrics)?);
         }
         Command::Bench {
             batch,

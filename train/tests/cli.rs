@@ -32,7 +32,6 @@ fn help_lists_every_command() {
     for command in [
         "fit",
         "compare-models",
-        "baseline",
         "eval",
         "infer",
         "report",
