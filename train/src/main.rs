@@ -48,7 +48,7 @@ struct RunsArgs {
     ensemble: Vec<PathBuf>,
     /// Which checkpoint of each run: auto (ema-last when the run kept a weight average, else best, else last),
     /// best, last, ema-best or ema-last.
-    #[arg(long, value_enum, default_value = "auto")]
+    #[arg(long, default_value = "auto", value_parser = named::<train::run::Checkpoint>(train::run::Checkpoint::NAMES))]
     checkpoint: train::run::Checkpoint,
     #[arg(long, value_enum, default_value = "flex")]
     backend: BackendKind,
@@ -98,11 +98,11 @@ struct TrainArgs {
     #[arg(long, value_enum, default_value = "flex")]
     backend: BackendKind,
     /// Learning-rate schedule: constant, or cosine decay from --lr to 0 over the run.
-    #[arg(long, value_enum, default_value = "constant")]
+    #[arg(long, default_value = "constant", value_parser = named::<train::run::LrSchedule>(train::run::LrSchedule::NAMES))]
     lr_schedule: train::run::LrSchedule,
     /// Head initialisation: uniform (bias = the model's uniform least-squares fit on 256 train crops, so training
     /// starts at the honest uniform baseline) or zero (black first renderings).
-    #[arg(long, value_enum, default_value = "uniform")]
+    #[arg(long, default_value = "uniform", value_parser = named::<train::run::HeadInit>(train::run::HeadInit::NAMES))]
     init: train::run::HeadInit,
     /// Add absolute elevation as a second input plane (normalised by the mean and std of 256 spread train
     /// crops). The paper's input is relief only (crop mean removed), which hides whether a crop lies on a crater
@@ -121,6 +121,18 @@ struct TrainArgs {
     /// last/ema (the final average) by default.
     #[arg(long, value_name = "DECAY", value_parser = parse_ema_decay)]
     ema: Option<f64>,
+}
+
+/// A parser for a library enum chosen by name: its names are the possible values `--help` lists, parsed with its
+/// `FromStr` (library types carry no clap).
+fn named<T>(names: &'static [&'static str]) -> impl clap::builder::TypedValueParser<Value = T>
+where
+    T: std::str::FromStr + Clone + Send + Sync + 'static,
+    T::Err: std::fmt::Debug,
+{
+    use clap::builder::TypedValueParser;
+    clap::builder::PossibleValuesParser::new(names)
+        .map(|name| name.parse::<T>().expect("every listed name parses"))
 }
 
 /// `X,Y,Z` (body-fixed metres) as a vector.
@@ -283,7 +295,7 @@ enum Command {
         run: Option<PathBuf>,
         /// Which checkpoint of each run: auto (ema-last when the run kept a weight average, else best, else last),
         /// best, last, ema-best or ema-last.
-        #[arg(long, value_enum, default_value = "auto")]
+        #[arg(long, default_value = "auto", value_parser = named::<train::run::Checkpoint>(train::run::Checkpoint::NAMES))]
         checkpoint: train::run::Checkpoint,
         /// DEM GeoTIFF for the renderer section (and, with --run, the inference-overlap section).
         #[arg(long)]

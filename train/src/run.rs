@@ -64,17 +64,7 @@ impl FitConfig {
 }
 
 /// Where the network's output starts.
-#[derive(
-    Debug,
-    Clone,
-    Copy,
-    Default,
-    PartialEq,
-    Eq,
-    serde::Serialize,
-    serde::Deserialize,
-    clap::ValueEnum,
-)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum HeadInit {
     /// Zero head: every parameter map starts at 0 (black renderings).
@@ -86,17 +76,7 @@ pub enum HeadInit {
 }
 
 /// How the learning rate changes over a run's optimiser steps.
-#[derive(
-    Debug,
-    Clone,
-    Copy,
-    Default,
-    PartialEq,
-    Eq,
-    serde::Serialize,
-    serde::Deserialize,
-    clap::ValueEnum,
-)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum LrSchedule {
     /// `--lr` at every step.
@@ -308,7 +288,7 @@ pub fn run_input(run: &Path, config: &FitConfig) -> Result<InputNormalisation> {
 }
 
 /// Which of a run's networks to load.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub enum Checkpoint {
     /// The weight average at the last checkpoint when the run kept one (`last/ema`), else `best`, else `last`.
     /// Not the average's best-validation epoch: on the demo's 152 val crops that pick often lands on epoch 0. The
@@ -358,13 +338,48 @@ impl Checkpoint {
                     "{}: no {}.mpk: that run has no {} checkpoint (`--checkpoint ema-*` needs a run trained with --ema); omit --checkpoint to take what it has",
                     run.display(),
                     other.path(run).display(),
-                    clap::ValueEnum::to_possible_value(&other)
-                        .map(|v| v.get_name().to_owned())
-                        .unwrap_or_default()
+                    other.name()
                 ),
             })
     }
 }
+
+/// Names for enums chosen on command lines and in configs: `NAMES[i]` is `ALL[i]`'s, and `FromStr` accepts them.
+macro_rules! named_enum {
+    ($ty:ident { $($variant:ident => $name:literal),+ $(,)? }) => {
+        impl $ty {
+            pub const ALL: &'static [$ty] = &[$($ty::$variant),+];
+            pub const NAMES: &'static [&'static str] = &[$($name),+];
+
+            pub fn name(self) -> &'static str {
+                match self {
+                    $($ty::$variant => $name),+
+                }
+            }
+        }
+
+        impl std::str::FromStr for $ty {
+            type Err = String;
+            fn from_str(text: &str) -> Result<Self, String> {
+                Self::ALL
+                    .iter()
+                    .copied()
+                    .find(|v| v.name() == text)
+                    .ok_or_else(|| format!("unknown value '{text}': use one of {}", Self::NAMES.join(", ")))
+            }
+        }
+    };
+}
+
+named_enum!(HeadInit { Zero => "zero", Uniform => "uniform" });
+named_enum!(LrSchedule { Constant => "constant", Cosine => "cosine" });
+named_enum!(Checkpoint {
+    Auto => "auto",
+    Best => "best",
+    Last => "last",
+    EmaBest => "ema-best",
+    EmaLast => "ema-last",
+});
 
 /// A trained run, loaded for evaluation or inference.
 pub struct TrainedRun<B: Backend> {
