@@ -160,13 +160,20 @@ pub fn lonlat_from_body_fixed(p: DVec3) -> (f64, f64, f64) {
     )
 }
 
-/// Rotation whose rows are the east, north and up unit vectors at (lon, lat): body-fixed → ENU.
-fn enu_rotation(lon_deg: f64, lat_deg: f64) -> DMat3 {
+/// East, north and up unit vectors (body-fixed) at a planetocentric longitude/latitude: the one definition of a
+/// local frame's axes (crop frames, camera trajectories, imported acquisition geometry).
+pub fn enu_axes(lon_deg: f64, lat_deg: f64) -> (DVec3, DVec3, DVec3) {
     let (sl, cl) = lon_deg.to_radians().sin_cos();
     let (sp, cp) = lat_deg.to_radians().sin_cos();
     let east = DVec3::new(-sl, cl, 0.0);
     let north = DVec3::new(-sp * cl, -sp * sl, cp);
     let up = DVec3::new(cp * cl, cp * sl, sp);
+    (east, north, up)
+}
+
+/// Rotation whose rows are the east, north and up unit vectors at (lon, lat): body-fixed → ENU.
+fn enu_rotation(lon_deg: f64, lat_deg: f64) -> DMat3 {
+    let (east, north, up) = enu_axes(lon_deg, lat_deg);
     DMat3::from_cols(east, north, up).transpose()
 }
 

@@ -20,7 +20,7 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use dataset::acquisition::j2000_seconds_from_iso_utc;
-use dataset::crs::{body_fixed_from_lonlat, MOON_RADIUS_M};
+use dataset::crs::{body_fixed_from_lonlat, enu_axes, lonlat_from_body_fixed, MOON_RADIUS_M};
 use glam::{DMat3, DQuat, DVec3};
 
 use super::{ImportError, ImportedGeometry};
@@ -272,10 +272,11 @@ fn row_geometry(row: &Row) -> Result<ImportedGeometry, ImportError> {
     })
 }
 
-/// Local east and north unit vectors at unit vector `up` (body-fixed; +z is the north pole).
+/// Local east and north unit vectors at the point in direction `up` (body-fixed).
 fn east_north(up: DVec3) -> (DVec3, DVec3) {
-    let east = DVec3::Z.cross(up).normalize();
-    (east, up.cross(east))
+    let (lon, lat, _) = lonlat_from_body_fixed(up * MOON_RADIUS_M);
+    let (east, north, _) = enu_axes(lon, lat);
+    (east, north)
 }
 
 /// The (east, north) unit components of direction `d` in the tangent plane at unit vector `at`.

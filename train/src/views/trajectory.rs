@@ -13,7 +13,7 @@
 use std::path::Path;
 
 use anyhow::{bail, Context, Result};
-use dataset::crs::body_fixed_from_lonlat;
+use dataset::crs::{body_fixed_from_lonlat, enu_axes};
 use glam::{DMat3, DQuat, DVec3};
 
 /// One camera pose: position and camera→body-fixed rotation.
@@ -25,14 +25,6 @@ pub struct Pose {
 
 const XYZ_QUAT: [&str; 7] = ["x", "y", "z", "q0", "qx", "qy", "qz"];
 const LONLAT_YPR: [&str; 6] = ["lon", "lat", "alt", "yaw", "pitch", "roll"];
-
-/// East, north, up unit vectors (body-fixed) at a planetocentric longitude/latitude.
-fn enu_axes(lon_deg: f64, lat_deg: f64) -> (DVec3, DVec3, DVec3) {
-    let (lon, lat) = (lon_deg.to_radians(), lat_deg.to_radians());
-    let up = DVec3::new(lat.cos() * lon.cos(), lat.cos() * lon.sin(), lat.sin());
-    let east = DVec3::new(-lon.sin(), lon.cos(), 0.0);
-    (east, up.cross(east), up)
-}
 
 /// The pose of a `lon,lat,alt,yaw,pitch,roll` row (see the module docs for the angle conventions).
 pub fn pose_from_lonlat(lon: f64, lat: f64, alt: f64, yaw: f64, pitch: f64, roll: f64) -> Pose {
