@@ -9,6 +9,7 @@ use std::path::{Path, PathBuf};
 use gdal::raster::{Buffer, RasterCreationOptions};
 use gdal::spatial_ref::SpatialRef;
 use gdal::{Dataset, DriverManager, Metadata};
+use rayon::prelude::*;
 
 use crate::crs::{LunarCrs, MOON_RADIUS_M};
 
@@ -494,6 +495,52 @@ pub fn tmp_path(path: &Path) -> PathBuf {
         .unwrap_or_default();
     name.push(".tmp");
     path.with_file_name(name)
+}
+
+/// Separable Gaussian blur (kernel ±3σ, edges clamped) of a row-major `w × h` grid: the world's DEM smoothing
+/// and the novel-view renderer's PSF. Sums in f64; σ ≤ 0 returns the input.
+pub fn gaussian_blur(data: &[f32], w: usize, h: usize, sigma: f64) -> Vec<f32> {
+    if sigma <= 0.0 {
+        return data.to_vec();
+    }
+    let radius = (3.0 * sigma).ceil() as i64;
+    let kernel: Vec<f64> = (-radius..=radius)
+        .map(|k| (-(k * k) as f64 / (2.0 * sigma * sigma)).exp())
+        .collect();
+    let norm: f64 = kernel.iter().sum();
+    let mut tmp = vec![0f32; w * h];
+    tmp.par_chunks_mut(w).enumerate().for_each(|(row, out)| {
+        for (col, v) in out.iter_mut().enumerate() {
+            let s: f64 = kernel
+                .iter()
+                .enumerate()
+                .map(|(k, kv)| {
+                    kv * data
+                        [row * w + (col as i64 + k as i64 - radius).clamp(0, w as i64 - 1) as usize]
+                        as f64
+                })
+                .sum();
+            *v = (s / norm) as f32;
+        }
+    });
+    let mut out = vec![0f32; w * h];
+    out.par_chunks_mut(w)
+        .enumerate()
+        .for_each(|(row, out_row)| {
+            for (col, v) in out_row.iter_mut().enumerate() {
+                let s: f64 = kernel
+                    .iter()
+                    .enumerate()
+                    .map(|(k, kv)| {
+                        kv * tmp[(row as i64 + k as i64 - radius).clamp(0, h as i64 - 1) as usize
+                            * w
+                            + col] as f64
+                    })
+                    .sum();
+                *v = (s / norm) as f32;
+            }
+        });
+    out
 }
 
 #[cfg(test)]

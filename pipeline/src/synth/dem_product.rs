@@ -37,7 +37,7 @@ pub fn degrade(
             }
         });
     // 2. Separable Gaussian smoothing.
-    let heights = gaussian_blur(&heights, w, h, cfg.smoothing_sigma_px);
+    let heights = dataset::raster::gaussian_blur(&heights, w, h, cfg.smoothing_sigma_px);
     // 3. Long-wavelength correlated error and white noise (per-row streams: deterministic under rayon).
     let correlated = Fbm {
         key: keyed_u64(seed, "dem-correlated-error", 0),
@@ -95,50 +95,5 @@ pub fn degrade(
             }
         }
     }
-    out
-}
-
-/// Separable Gaussian blur with clamped edges.
-pub fn gaussian_blur(data: &[f32], w: usize, h: usize, sigma: f64) -> Vec<f32> {
-    if sigma <= 0.0 {
-        return data.to_vec();
-    }
-    let radius = (3.0 * sigma).ceil() as i64;
-    let kernel: Vec<f64> = (-radius..=radius)
-        .map(|k| (-(k * k) as f64 / (2.0 * sigma * sigma)).exp())
-        .collect();
-    let norm: f64 = kernel.iter().sum();
-    let mut tmp = vec![0f32; w * h];
-    tmp.par_chunks_mut(w).enumerate().for_each(|(row, out)| {
-        for (col, v) in out.iter_mut().enumerate() {
-            let s: f64 = kernel
-                .iter()
-                .enumerate()
-                .map(|(k, kv)| {
-                    kv * data
-                        [row * w + (col as i64 + k as i64 - radius).clamp(0, w as i64 - 1) as usize]
-                        as f64
-                })
-                .sum();
-            *v = (s / norm) as f32;
-        }
-    });
-    let mut out = vec![0f32; w * h];
-    out.par_chunks_mut(w)
-        .enumerate()
-        .for_each(|(row, out_row)| {
-            for (col, v) in out_row.iter_mut().enumerate() {
-                let s: f64 = kernel
-                    .iter()
-                    .enumerate()
-                    .map(|(k, kv)| {
-                        kv * tmp[(row as i64 + k as i64 - radius).clamp(0, h as i64 - 1) as usize
-                            * w
-                            + col] as f64
-                    })
-                    .sum();
-                *v = (s / norm) as f32;
-            }
-        });
     out
 }

@@ -408,7 +408,17 @@ pub fn render_view(
         }
     }
     if options.psf_sigma_px > 0.0 {
-        image = gaussian_blur(&image, options.width, options.height, options.psf_sigma_px);
+        // The PNGs are 16-bit: f32 precision is ample for the blur.
+        let values: Vec<f32> = image.iter().map(|&v| v as f32).collect();
+        image = dataset::raster::gaussian_blur(
+            &values,
+            options.width,
+            options.height,
+            options.psf_sigma_px,
+        )
+        .into_iter()
+        .map(f64::from)
+        .collect();
     }
     let stats = ViewStats {
         hit_fraction: hits as f64 / samples.max(1) as f64,
@@ -416,31 +426,6 @@ pub fn render_view(
         mean_i_over_f: image.iter().sum::<f64>() / image.len().max(1) as f64,
     };
     (image, stats)
-}
-
-/// Separable Gaussian blur (kernel ±3σ, renormalised at the borders).
-pub fn gaussian_blur(image: &[f64], w: usize, h: usize, sigma: f64) -> Vec<f64> {
-    let radius = (3.0 * sigma).ceil() as isize;
-    let kernel: Vec<f64> = (-radius..=radius)
-        .map(|k| (-(k * k) as f64 / (2.0 * sigma * sigma)).exp())
-        .collect();
-    let pass = |src: &[f64], horizontal: bool| -> Vec<f64> {
-        (0..w * h)
-            .map(|idx| {
-                let (x, y) = ((idx % w) as isize, (idx / w) as isize);
-                let (mut acc, mut norm) = (0.0, 0.0);
-                for (k, weight) in (-radius..=radius).zip(&kernel) {
-                    let (xx, yy) = if horizontal { (x + k, y) } else { (x, y + k) };
-                    if xx >= 0 && yy >= 0 && (xx as usize) < w && (yy as usize) < h {
-                        acc += weight * src[yy as usize * w + xx as usize];
-                        norm += weight;
-                    }
-                }
-                acc / norm
-            })
-            .collect()
-    };
-    pass(&pass(image, true), false)
 }
 
 #[cfg(test)]
