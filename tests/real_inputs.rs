@@ -5,6 +5,7 @@
 use std::path::{Path, PathBuf};
 
 use dataset::acquisition::AcquisitionMetadata;
+use dataset::geometry::angle_between;
 use dataset::schema::Sample;
 use dataset::shard::ShardFile;
 use glam::{DQuat, DVec3};
@@ -35,11 +36,6 @@ fn ortho_ids(world: &Path) -> Vec<String> {
     ids
 }
 
-/// Angle between two directions, radians (atan2 form: accurate for tiny angles).
-fn angle(a: DVec3, b: DVec3) -> f64 {
-    a.cross(b).length().atan2(a.dot(b))
-}
-
 fn rotation_angle(a: [f64; 4], b: [f64; 4]) -> f64 {
     let q = |[w, x, y, z]: [f64; 4]| DQuat::from_xyzw(x, y, z, w);
     let d = q(a).inverse() * q(b);
@@ -54,7 +50,7 @@ fn errors(imported: &AcquisitionMetadata, truth: &AcquisitionMetadata) -> [f64; 
         .max((v(imported.spacecraft_stop_body_m) - v(truth.spacecraft_stop_body_m)).length());
     [
         position,
-        angle(
+        angle_between(
             v(imported.sun_position_body_m),
             v(truth.sun_position_body_m),
         ),

@@ -155,6 +155,12 @@ pub fn crop_pixel_frames<'a>(
     })
 }
 
+/// Angle between two directions, radians, in the atan2 form: accurate for tiny and near-π angles, where acos of
+/// a dot product loses half the digits.
+pub fn angle_between(a: DVec3, b: DVec3) -> f64 {
+    a.cross(b).length().atan2(a.dot(b))
+}
+
 /// Unit normal of a plane z = a·east + b·north (handy for analytic tests and the synthetic world).
 pub fn plane_normal(dz_deast: f64, dz_dnorth: f64) -> DVec3 {
     DVec3::new(-dz_deast, -dz_dnorth, 1.0).normalize()

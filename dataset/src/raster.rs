@@ -56,6 +56,13 @@ impl GeoTransform {
         (xa.min(xb), ya.min(yb), xa.max(xb), ya.max(yb))
     }
 
+    /// The four outer corners of a `width` × `height` raster on this grid, as map points: where two CRSs are
+    /// compared ([`crate::crs::LunarCrs::same_map`]) before the raster is read in the other's map.
+    pub fn corners(&self, width: usize, height: usize) -> [(f64, f64); 4] {
+        let (x0, y0, x1, y1) = self.bounds(width, height);
+        [(x0, y0), (x1, y0), (x1, y1), (x0, y1)]
+    }
+
     /// Continuous pixel coordinates (col, row) whose *centre* is at map (x, y): the inverse of [`Self::pixel_center`].
     pub fn map_to_pixel(&self, x: f64, y: f64) -> (f64, f64) {
         (

@@ -528,8 +528,9 @@ pub fn run_job<B: TrainOps>(job: &ReportJob, device: &B::Device) -> Result<Repor
     let resampling = match (job.ortho, raster.as_ref()) {
         (Some(ortho), Some(raster)) => {
             let image = dataset::raster::read_raster(ortho)?;
+            let corners = image.transform.corners(image.width, image.height);
             anyhow::ensure!(
-                image.crs == raster.crs,
+                raster.crs.same_map(&image.crs, &corners)?,
                 "{}: its CRS differs from the DEM's; pass an ortho on the DEM's map grid (as the pipeline requires)",
                 ortho.display()
             );

@@ -17,10 +17,12 @@
 //! Longitudes may be in any domain (LROC uses 0–360° east); latitudes are planetocentric; distances are km.
 
 use std::collections::HashMap;
+use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 
 use dataset::acquisition::j2000_seconds_from_iso_utc;
 use dataset::crs::{body_fixed_from_lonlat, enu_axes, lonlat_from_body_fixed, MOON_RADIUS_M};
+use dataset::geometry::angle_between;
 use glam::{DMat3, DQuat, DVec3};
 
 use super::{ImportError, ImportedGeometry};
@@ -49,12 +51,22 @@ pub const COLUMNS: [&str; 20] = [
     "SPACECRAFT_ALTITUDE",
 ];
 
-/// An index table: column names (from the label or the header row) and the rows as text fields.
+/// An index table opened for lookups: its columns (from the PDS3 label or the header row). Rows are streamed
+/// from the file on each lookup and only the matching one is kept: LROC's cumulative index has millions of rows.
 #[derive(Debug)]
 pub struct IndexTable {
     path: PathBuf,
     columns: HashMap<String, usize>,
-    rows: Vec<Vec<String>>,
+    layout: Layout,
+}
+
+/// How a row's fields are cut.
+#[derive(Debug)]
+enum Layout {
+    /// At the label's byte positions (a PDS3 fixed-width table).
+    Fixed(Vec<LabelColumn>),
+    /// On commas outside quotes, after a header row (a CSV of the same columns).
+    Csv,
 }
 
 /// One column of a PDS3 table label.
@@ -67,80 +79,102 @@ pub struct LabelColumn {
 }
 
 impl IndexTable {
-    /// Read `path`: with the PDS3 label `label` (or `path` with a `.LBL`/`.lbl` extension, when present) columns
-    /// are cut at the label's byte positions; otherwise the first row must name the columns (CSV).
-    pub fn load(path: &Path, label: Option<&Path>) -> Result<Self, ImportError> {
+    /// Open `path`: with the PDS3 label `label` (or `path` with a `.LBL`/`.lbl` extension, when present) fields are
+    /// cut at the label's byte positions; otherwise the first row must name the columns (CSV).
+    pub fn open(path: &Path, label: Option<&Path>) -> Result<Self, ImportError> {
         let io = |p: &Path| {
             let p = p.to_path_buf();
             move |source| ImportError::Io { path: p, source }
         };
-        let text = std::fs::read_to_string(path).map_err(io(path))?;
         let label = label.map(Path::to_path_buf).or_else(|| {
             ["LBL", "lbl"]
                 .iter()
                 .map(|ext| path.with_extension(ext))
                 .find(|p| p.exists())
         });
-        let lines = text.lines().filter(|l| !l.trim().is_empty());
-        let (names, rows): (Vec<String>, Vec<Vec<String>>) = match &label {
+        let (names, layout) = match &label {
             Some(label) => {
                 let columns = parse_label(&std::fs::read_to_string(label).map_err(io(label))?)
                     .map_err(|problem| ImportError::Invalid {
                         path: label.clone(),
                         problem,
                     })?;
-                let rows = lines
-                    .map(|line| {
-                        columns
-                            .iter()
-                            .map(|c| {
-                                let bytes = line.as_bytes();
-                                let from = (c.start_byte - 1).min(bytes.len());
-                                let to = (from + c.bytes).min(bytes.len());
-                                clean(&String::from_utf8_lossy(&bytes[from..to]))
-                            })
-                            .collect()
-                    })
-                    .collect();
-                (columns.into_iter().map(|c| c.name).collect(), rows)
+                let names = columns.iter().map(|c| c.name.clone()).collect();
+                (names, Layout::Fixed(columns))
             }
             None => {
-                let mut lines = lines.map(split_csv);
-                let header = lines.next().unwrap_or_default();
+                let file = std::fs::File::open(path).map_err(io(path))?;
+                let mut header = String::new();
+                BufReader::new(file)
+                    .read_line(&mut header)
+                    .map_err(io(path))?;
+                let header = split_csv(header.trim_end());
                 if !header.iter().any(|h| h == "PRODUCT_ID") {
                     return Err(ImportError::Invalid {
                         path: path.to_path_buf(),
                         problem: "no PDS3 label next to it (CUMINDEX.LBL) and no header row naming PRODUCT_ID: pass --label".into(),
                     });
                 }
-                (header, lines.collect())
+                (header, Layout::Csv)
             }
         };
         let columns = names.into_iter().enumerate().map(|(i, n)| (n, i)).collect();
         Ok(Self {
             path: path.to_path_buf(),
             columns,
-            rows,
+            layout,
+        })
+    }
+
+    /// The fields of one line of the table.
+    fn fields(&self, line: &str) -> Vec<String> {
+        match &self.layout {
+            Layout::Fixed(columns) => columns
+                .iter()
+                .map(|c| {
+                    let bytes = line.as_bytes();
+                    let from = (c.start_byte - 1).min(bytes.len());
+                    let to = (from + c.bytes).min(bytes.len());
+                    clean(&String::from_utf8_lossy(&bytes[from..to]))
+                })
+                .collect(),
+            Layout::Csv => split_csv(line),
+        }
+    }
+
+    /// The fields of the row whose `PRODUCT_ID` is `product_id` (the first such row), read by streaming the file.
+    pub fn row(&self, product_id: &str) -> Result<Vec<String>, ImportError> {
+        let id_column = self.column("PRODUCT_ID")?;
+        let io = |source| ImportError::Io {
+            path: self.path.clone(),
+            source,
+        };
+        let file = std::fs::File::open(&self.path).map_err(io)?;
+        let skip = matches!(self.layout, Layout::Csv) as usize;
+        for line in BufReader::new(file).lines().skip(skip) {
+            let line = line.map_err(io)?;
+            if line.trim().is_empty() {
+                continue;
+            }
+            let fields = self.fields(&line);
+            if fields.get(id_column).is_some_and(|v| v == product_id) {
+                return Ok(fields);
+            }
+        }
+        Err(ImportError::Invalid {
+            path: self.path.clone(),
+            problem: format!("no row with PRODUCT_ID {product_id}"),
         })
     }
 
     /// The geometry of the row whose `PRODUCT_ID` is `product_id`.
     pub fn geometry(&self, product_id: &str) -> Result<ImportedGeometry, ImportError> {
-        let id_column = self.column("PRODUCT_ID")?;
-        let row = self
-            .rows
-            .iter()
-            .find(|r| r.get(id_column).is_some_and(|v| v == product_id))
-            .ok_or_else(|| ImportError::Invalid {
-                path: self.path.clone(),
-                problem: format!("no row with PRODUCT_ID {product_id}"),
-            })?;
-        let row = Row {
+        let row = self.row(product_id)?;
+        row_geometry(&Row {
             table: self,
-            row,
+            row: &row,
             product_id,
-        };
-        row_geometry(&row)
+        })
     }
 
     fn column(&self, name: &str) -> Result<usize, ImportError> {
@@ -242,9 +276,9 @@ fn row_geometry(row: &Row) -> Result<ImportedGeometry, ImportError> {
     let up = spacecraft_mid.normalize();
     let (east, north) = east_north(up);
     let track = east * heading.0 + north * heading.1;
-    let along_track = |angle: f64| (up * angle.cos() + track * angle.sin()) * orbit_radius_m;
-    let spacecraft_start = along_track(-angle(centre, first_line));
-    let spacecraft_stop = along_track(angle(centre, last_line));
+    let along_track = |arc: f64| (up * arc.cos() + track * arc.sin()) * orbit_radius_m;
+    let spacecraft_start = along_track(-angle_between(centre, first_line));
+    let spacecraft_stop = along_track(angle_between(centre, last_line));
     let boresight = (centre * MOON_RADIUS_M - spacecraft_mid).normalize();
     let along = (spacecraft_stop - spacecraft_start).normalize();
     let x_axis = (along - boresight * along.dot(boresight)).normalize();
@@ -285,11 +319,6 @@ fn tangent_heading(at: DVec3, d: DVec3) -> (f64, f64) {
     let (e, n) = (d.dot(east), d.dot(north));
     let norm = e.hypot(n);
     (e / norm, n / norm)
-}
-
-/// Angle between two directions, radians.
-fn angle(a: DVec3, b: DVec3) -> f64 {
-    a.cross(b).length().atan2(a.dot(b))
 }
 
 /// Columns of a PDS3 table label: each `OBJECT = COLUMN` with its `NAME`, `START_BYTE` and `BYTES`.
@@ -437,15 +466,22 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         std::fs::write(dir.path().join("CUMINDEX.TAB"), &table).unwrap();
         std::fs::write(dir.path().join("CUMINDEX.LBL"), &label).unwrap();
-        let t = IndexTable::load(&dir.path().join("CUMINDEX.TAB"), None).unwrap();
-        assert_eq!(t.rows, rows);
+        let t = IndexTable::open(&dir.path().join("CUMINDEX.TAB"), None).unwrap();
+        assert_eq!(t.row("M1").unwrap(), rows[0]);
+        assert_eq!(t.row("M22, b").unwrap(), rows[1]);
+        assert!(t
+            .row("M3")
+            .unwrap_err()
+            .to_string()
+            .contains("no row with PRODUCT_ID M3"));
         // The same rows as CSV with a header: the comma inside quotes stays in its field.
         let csv = format!(
             "PRODUCT_ID,SOLAR_DISTANCE,FRAME_ID\n{}",
             table.replace("\r\n", "\n")
         );
         std::fs::write(dir.path().join("index.csv"), csv).unwrap();
-        let t = IndexTable::load(&dir.path().join("index.csv"), None).unwrap();
-        assert_eq!(t.rows, rows);
+        let t = IndexTable::open(&dir.path().join("index.csv"), None).unwrap();
+        assert_eq!(t.row("M1").unwrap(), rows[0]);
+        assert_eq!(t.row("M22, b").unwrap(), rows[1]);
     }
 }

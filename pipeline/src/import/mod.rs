@@ -152,7 +152,7 @@ pub fn import(
     let geometry = match source {
         Source::Isd(path) => isd::Isd::load(path)?.geometry(product_id),
         Source::Index { table, label } => {
-            index::IndexTable::load(table, label)?.geometry(product_id)?
+            index::IndexTable::open(table, label)?.geometry(product_id)?
         }
     };
     let meta = finish(&geometry, image, out)?;

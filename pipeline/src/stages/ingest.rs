@@ -101,7 +101,7 @@ pub fn run(dem_path: &Path, ortho_dir: &Path, out: &Path) -> anyhow::Result<()> 
         let image_path = meta_path.with_file_name(&meta.image_file);
         let (_, info) = open_lunar(&image_path)?;
         let (x0, y0, x1, y1) = info.transform.bounds(info.width, info.height);
-        let probes = [(x0, y0), (x1, y1), (x0, y1), (x1, y0)];
+        let probes = info.transform.corners(info.width, info.height);
         if !dem.crs.same_map(&info.crs, &probes)? {
             bail!("{}: CRS differs from the DEM's ({}); reproject with gdalwarp -t_srs to the DEM's CRS", image_path.display(), dem_path.display());
         }
