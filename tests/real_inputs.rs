@@ -9,7 +9,7 @@ use dataset::geometry::angle_between;
 use dataset::schema::Sample;
 use dataset::shard::ShardFile;
 use glam::{DQuat, DVec3};
-use pipeline::import::{import, off_nadir_roll_deg, Source};
+use pipeline::import::{import, Source};
 
 /// The tiny world, generated once for every test of this file.
 fn world() -> &'static Path {
@@ -59,15 +59,6 @@ fn errors(imported: &AcquisitionMetadata, truth: &AcquisitionMetadata) -> [f64; 
     ]
 }
 
-fn geometric_roll_deg(meta: &AcquisitionMetadata) -> f64 {
-    let [w, x, y, z] = meta.camera_attitude_wxyz;
-    off_nadir_roll_deg(
-        meta.spacecraft_start_body_m.into(),
-        meta.spacecraft_stop_body_m.into(),
-        DQuat::from_xyzw(x, y, z, w),
-    )
-}
-
 fn check_common(imported: &AcquisitionMetadata, truth: &AcquisitionMetadata) {
     assert_eq!(imported.ortho_id, truth.ortho_id);
     assert_eq!(imported.camera_id, truth.camera_id);
@@ -76,7 +67,7 @@ fn check_common(imported: &AcquisitionMetadata, truth: &AcquisitionMetadata) {
     assert_eq!(imported.pixel_scale_m, truth.pixel_scale_m);
     // The world's roll is the commanded slew in map terms; the importers measure the off-nadir angle of the
     // boresight, which is what the same function gives on the world's own geometry.
-    let truth_roll = geometric_roll_deg(truth);
+    let truth_roll = truth.off_nadir_roll_deg();
     assert!(
         (truth_roll - truth.roll_deg).abs() < 0.1,
         "{truth_roll} vs {}",
@@ -112,7 +103,7 @@ fn imports_reproduce_the_world_metadata() {
             "{id}: sun {sun} rad, attitude {attitude} rad"
         );
         assert!(fov <= 1e-6_f64.to_degrees(), "{id}: fov off by {fov}°");
-        assert!((from_isd.roll_deg - geometric_roll_deg(&truth)).abs() <= 1e-6_f64.to_degrees());
+        assert!((from_isd.roll_deg - truth.off_nadir_roll_deg()).abs() <= 1e-6_f64.to_degrees());
 
         let out = out_dir.join(format!("{id}.index.json"));
         let table = world.join("index/CUMINDEX.TAB");

@@ -112,6 +112,22 @@ impl AcquisitionMetadata {
         let [w, x, y, z] = self.camera_attitude_wxyz;
         DQuat::from_xyzw(x, y, z, w)
     }
+
+    /// Signed off-nadir angle of the boresight (camera +z) at mid-strip, degrees, from the positions and attitude:
+    /// positive when the camera looks to the right of the ground track (the spacecraft flies to the left of the
+    /// strip it images). What `roll_deg` holds for imported metadata.
+    pub fn off_nadir_roll_deg(&self) -> f64 {
+        let (start, stop) = (
+            DVec3::from(self.spacecraft_start_body_m),
+            DVec3::from(self.spacecraft_stop_body_m),
+        );
+        let up = spacecraft_position_at(start, stop, 0.5).normalize();
+        let left = up.cross((stop - start).normalize()).normalize();
+        let boresight = self.camera_attitude() * DVec3::Z;
+        (-boresight.dot(left))
+            .atan2(-boresight.dot(up))
+            .to_degrees()
+    }
 }
 
 /// ISO 8601 UTC timestamp for `seconds` after 2000-01-01T00:00:00Z (no wall clock involved).

@@ -63,19 +63,6 @@ pub struct ImportedGeometry {
     pub fov_deg: f64,
 }
 
-/// Signed off-nadir angle of the boresight at mid-strip, degrees: positive when the camera looks to the right of
-/// the ground track (the spacecraft flies to the left of the strip it images).
-pub fn off_nadir_roll_deg(start_body: DVec3, stop_body: DVec3, camera_to_body: DQuat) -> f64 {
-    let mid = dataset::geometry::spacecraft_position_at(start_body, stop_body, 0.5);
-    let up = mid.normalize();
-    let along = (stop_body - start_body).normalize();
-    let left = up.cross(along).normalize();
-    let boresight = camera_to_body * DVec3::Z;
-    (-boresight.dot(left))
-        .atan2(-boresight.dot(up))
-        .to_degrees()
-}
-
 /// The project's metadata for `image` (its file name is stored relative to `out`'s directory), validated.
 pub fn finish(
     geometry: &ImportedGeometry,
@@ -85,7 +72,7 @@ pub fn finish(
     let (_, info) = dataset::raster::open_lunar(image)?;
     let image_file = relative_to(image, out.parent().unwrap_or(Path::new(".")));
     let q = geometry.camera_to_body.normalize();
-    let meta = AcquisitionMetadata {
+    let mut meta = AcquisitionMetadata {
         ortho_id: geometry.product_id.clone(),
         image_file,
         camera_id: geometry.camera_id.clone(),
@@ -97,12 +84,10 @@ pub fn finish(
         camera_attitude_wxyz: [q.w, q.x, q.y, q.z],
         fov_deg: geometry.fov_deg,
         pixel_scale_m: info.transform.gsd_m(),
-        roll_deg: off_nadir_roll_deg(
-            geometry.spacecraft_start_body_m,
-            geometry.spacecraft_stop_body_m,
-            q,
-        ),
+        roll_deg: 0.0,
     };
+    // Measured from the imported geometry: an index or ISD states no roll of its own.
+    meta.roll_deg = meta.off_nadir_roll_deg();
     meta.validate().map_err(|problem| ImportError::Invalid {
         path: out.to_path_buf(),
         problem: format!("imported metadata is not physical: {problem}"),
