@@ -14,6 +14,8 @@
 //! Terms are ordered (cos i, cos g, …) — the GeoTIFF band descriptions name them in this order.
 //! A surface facing away from the sun (cos i ≤ 0) or from the camera (cos e ≤ 0) reflects nothing toward it: f = 0.
 
+use glam::DVec3;
+
 use crate::geometry::{Cosines, HalfDiffCosines, PixelGeometry};
 use crate::hapke::{hapke_i_over_f, HFunction, HapkeParams};
 
@@ -131,6 +133,33 @@ impl BrdfModel {
         self == Self::M6
     }
 
+    /// The terms where the surface faces both the sun and the camera; `None` where it faces away from either,
+    /// where every model renders 0. The one place that rule lives (the scalar reference and the renderer layer).
+    pub fn visible_terms(self, c: &Cosines, hd: &HalfDiffCosines) -> Option<[f64; 4]> {
+        if c.cos_i <= 0.0 || c.cos_e <= 0.0 {
+            return None;
+        }
+        Some(self.terms(c, hd))
+    }
+
+    /// [`Self::visible_terms`] of a pixel with unit `normal`, lit from `sun_dir` and seen along `view_dir`. The
+    /// half/difference angles are computed only for the model that uses them (M6); the others get NaN there, so
+    /// a model that read them would fail loudly.
+    pub fn pixel_terms(self, normal: DVec3, sun_dir: DVec3, view_dir: DVec3) -> Option<[f64; 4]> {
+        let c = Cosines::new(normal, sun_dir, view_dir);
+        let hd = if self.uses_half_diff() {
+            HalfDiffCosines::new(normal, sun_dir, view_dir)
+        } else {
+            HalfDiffCosines {
+                cos_theta_h: f64::NAN,
+                cos_theta_d: f64::NAN,
+                cos_phi_h: f64::NAN,
+                cos_phi_d: f64::NAN,
+            }
+        };
+        self.visible_terms(&c, &hd)
+    }
+
     /// The geometric terms (the basis functions) for this geometry, in parameter order.
     pub fn terms(self, c: &Cosines, hd: &HalfDiffCosines) -> [f64; 4] {
         match self {
@@ -155,10 +184,9 @@ impl BrdfModel {
     /// Reflected fraction f(p; geometry). `raw_params` has [`Self::param_count`] entries (before LeakyReLU).
     pub fn evaluate(self, raw_params: &[f64], c: &Cosines, hd: &HalfDiffCosines) -> f64 {
         debug_assert_eq!(raw_params.len(), self.param_count());
-        if c.cos_i <= 0.0 || c.cos_e <= 0.0 {
+        let Some(terms) = self.visible_terms(c, hd) else {
             return 0.0;
-        }
-        let terms = self.terms(c, hd);
+        };
         raw_params
             .iter()
             .zip(terms)

@@ -56,7 +56,6 @@ pub fn host_terms<T: Copy + Default + Send>(
     model: BrdfModel,
     store: impl Fn(f64) -> T + Sync,
 ) -> Vec<T> {
-    use dataset::geometry::{Cosines, HalfDiffCosines};
     let (npx, p) = (CROP_PX * CROP_PX, model.param_count());
     let mut out = vec![T::default(); batch.len() * p * npx];
     out.par_chunks_mut(p * npx)
@@ -67,23 +66,10 @@ pub fn host_terms<T: Copy + Default + Send>(
             let lit = &batch.lit[i * npx..(i + 1) * npx];
             let frames = dataset::geometry::crop_pixel_frames(heights, CROP_PX, &grid, camera);
             for (px, (normal, view)) in frames.enumerate() {
-                let c = Cosines::new(normal, sun, view);
-                if c.cos_i <= 0.0 || c.cos_e <= 0.0 {
-                    continue;
-                }
-                let half_diff = if model.uses_half_diff() {
-                    HalfDiffCosines::new(normal, sun, view)
-                } else {
-                    // Never read (uses_half_diff); NaN so that a model which did read them would fail loudly.
-                    HalfDiffCosines {
-                        cos_theta_h: f64::NAN,
-                        cos_theta_d: f64::NAN,
-                        cos_phi_h: f64::NAN,
-                        cos_phi_d: f64::NAN,
+                if let Some(terms) = model.pixel_terms(normal, sun, view) {
+                    for (k, t) in terms.into_iter().take(p).enumerate() {
+                        planes[k * npx + px] = store(t * lit[px]);
                     }
-                };
-                for (k, t) in model.terms(&c, &half_diff).into_iter().take(p).enumerate() {
-                    planes[k * npx + px] = store(t * lit[px]);
                 }
             }
         });
@@ -106,7 +92,7 @@ pub fn masked_mse<B: Backend>(
 }
 
 /// The scalar f64 reference ([`dataset::geometry::crop_pixel_geometry`] + [`dataset::brdf::render_crop`]) applied
-/// to a host batch, sample by sample: what [`renderer_layer`] must reproduce. `planar_params` is `N × P × 128²`.
+/// to a host batch, sample by sample: what [`render`] must reproduce. `planar_params` is `N × P × 128²`.
 pub fn reference_render(model: BrdfModel, batch: &HostBatch, planar_params: &[f64]) -> Vec<f64> {
     let (npx, p) = (CROP_PX * CROP_PX, model.param_count());
     let mut out = Vec::with_capacity(batch.len() * npx);
