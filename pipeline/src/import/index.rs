@@ -52,7 +52,7 @@ pub const COLUMNS: [&str; 20] = [
 ];
 
 /// An index table opened for lookups: its columns (from the PDS3 label or the header row). Rows are streamed
-/// from the file on each lookup and only the matching one is kept: LROC's cumulative index has millions of rows.
+/// from the file on each lookup and only the matching one is kept: a cumulative index lists every image of the mission.
 #[derive(Debug)]
 pub struct IndexTable {
     path: PathBuf,
