@@ -13,7 +13,7 @@ use burn::prelude::*;
 use burn::tensor::activation::leaky_relu;
 
 use crate::kernels::{
-    batch_norm_leaky_relu, conv2d, dropout, max_pool2d, upsample_conv2d, TrainOps,
+    batch_norm_leaky_relu, conv2d, dropout, join_channels, max_pool2d, upsample_conv2d, TrainOps,
 };
 
 /// Negative slope of the network's activations.
@@ -175,7 +175,7 @@ impl UNetConfig {
             up_convs,
             up_blocks,
             // Zero head: the first renderings are black instead of O(1) I/F against targets of ~0.03, which the
-            // default init made the first epochs spend on shrinking the output scale (measured: docs/results.md).
+            // default init made the first epochs spend on shrinking the output scale (measured: docs/experiments.md).
             head: if self.zero_head {
                 Conv2dConfig::new([w + self.context_features(), self.out_channels], [1, 1])
                     .with_initializer(Initializer::Zeros)
@@ -272,7 +272,7 @@ impl<B: Backend> UNet<B> {
                 "up stage {coarse_h}x{coarse_w} -> {h}x{w} is not x2"
             );
             let up = leaky_relu(upsample_conv2d(conv, x), ACTIVATION_SLOPE);
-            x = block.forward(Tensor::cat(vec![up, skip], 1));
+            x = block.forward(join_channels(up, skip));
         }
         conv2d(&self.head, join(x))
     }

@@ -10,6 +10,7 @@ use burn::backend::autodiff::NodeId;
 use burn::backend::Autodiff;
 use burn::tensor::backend::AutodiffBackend;
 use burn::tensor::ops::{ConvOptions, FloatTensor, IntTensor};
+use burn::tensor::TensorMetadata;
 
 use super::{DropoutOutput, MaxPoolOutput, NormOutput, TrainOps};
 
@@ -147,6 +148,30 @@ impl<B: TrainOps> Backward<B, 3> for UpsampleConv2d {
         }
         if let Some(node) = node_x {
             grads.register::<B>(node.id, B::train_upsample_conv2d_x_grad(x, weight, grad));
+        }
+    }
+}
+
+#[derive(Debug)]
+struct JoinChannels;
+
+impl<B: TrainOps> Backward<B, 2> for JoinChannels {
+    /// Channels of the first input.
+    type State = usize;
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 2>,
+        grads: &mut Gradients,
+        _checkpointer: &mut Checkpointer,
+    ) {
+        let grad = grads.consume::<B>(&ops.node);
+        let (grad_a, grad_b) = B::train_split_channels(grad, ops.state);
+        let [node_a, node_b] = ops.parents;
+        for (node, value) in [(node_a, grad_a), (node_b, grad_b)] {
+            if let Some(node) = node {
+                grads.register::<B>(node.id, value);
+            }
         }
     }
 }
@@ -312,6 +337,22 @@ impl<B: TrainOps, C: CheckpointStrategy> TrainOps for Autodiff<B, C> {
                 weight.primitive,
                 Some(bias.primitive),
             )),
+        }
+    }
+
+    fn train_join_channels(a: FloatTensor<Self>, b: FloatTensor<Self>) -> FloatTensor<Self> {
+        let first = a.primitive.shape()[1];
+        match JoinChannels
+            .prepare::<C>([a.node.clone(), b.node.clone()])
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => {
+                prep.finish(first, B::train_join_channels(a.primitive, b.primitive))
+            }
+            OpsKind::UnTracked(prep) => {
+                prep.finish(B::train_join_channels(a.primitive, b.primitive))
+            }
         }
     }
 

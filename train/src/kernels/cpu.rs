@@ -1,9 +1,9 @@
 //! [`super::TrainOps`] kernels for Flex (Burn's CPU backend) on contiguous f32 `[N, C, H, W]` data.
 //!
 //! Convolutions (stride 1, dilation 1, one group, symmetric zero padding: every convolution of the network) are
-//! per-sample im2col + one `gemm` call each way, parallel over the batch:
-//! forward `Y = W·col(X) + b`, input gradient `∂X = col⁻¹(Wᵀ·∂Y)` (col⁻¹ scatter-adds columns back), weight
-//! gradient `∂W = Σₙ ∂Yₙ·col(Xₙ)ᵀ`. BatchNorm + LeakyReLU is one pass for the statistics (per channel, two-pass
+//! per-sample im2col + `gemm`, parallel over the batch, in blocks of output rows whose im2col matrix fits in a
+//! core's cache: forward `Y = W·col(X) + b`, input gradient `∂X = col⁻¹(Wᵀ·∂Y)` (col⁻¹ scatter-adds columns
+//! back), weight gradient `∂W = Σₙ ∂Yₙ·col(Xₙ)ᵀ`. BatchNorm + LeakyReLU is one pass for the statistics (per channel, two-pass
 //! variance with f64 sums) and one for the output, and the same two for the backward. Anything else (other
 //! dtypes, strides, groups) goes to the stock path in [`super::reference`].
 
@@ -117,42 +117,25 @@ impl ConvShape {
         (lo..hi.max(lo), lo + kx - pad)
     }
 
-    /// Scratch elements [`Self::columns`] needs (none for a pointwise convolution).
-    fn im2col_len(&self) -> usize {
-        if self.is_pointwise() {
-            0
-        } else {
-            self.taps() * self.positions()
-        }
-    }
-
     /// A 1×1 convolution without padding: its im2col matrix is the input itself.
     fn is_pointwise(&self) -> bool {
         self.kernel == [1, 1] && self.padding == [0, 0]
     }
 
-    /// The im2col matrix of one sample: the input itself for a pointwise convolution, else built in `buffer`.
-    fn columns<'a>(&self, x: &'a [f32], buffer: &'a mut [f32]) -> &'a [f32] {
-        if self.is_pointwise() {
-            x
-        } else {
-            self.im2col(x, buffer);
-            buffer
-        }
-    }
-
-    /// `col[(c, ky, kx)][(oy, ox)] = x[c][oy + ky − pad][ox + kx − pad]` (0 outside) for one sample.
-    fn im2col(&self, x: &[f32], col: &mut [f32]) {
+    /// `col[(c, ky, kx)][(j, ox)] = x[c][oy + ky − pad][ox + kx − pad]` (0 outside) for the `j`-th output row
+    /// `oy` of `rows`, one sample: `col` is `taps × (rows.len() · width)`.
+    fn im2col_rows(&self, x: &[f32], rows: std::ops::Range<usize>, col: &mut [f32]) {
         let (h, w, hw) = (self.height, self.width, self.positions());
         let [kh, kw] = self.kernel;
+        let n = rows.len() * w;
         for c in 0..self.c_in {
             let plane = &x[c * hw..(c + 1) * hw];
             for ky in 0..kh {
                 for kx in 0..kw {
-                    let row = &mut col[((c * kh + ky) * kw + kx) * hw..][..hw];
+                    let row = &mut col[((c * kh + ky) * kw + kx) * n..][..n];
                     let (cols, first) = self.valid_columns(kx);
-                    for oy in 0..h {
-                        let dst = &mut row[oy * w..(oy + 1) * w];
+                    for (j, oy) in rows.clone().enumerate() {
+                        let dst = &mut row[j * w..(j + 1) * w];
                         let iy = (oy + ky).checked_sub(self.padding[0]).filter(|&iy| iy < h);
                         match iy {
                             Some(iy) => {
@@ -169,22 +152,23 @@ impl ConvShape {
         }
     }
 
-    /// The adjoint of [`Self::im2col`]: `dx[c][iy][ix] += col[(c, ky, kx)][(oy, ox)]`; `dx` starts at zero.
-    fn col2im(&self, col: &[f32], dx: &mut [f32]) {
+    /// The adjoint of [`Self::im2col_rows`]: `dx[c][iy][ix] += col[(c, ky, kx)][(j, ox)]` for output rows `rows`.
+    fn col2im_rows(&self, col: &[f32], rows: std::ops::Range<usize>, dx: &mut [f32]) {
         let (h, w, hw) = (self.height, self.width, self.positions());
         let [kh, kw] = self.kernel;
+        let n = rows.len() * w;
         for c in 0..self.c_in {
             let plane = &mut dx[c * hw..(c + 1) * hw];
             for ky in 0..kh {
                 for kx in 0..kw {
-                    let row = &col[((c * kh + ky) * kw + kx) * hw..][..hw];
+                    let row = &col[((c * kh + ky) * kw + kx) * n..][..n];
                     let (cols, first) = self.valid_columns(kx);
-                    for oy in 0..h {
+                    for (j, oy) in rows.clone().enumerate() {
                         let Some(iy) = (oy + ky).checked_sub(self.padding[0]).filter(|&iy| iy < h)
                         else {
                             continue;
                         };
-                        let src = &row[oy * w + cols.start..oy * w + cols.end];
+                        let src = &row[j * w + cols.start..j * w + cols.end];
                         let dst = &mut plane[iy * w + first..][..cols.len()];
                         dst.iter_mut().zip(src).for_each(|(d, s)| *d += s);
                     }
@@ -192,7 +176,56 @@ impl ConvShape {
             }
         }
     }
+
+    /// Output rows per im2col block: enough that one block's columns (`taps × rows × width` floats) stay near
+    /// [`BLOCK_FLOATS`], so the matrix im2col writes is still in the core's cache when gemm packs it (a whole
+    /// sample's matrix is tens of MB at the finest level and made the convolutions memory-bound). A pointwise
+    /// convolution reads its input in place: one block.
+    fn block_rows(&self) -> usize {
+        if self.is_pointwise() {
+            self.height
+        } else {
+            (BLOCK_FLOATS / (self.taps() * self.width).max(1)).clamp(1, self.height.max(1))
+        }
+    }
+
+    /// Scratch elements one block of [`Self::block_columns`] needs.
+    fn block_len(&self) -> usize {
+        if self.is_pointwise() {
+            0
+        } else {
+            self.taps() * self.block_rows() * self.width
+        }
+    }
+
+    /// The output-row blocks of one sample, in order.
+    fn row_blocks(&self) -> impl Iterator<Item = std::ops::Range<usize>> {
+        let (h, step) = (self.height, self.block_rows());
+        (0..h)
+            .step_by(step.max(1))
+            .map(move |r| r..(r + step).min(h))
+    }
+
+    /// The im2col matrix of output rows `rows` (`taps × positions`): the input itself for a pointwise
+    /// convolution (whose single block is the whole plane), else built in `buffer`.
+    fn block_columns<'a>(
+        &self,
+        x: &'a [f32],
+        rows: std::ops::Range<usize>,
+        buffer: &'a mut [f32],
+    ) -> &'a [f32] {
+        if self.is_pointwise() {
+            x
+        } else {
+            let len = self.taps() * rows.len() * self.width;
+            self.im2col_rows(x, rows, &mut buffer[..len]);
+            &buffer[..len]
+        }
+    }
 }
+
+/// Target size of one im2col block, in floats (1 MiB): about a core's L2 on the machines measured.
+const BLOCK_FLOATS: usize = 1 << 18;
 
 /// Contiguous f32 input and weight of a convolution the kernels support (with a third operand of the same
 /// dtype when given: the bias or the output gradient), or `None`: the caller then takes the stock path.
@@ -281,18 +314,23 @@ pub fn conv2d(
                     .zip(bias)
                     .for_each(|(plane, &b)| plane.fill(b));
             }
-            with_scratch([s.im2col_len(), 0], |buffer, _| {
-                // Y (c_out × hw) [+]= W (c_out × taps) · col (taps × hw)
-                matmul(
-                    [s.c_out, hw, taps],
-                    y,
-                    [hw, 1],
-                    bias.is_some(),
-                    w,
-                    [taps, 1],
-                    s.columns(x, buffer),
-                    [hw, 1],
-                );
+            with_scratch([s.block_len(), 0], |buffer, _| {
+                for rows in s.row_blocks() {
+                    let (start, n) = (rows.start * s.width, rows.len() * s.width);
+                    // Y[:, block]ᵀ (n × c_out) [+]= colᵀ (n × taps) · Wᵀ (taps × c_out): positions as gemm's
+                    // rows, so its widest micro-kernel applies even where c_out is 16 or 32
+                    let col_stride = if s.is_pointwise() { hw } else { n };
+                    matmul(
+                        [n, s.c_out, taps],
+                        &mut y[start..],
+                        [1, hw],
+                        bias.is_some(),
+                        s.block_columns(x, rows, buffer),
+                        [1, col_stride],
+                        w,
+                        [1, taps],
+                    );
+                }
             });
         });
     from_vec(y, &[s.batch, s.c_out, s.height, s.width])
@@ -311,23 +349,28 @@ pub fn conv2d_x_grad(
     let (w, dy) = (slice(&wc), slice(&dy_c));
     let (hw, taps) = (s.positions(), s.taps());
     let (plane_in, plane_out) = s.planes();
+    let block = taps * s.block_rows() * s.width;
     let mut dx = vec![0.0f32; s.batch * plane_in];
     dx.par_chunks_mut(plane_in)
         .zip(dy.par_chunks(plane_out))
         .for_each(|(dx, dy)| {
-            with_scratch([taps * hw, 0], |col, _| {
-                // col (taps × hw) = Wᵀ (taps × c_out) · ∂Y (c_out × hw)
-                matmul(
-                    [taps, hw, s.c_out],
-                    col,
-                    [hw, 1],
-                    false,
-                    w,
-                    [1, taps],
-                    dy,
-                    [hw, 1],
-                );
-                s.col2im(col, dx);
+            with_scratch([block, 0], |col, _| {
+                for rows in s.row_blocks() {
+                    let (start, n) = (rows.start * s.width, rows.len() * s.width);
+                    let col = &mut col[..taps * n];
+                    // col (taps × n) = Wᵀ (taps × c_out) · ∂Y[:, block] (c_out × n)
+                    matmul(
+                        [taps, n, s.c_out],
+                        col,
+                        [n, 1],
+                        false,
+                        w,
+                        [1, taps],
+                        &dy[start..],
+                        [hw, 1],
+                    );
+                    s.col2im_rows(col, rows, dx);
+                }
             });
         });
     from_vec(dx, &s.input_shape())
@@ -349,28 +392,39 @@ pub fn conv2d_weight_grad(
     // Accumulated as ∂Wᵀ (taps × c_out, i.e. c_out contiguous) with ∂Y transposed to position-major first, so
     // that every gemm operand has its rows contiguous: the long reduction over positions then packs at memory
     // speed (with ∂Y·colᵀ on row-major data, packing the transposed operand cost more than the arithmetic).
+    // Blocks of output rows keep each block's columns and transposed ∂Y in cache ([`ConvShape::block_rows`]).
     // One partial per sample, summed in sample order: the result does not depend on how rayon split the work
     // (a fold/reduce would sum in an order set by work stealing, and training must be reproducible bit for bit).
+    let block_positions = s.block_rows() * s.width;
     let mut partials = vec![0.0f32; s.batch * taps * s.c_out];
     partials
         .par_chunks_mut(taps * s.c_out)
         .zip(xs.par_chunks(plane_in).zip(dy.par_chunks(plane_out)))
         .for_each(|(dw_t, (x, dy))| {
-            with_scratch([s.im2col_len(), hw * s.c_out], |buffer, dy_t| {
-                let col = s.columns(x, buffer);
-                transpose(dy, s.c_out, hw, dy_t);
-                // ∂W (c_out × taps) = ∂Y (c_out × hw) · colᵀ (hw × taps), stored column-major (= ∂Wᵀ row-major)
-                matmul(
-                    [s.c_out, taps, hw],
-                    dw_t,
-                    [1, s.c_out],
-                    false,
-                    dy_t,
-                    [1, s.c_out],
-                    col,
-                    [1, hw],
-                );
-            });
+            with_scratch(
+                [s.block_len(), block_positions * s.c_out],
+                |buffer, dy_t| {
+                    for (b, rows) in s.row_blocks().enumerate() {
+                        let (start, n) = (rows.start * s.width, rows.len() * s.width);
+                        let col = s.block_columns(x, rows, buffer);
+                        // A pointwise convolution's single block is the whole plane, with row stride `hw`.
+                        let col_stride = if s.is_pointwise() { hw } else { n };
+                        let dy_t = &mut dy_t[..n * s.c_out];
+                        transpose_strided(&dy[start..], s.c_out, n, hw, dy_t);
+                        // ∂Wᵀ (taps × c_out) [+]= col (taps × n) · ∂Y[:, block]ᵀ (n × c_out): taps as gemm's rows
+                        matmul(
+                            [taps, s.c_out, n],
+                            dw_t,
+                            [s.c_out, 1],
+                            b > 0,
+                            col,
+                            [col_stride, 1],
+                            dy_t,
+                            [s.c_out, 1],
+                        );
+                    }
+                },
+            );
         });
     let dw_t = sum_in_order(&partials, taps * s.c_out);
     let mut dw = vec![0.0f32; s.c_out * taps];
@@ -391,12 +445,17 @@ fn sum_in_order(partials: &[f32], len: usize) -> Vec<f32> {
 
 /// `dst (cols × rows) = srcᵀ` for a row-major `src (rows × cols)`, in cache-sized tiles.
 fn transpose(src: &[f32], rows: usize, cols: usize, dst: &mut [f32]) {
+    transpose_strided(src, rows, cols, cols, dst);
+}
+
+/// [`transpose`] of a `rows × cols` matrix whose rows start `src_stride` elements apart.
+fn transpose_strided(src: &[f32], rows: usize, cols: usize, src_stride: usize, dst: &mut [f32]) {
     const TILE: usize = 32;
     for r0 in (0..rows).step_by(TILE) {
         for c0 in (0..cols).step_by(TILE) {
             for r in r0..(r0 + TILE).min(rows) {
                 for c in c0..(c0 + TILE).min(cols) {
-                    dst[c * rows + r] = src[r * cols + c];
+                    dst[c * rows + r] = src[r * src_stride + c];
                 }
             }
         }
@@ -816,7 +875,7 @@ fn upsample_conv_operands(
 
 /// `conv3×3(nearest×2(x)) + b` computed on the coarse grid: for each of the four output phases a 2×2
 /// convolution with the 3×3 kernel's taps summed where they read the same coarse pixel (4/9 of the
-/// multiply-adds, and no upsampled copy of the input).
+/// multiply-adds, and no upsampled copy of the input), in cache-sized row blocks as [`conv2d`].
 pub fn upsample_conv2d(
     x: FloatTensor<Flex>,
     weight: FloatTensor<Flex>,
@@ -832,24 +891,28 @@ pub fn upsample_conv2d(
         .map(|p| phase_kernel(slice(&wc), s.c_out, s.c_in, p / 2, p % 2))
         .collect();
     let taps = 4 * s.c_in;
+    let block = phase_shape(&s, 0, 0).block_len();
     let mut y = vec![0.0f32; s.batch * s.c_out * 4 * hw];
     y.par_chunks_mut(s.c_out * 4 * hw)
         .zip(xs.par_chunks(plane_in))
         .for_each(|(y, x)| {
-            with_scratch([taps * hw, s.c_out * hw], |col, y_ab| {
+            with_scratch([block, s.c_out * hw], |col, y_ab| {
                 for (p, k) in kernels.iter().enumerate() {
                     let (a, b) = (p / 2, p % 2);
-                    phase_shape(&s, a, b).im2col(x, col);
-                    matmul(
-                        [s.c_out, hw, taps],
-                        y_ab,
-                        [hw, 1],
-                        false,
-                        k,
-                        [taps, 1],
-                        col,
-                        [hw, 1],
-                    );
+                    let phase = phase_shape(&s, a, b);
+                    for rows in phase.row_blocks() {
+                        let (start, n) = (rows.start * w, rows.len() * w);
+                        matmul(
+                            [s.c_out, n, taps],
+                            &mut y_ab[start..],
+                            [hw, 1],
+                            false,
+                            k,
+                            [taps, 1],
+                            phase.block_columns(x, rows, col),
+                            [n, 1],
+                        );
+                    }
                     for (o, plane) in y_ab.chunks(hw).enumerate() {
                         let shift = bias.map_or(0.0, |b| b[o]);
                         let out = &mut y[o * 4 * hw..(o + 1) * 4 * hw];
@@ -890,32 +953,38 @@ pub fn upsample_conv2d_x_grad(
         return reference::upsample_conv2d_x_grad::<Flex>(x, weight, output_grad);
     };
     let dy = slice(&dy_c);
-    let hw = s.positions();
+    let (w, hw) = (s.width, s.positions());
     let (plane_in, _) = s.planes();
     let kernels: Vec<Vec<f32>> = (0..4)
         .map(|p| phase_kernel(slice(&wc), s.c_out, s.c_in, p / 2, p % 2))
         .collect();
     let taps = 4 * s.c_in;
+    let block = phase_shape(&s, 0, 0).block_len();
     let mut dx = vec![0.0f32; s.batch * plane_in];
     dx.par_chunks_mut(plane_in)
         .zip(dy.par_chunks(s.c_out * 4 * hw))
         .for_each(|(dx, dy)| {
-            with_scratch([taps * hw, s.c_out * hw], |col, dy_ab| {
+            with_scratch([block, s.c_out * hw], |col, dy_ab| {
                 for (p, k) in kernels.iter().enumerate() {
                     let (a, b) = (p / 2, p % 2);
+                    let phase = phase_shape(&s, a, b);
                     gather_phase(dy, &s, a, b, dy_ab);
-                    // col (taps × hw) = K_abᵀ (taps × c_out) · ∂Y_ab (c_out × hw)
-                    matmul(
-                        [taps, hw, s.c_out],
-                        col,
-                        [hw, 1],
-                        false,
-                        k,
-                        [1, taps],
-                        dy_ab,
-                        [hw, 1],
-                    );
-                    phase_shape(&s, a, b).col2im(col, dx);
+                    for rows in phase.row_blocks() {
+                        let (start, n) = (rows.start * w, rows.len() * w);
+                        let col = &mut col[..taps * n];
+                        // col (taps × n) = K_abᵀ (taps × c_out) · ∂Y_ab[:, block] (c_out × n)
+                        matmul(
+                            [taps, n, s.c_out],
+                            col,
+                            [n, 1],
+                            false,
+                            k,
+                            [1, taps],
+                            &dy_ab[start..],
+                            [hw, 1],
+                        );
+                        phase.col2im_rows(col, rows, dx);
+                    }
                 }
             });
         });
@@ -932,51 +1001,123 @@ pub fn upsample_conv2d_weight_grad(
         return reference::upsample_conv2d_weight_grad::<Flex>(x, weight, output_grad);
     };
     let (xs, dy) = (slice(&xc), slice(&dy_c));
-    let hw = s.positions();
+    let (w, hw) = (s.width, s.positions());
     let (plane_in, _) = s.planes();
-    let (taps, weights) = (4 * s.c_in, s.c_out * s.c_in * 9);
-    // One partial ∂W per sample, summed in sample order (bit-reproducible, as the plain convolution's).
-    let mut partials = vec![0.0f32; s.batch * weights];
+    let taps = 4 * s.c_in;
+    let phase_len = taps * s.c_out;
+    let block = phase_shape(&s, 0, 0).block_len();
+    // One partial per sample of the four phase kernels' gradients ∂K_ab (stored ∂K_abᵀ: taps × c_out), summed
+    // in sample order (bit-reproducible, as the plain convolution's); the fold of each coarse tap back onto the
+    // 3×3 taps it summed is linear, so it runs once on the sum instead of once per sample (it scatters with a
+    // stride of c_in·9 and cost as much as the arithmetic when done per sample).
+    let mut partials = vec![0.0f32; s.batch * 4 * phase_len];
     partials
-        .par_chunks_mut(weights)
+        .par_chunks_mut(4 * phase_len)
         .zip(xs.par_chunks(plane_in).zip(dy.par_chunks(s.c_out * 4 * hw)))
-        .for_each(|(dw, (x, dy))| {
-            let mut dk_t = vec![0.0f32; taps * s.c_out];
-            with_scratch([taps * hw, 2 * s.c_out * hw], |col, buffers| {
+        .for_each(|(dk_t, (x, dy))| {
+            with_scratch([block, 2 * s.c_out * hw], |col, buffers| {
                 let (dy_ab, dy_t) = buffers.split_at_mut(s.c_out * hw);
-                for p in 0..4 {
+                for (p, dk_t) in dk_t.chunks_mut(phase_len).enumerate() {
                     let (a, b) = (p / 2, p % 2);
-                    phase_shape(&s, a, b).im2col(x, col);
+                    let phase = phase_shape(&s, a, b);
                     gather_phase(dy, &s, a, b, dy_ab);
                     transpose(dy_ab, s.c_out, hw, dy_t);
-                    // ∂K_ab (c_out × taps) = ∂Y_ab · colᵀ, stored column-major (taps × c_out)
-                    matmul(
-                        [s.c_out, taps, hw],
-                        &mut dk_t,
-                        [1, s.c_out],
-                        false,
-                        dy_t,
-                        [1, s.c_out],
-                        col,
-                        [1, hw],
-                    );
-                    // Each coarse tap (t, u) of phase (a, b) spreads back onto the 3×3 taps it summed.
-                    for c in 0..s.c_in {
-                        for t in 0..2 {
-                            for u in 0..2 {
-                                let row = &dk_t[((c * 2 + t) * 2 + u) * s.c_out..][..s.c_out];
-                                for &ky in PHASE_TAPS[a][t] {
-                                    for &kx in PHASE_TAPS[b][u] {
-                                        for (o, &g) in row.iter().enumerate() {
-                                            dw[(o * s.c_in + c) * 9 + ky * 3 + kx] += g;
-                                        }
-                                    }
-                                }
-                            }
-                        }
+                    for (i, rows) in phase.row_blocks().enumerate() {
+                        let (start, n) = (rows.start * w, rows.len() * w);
+                        // ∂K_ab (c_out × taps) [+]= ∂Y_ab[:, block] · colᵀ, stored column-major (taps × c_out)
+                        matmul(
+                            [s.c_out, taps, n],
+                            dk_t,
+                            [1, s.c_out],
+                            i > 0,
+                            &dy_t[start * s.c_out..],
+                            [1, s.c_out],
+                            phase.block_columns(x, rows, col),
+                            [1, n],
+                        );
                     }
                 }
             });
         });
-    from_vec(sum_in_order(&partials, weights), &[s.c_out, s.c_in, 3, 3])
+    let dk_t = sum_in_order(&partials, 4 * phase_len);
+    // Each coarse tap (t, u) of phase (a, b) spreads back onto the 3×3 taps it summed.
+    let mut dw = vec![0.0f32; s.c_out * s.c_in * 9];
+    for (p, dk_t) in dk_t.chunks(phase_len).enumerate() {
+        let (a, b) = (p / 2, p % 2);
+        for c in 0..s.c_in {
+            for t in 0..2 {
+                for u in 0..2 {
+                    let row = &dk_t[((c * 2 + t) * 2 + u) * s.c_out..][..s.c_out];
+                    for &ky in PHASE_TAPS[a][t] {
+                        for &kx in PHASE_TAPS[b][u] {
+                            for (o, &g) in row.iter().enumerate() {
+                                dw[(o * s.c_in + c) * 9 + ky * 3 + kx] += g;
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
+    from_vec(dw, &[s.c_out, s.c_in, 3, 3])
+}
+
+/// `[a, b]` joined along channels: per sample, `a`'s planes then `b`'s, two contiguous copies.
+pub fn join_channels(a: FloatTensor<Flex>, b: FloatTensor<Flex>) -> FloatTensor<Flex> {
+    use burn::tensor::ops::FloatTensorOps;
+    let (Some((ac, a_shape)), Some((bc, b_shape))) = (f32_data(&a), f32_data(&b)) else {
+        return <Flex as FloatTensorOps<Flex>>::float_cat(vec![a, b], 1);
+    };
+    let (sample_a, sample_b) = (
+        a_shape[1..].iter().product::<usize>(),
+        b_shape[1..].iter().product::<usize>(),
+    );
+    if sample_a == 0 || sample_b == 0 {
+        return <Flex as FloatTensorOps<Flex>>::float_cat(vec![a, b], 1);
+    }
+    let mut out = vec![0.0f32; a_shape[0] * (sample_a + sample_b)];
+    out.par_chunks_mut(sample_a + sample_b)
+        .zip(
+            slice(&ac)
+                .par_chunks(sample_a)
+                .zip(slice(&bc).par_chunks(sample_b)),
+        )
+        .for_each(|(out, (a, b))| {
+            out[..sample_a].copy_from_slice(a);
+            out[sample_a..].copy_from_slice(b);
+        });
+    let mut shape = a_shape;
+    shape[1] += b_shape[1];
+    from_vec(out, &shape)
+}
+
+/// Channels `..first` and `first..` of `[N, C, ...]` as two contiguous tensors.
+pub fn split_channels(
+    t: FloatTensor<Flex>,
+    first: usize,
+) -> (FloatTensor<Flex>, FloatTensor<Flex>) {
+    let Some((tc, shape)) = f32_data(&t) else {
+        return reference::split_channels::<Flex>(t, first);
+    };
+    let plane = shape[2..].iter().product::<usize>();
+    let (sample, sample_a) = (shape[1] * plane, first * plane);
+    let sample_b = sample - sample_a;
+    if sample_a == 0 || sample_b == 0 {
+        return reference::split_channels::<Flex>(t, first);
+    }
+    let (mut a, mut b) = (
+        vec![0.0f32; shape[0] * sample_a],
+        vec![0.0f32; shape[0] * sample_b],
+    );
+    a.par_chunks_mut(sample_a)
+        .zip(b.par_chunks_mut(sample_b))
+        .zip(slice(&tc).par_chunks(sample))
+        .for_each(|((a, b), t)| {
+            a.copy_from_slice(&t[..sample_a]);
+            b.copy_from_slice(&t[sample_a..]);
+        });
+    let (mut a_shape, mut b_shape) = (shape.clone(), shape);
+    a_shape[1] = first;
+    b_shape[1] -= first;
+    (from_vec(a, &a_shape), from_vec(b, &b_shape))
 }

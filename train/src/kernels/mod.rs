@@ -172,6 +172,22 @@ pub trait TrainOps: Backend {
         .x_grad
     }
 
+    /// `[a, b]` joined along channels (`[N, Ca, H, W]`, `[N, Cb, H, W]` → `[N, Ca + Cb, H, W]`): the U-Net's skip
+    /// join. Graph node under `Autodiff`, whose backward hands each input a contiguous gradient
+    /// ([`TrainOps::train_split_channels`]) where the stock concatenation's slices left strided views that every
+    /// following operation, and the gradient sum at the skip, iterated slowly.
+    fn train_join_channels(a: FloatTensor<Self>, b: FloatTensor<Self>) -> FloatTensor<Self> {
+        Self::float_cat(vec![a, b], 1)
+    }
+
+    /// The inverse of [`TrainOps::train_join_channels`]: channels `..first` and `first..` of `[N, C, H, W]`.
+    fn train_split_channels(
+        t: FloatTensor<Self>,
+        first: usize,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>) {
+        reference::split_channels::<Self>(t, first)
+    }
+
     /// Training-mode BatchNorm (batch statistics) followed by LeakyReLU with `slope`.
     fn batch_norm_leaky_relu(
         x: FloatTensor<Self>,
@@ -304,6 +320,17 @@ impl TrainOps for burn::backend::Flex {
         })
     }
 
+    fn train_join_channels(a: FloatTensor<Self>, b: FloatTensor<Self>) -> FloatTensor<Self> {
+        timed(Kernel::JoinChannels, || cpu::join_channels(a, b))
+    }
+
+    fn train_split_channels(
+        t: FloatTensor<Self>,
+        first: usize,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>) {
+        timed(Kernel::SplitChannels, || cpu::split_channels(t, first))
+    }
+
     fn batch_norm_leaky_relu(
         x: FloatTensor<Self>,
         gamma: FloatTensor<Self>,
@@ -402,6 +429,11 @@ pub fn upsample_conv2d<B: TrainOps>(conv: &Conv2d<B>, x: Tensor<B, 4>) -> Tensor
         primitive(conv.weight.val()),
         conv.bias.as_ref().map(|b| primitive(b.val())),
     ))
+}
+
+/// `Tensor::cat(vec![a, b], 1)` through [`TrainOps::train_join_channels`].
+pub fn join_channels<B: TrainOps>(a: Tensor<B, 4>, b: Tensor<B, 4>) -> Tensor<B, 4> {
+    tensor(B::train_join_channels(primitive(a), primitive(b)))
 }
 
 /// `pool.forward(x)` through [`TrainOps::max_pool2x2`]; the network pools 2 × 2 with stride 2 only (panics on

@@ -22,10 +22,13 @@ pub enum Kernel {
     /// The up path's nearest ×2 + 3×3 convolution (computed on the coarse grid).
     UpConvForward,
     UpConvBackward,
+    /// The skip join (channel concatenation) and its gradient's split.
+    JoinChannels,
+    SplitChannels,
 }
 
 impl Kernel {
-    pub const ALL: [Kernel; 12] = [
+    pub const ALL: [Kernel; 14] = [
         Kernel::ConvForward,
         Kernel::ConvInputGrad,
         Kernel::ConvWeightGrad,
@@ -38,6 +41,8 @@ impl Kernel {
         Kernel::DropoutBackward,
         Kernel::UpConvForward,
         Kernel::UpConvBackward,
+        Kernel::JoinChannels,
+        Kernel::SplitChannels,
     ];
 }
 

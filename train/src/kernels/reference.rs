@@ -159,3 +159,16 @@ pub fn upsample_conv2d_weight_grad<B: Backend>(
     let fine = primitive(upsample2x(tensor::<B, 4>(x)));
     B::conv2d_weight_backward(fine, weight, output_grad, same_3x3())
 }
+
+/// Channels `..first` and `first..` of `[N, C, H, W]` (stock slices: views where the backend makes them).
+pub fn split_channels<B: Backend>(
+    t: FloatTensor<B>,
+    first: usize,
+) -> (FloatTensor<B>, FloatTensor<B>) {
+    let t = tensor::<B, 4>(t);
+    let c = t.dims()[1];
+    (
+        primitive(t.clone().narrow(1, 0, first)),
+        primitive(t.narrow(1, first, c - first)),
+    )
+}

@@ -339,3 +339,79 @@ fn upsample_conv2d_matches_interpolate_then_conv() {
     assert_close("reference dx", values(tensor::<Flex, 4>(dx)), stock.1, 1e-5);
     assert_close("reference dW", values(tensor::<Flex, 4>(dw)), stock.2, 1e-5);
 }
+
+/// Planes large enough that the kernels work in several row blocks (`cpu::ConvShape::block_rows`: 3 blocks for
+/// the 3×3 convolution's 288 taps × 64 columns, 2 for the up convolution's 128 phase taps): output and every
+/// gradient against the stock operations and autodiff, so a block boundary that dropped or repeated a row fails.
+#[test]
+fn blocked_convolutions_match_stock_on_planes_larger_than_a_block() {
+    use burn::tensor::module::interpolate;
+    use burn::tensor::ops::{InterpolateMode, InterpolateOptions};
+    let device = Default::default();
+    let (c_in, c_out, h, w) = (32, 8, 40, 64);
+    let conv = Conv2dConfig::new([c_in, c_out], [3, 3])
+        .with_padding(PaddingConfig2d::Explicit(1, 1, 1, 1))
+        .init::<Ad>(&device);
+    for up in [false, true] {
+        let out_hw = if up { [2 * h, 2 * w] } else { [h, w] };
+        let weights = random([2, c_out, out_hw[0], out_hw[1]], 81);
+        let run = |fused: bool| {
+            let x = random([2, c_in, h, w], 80).require_grad();
+            let y = match (up, fused) {
+                (false, true) => conv2d(&conv, x.clone()),
+                (false, false) => conv.forward(x.clone()),
+                (true, true) => upsample_conv2d(&conv, x.clone()),
+                (true, false) => conv.forward(interpolate(
+                    x.clone(),
+                    out_hw,
+                    InterpolateOptions::new(InterpolateMode::Nearest),
+                )),
+            };
+            let grads = (y.clone() * weights.clone()).sum().backward();
+            (
+                values(y),
+                values(x.grad(&grads).unwrap()),
+                values(conv.weight.grad(&grads).unwrap()),
+            )
+        };
+        let (fused, stock) = (run(true), run(false));
+        let what = if up { "up conv" } else { "3x3 conv" };
+        assert_close(&format!("{what} output"), fused.0, stock.0, 1e-5);
+        assert_close(&format!("{what} dx"), fused.1, stock.1, 1e-5);
+        assert_close(&format!("{what} dW"), fused.2, stock.2, 1e-5);
+    }
+}
+
+/// The skip join against `Tensor::cat` through autodiff (values and both inputs' gradients, which must also come
+/// back contiguous), and the stock-op split (CUDA's path) against the CPU split.
+#[test]
+fn join_channels_matches_cat_and_splits_its_gradient() {
+    let weights = random([3, 7, 6, 5], 91);
+    let run = |fused: bool| {
+        let a = random([3, 4, 6, 5], 92).require_grad();
+        let b = random([3, 3, 6, 5], 93).require_grad();
+        let y = if fused {
+            join_channels(a.clone(), b.clone())
+        } else {
+            Tensor::cat(vec![a.clone(), b.clone()], 1)
+        };
+        let grads = (y.clone() * weights.clone()).sum().backward();
+        let (ga, gb) = (a.grad(&grads).unwrap(), b.grad(&grads).unwrap());
+        if fused {
+            for g in [&ga, &gb] {
+                assert!(
+                    primitive(g.clone()).is_contiguous(),
+                    "split gradients are contiguous"
+                );
+            }
+        }
+        (values(y), values(ga), values(gb))
+    };
+    let (fused, stock) = (run(true), run(false));
+    assert_eq!(fused, stock, "a copy and its split are exact");
+    let t = primitive(weights.inner());
+    let (a, b) = Flex::train_split_channels(t.clone(), 4);
+    let (ra, rb) = reference::split_channels::<Flex>(t, 4);
+    assert_eq!(values(tensor::<Flex, 4>(a)), values(tensor::<Flex, 4>(ra)));
+    assert_eq!(values(tensor::<Flex, 4>(b)), values(tensor::<Flex, 4>(rb)));
+}
