@@ -15,6 +15,7 @@ pub mod hapke;
 pub mod horizon;
 #[cfg(feature = "client")]
 pub mod loadtest;
+pub mod malloc;
 pub mod manifest;
 pub mod planner;
 pub mod publication;

@@ -14,13 +14,11 @@ use pipeline::synth::{config, WorldConfig};
 /// with these values. A 1 GiB trim threshold was faster still but raised peak RSS to 2.6 GB, past the 2 GiB budget;
 /// mimalloc was slower (publish 92 s against 72 s with glibc at a 1 GiB trim threshold).
 fn tune_allocator() {
-    #[cfg(all(target_os = "linux", target_env = "gnu"))]
-    // SAFETY: mallopt only sets allocator parameters; called once, before any other thread exists.
-    unsafe {
-        libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20);
-        libc::mallopt(libc::M_TRIM_THRESHOLD, 128 << 20);
-        libc::mallopt(libc::M_ARENA_MAX, 4);
-    }
+    dataset::malloc::tune(dataset::malloc::MallocSettings {
+        mmap_threshold: 32 << 20,
+        trim_threshold: 128 << 20,
+        arena_max: Some(4),
+    });
 }
 
 #[derive(Parser)]

@@ -4,7 +4,7 @@
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use dataset::brdf::BrdfModel;
 use train::data::{open_source, SampleSource, StreamConfig};
@@ -378,6 +378,19 @@ Measure on an idle machine; compare only figures from the same sitting."
         #[arg(long, default_value_t = 3, requires = "torch")]
         rounds: usize,
     },
+    /// Write docs/results.md from the JSON result records in docs/results/ (one file per section, in file-name
+    /// order); with --check, write nothing and fail when the page differs from what the records give.
+    ResultsPage {
+        /// Directory of result records (`NN-name.json`).
+        #[arg(long, default_value = "docs/results")]
+        records: PathBuf,
+        /// The Markdown page written (or, with --check, compared).
+        #[arg(long, default_value = "docs/results.md")]
+        out: PathBuf,
+        /// Compare instead of writing: exit non-zero when --out is not exactly the generated page.
+        #[arg(long)]
+        check: bool,
+    },
 }
 
 /// The inference backend under an autodiff backend `B`.
@@ -420,7 +433,20 @@ fn run_fit(
     with_backend!(args.backend, B => fit::<B>(source, &config, out, resume, stop, &Default::default(), true))
 }
 
+/// Keep freed activation-sized buffers (up to 17 MB at width 16, batch 8) in glibc's heap: with the defaults, which
+/// buffers came back as fresh mappings (page faults, zeroing, TLB shootdowns) shifted with unrelated changes to
+/// the step and moved it by 10 % (`docs/performance.md`). With these values the width-16 bench step was 455–467 ms
+/// against 516–525 ms with the defaults, in one sitting.
+fn tune_allocator() {
+    dataset::malloc::tune(dataset::malloc::MallocSettings {
+        mmap_threshold: 32 << 20,
+        trim_threshold: 256 << 20,
+        arena_max: None,
+    });
+}
+
 fn main() {
+    tune_allocator();
     dataset::init_logging();
     if let Err(e) = run(Cli::parse()) {
         eprintln!("error: {}", format!("{e:#}").replace('\n', " "));
@@ -655,6 +681,30 @@ fn run(cli: Cli) -> Result<()> {
                 }
             };
             println!("{json}");
+        }
+        Command::ResultsPage {
+            records,
+            out,
+            check,
+        } => {
+            let page = train::results_page::render_results_page(&records)?;
+            if check {
+                let written = std::fs::read_to_string(&out)
+                    .with_context(|| format!("{}: cannot read the results page", out.display()))?;
+                anyhow::ensure!(
+                    written == page,
+                    "{} differs from the records in {}: run `g2r-train results-page --records {} --out {}`",
+                    out.display(),
+                    records.display(),
+                    records.display(),
+                    out.display()
+                );
+                println!("{} is what {} give", out.display(), records.display());
+            } else {
+                dataset::manifest::write_text_atomic(&out, &page)
+                    .with_context(|| format!("{}: cannot write the results page", out.display()))?;
+                println!("wrote {}", out.display());
+            }
         }
     }
     Ok(())
