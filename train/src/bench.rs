@@ -10,7 +10,7 @@ use dataset::schema::CROP_PX;
 
 use crate::kernels::TrainBackend;
 use crate::model::UNetConfig;
-use crate::renderer_layer::{masked_mse, render, SceneTerms};
+use crate::renderer_layer::{render_loss, SceneTerms};
 use crate::testing::synthetic_batch;
 use crate::training::train_loss;
 
@@ -106,7 +106,7 @@ pub fn bench<B: TrainBackend>(
         let t = Instant::now();
         let scene = SceneTerms::<B>::from_host(&batch, model, device);
         terms_s.set(terms_s.get() + t.elapsed().as_secs_f64());
-        let loss = masked_mse(render(params.clone(), &scene), image.clone(), scene.valid);
+        let loss = render_loss(params.clone(), &scene, image.clone());
         let grads = loss.backward();
         params
             .grad(&grads)

@@ -17,6 +17,7 @@ use dataset::schema::{CROP_PX, DEM_PX};
 use rayon::prelude::*;
 
 use crate::data::HostBatch;
+use crate::kernels::TrainOps;
 
 /// A batch's constant inputs to the layer, on the device.
 #[derive(Clone, Debug)]
@@ -81,14 +82,21 @@ pub fn render<B: Backend>(raw_params: Tensor<B, 4>, scene: &SceneTerms<B>) -> Te
     (leaky_relu(raw_params, LEAKY_SLOPE) * scene.terms.clone()).sum_dim(1)
 }
 
-/// Mean squared error over valid pixels of the whole batch; 0 (with zero gradient) when no pixel is valid.
-pub fn masked_mse<B: Backend>(
-    rendered: Tensor<B, 4>,
+/// The train step's loss, the mean squared error of [`render`] over the valid pixels of the whole batch (0, with a
+/// zero gradient, when none is valid), as one operation ([`crate::kernels::render_masked_mse`]),
+/// the same value and gradient (tested) in one pass each way instead of a dozen broadcasting tensor operations.
+pub fn render_loss<B: TrainOps>(
+    raw_params: Tensor<B, 4>,
+    scene: &SceneTerms<B>,
     image: Tensor<B, 4>,
-    valid: Tensor<B, 4>,
 ) -> Tensor<B, 1> {
-    let count = valid.clone().sum().clamp_min(1.0);
-    ((rendered - image).square() * valid).sum() / count
+    crate::kernels::render_masked_mse(
+        raw_params,
+        scene.terms.clone(),
+        image,
+        scene.valid.clone(),
+        LEAKY_SLOPE,
+    )
 }
 
 /// The scalar f64 reference ([`dataset::geometry::crop_pixel_geometry`] + [`dataset::brdf::render_crop`]) applied

@@ -27,10 +27,10 @@ use crate::data::{
 use crate::kernels::{TrainBackend, TrainOps};
 use crate::metrics::{AggregateMetrics, MetricsAccumulator};
 use crate::model::{UNet, UNetConfig};
-use crate::renderer_layer::masked_mse;
+use crate::renderer_layer::{render_loss, SceneTerms};
 use dataset::schema::{Split, CROP_PX};
 
-use crate::prediction::{predict_images, render_batch};
+use crate::prediction::{net_outputs, predict_images};
 use crate::run::{
     append_jsonl, read_history, read_json, run_input, save_last, save_model, write_json,
     Checkpoint, Cursor, EpochMetrics, FitConfig, HeadInit, Normalisation, Rec, ValMetrics,
@@ -97,12 +97,12 @@ pub fn train_loss<B: TrainBackend>(
     batch: &HostBatch,
     device: &B::Device,
 ) -> Tensor<B, 1> {
-    let (rendered, scene) = render_batch(net, model, batch, device);
+    let scene = SceneTerms::<B>::from_host(batch, model, device);
     let image = Tensor::<B, 4>::from_data(
         TensorData::new(batch.image.clone(), [batch.len(), 1, 128, 128]),
         device,
     );
-    masked_mse(rendered, image, scene.valid)
+    render_loss(net_outputs(net, batch, device), &scene, image)
 }
 
 /// Validation over (up to `max`, spread evenly over the split) val samples, in inference mode, one row group in memory at a time.

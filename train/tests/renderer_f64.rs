@@ -8,7 +8,7 @@ use burn::tensor::{set_default_dtypes, FloatDType, IntDType};
 use dataset::brdf::BrdfModel;
 use dataset::schema::CROP_PX;
 use train::data::{HostBatch, InputNormalisation};
-use train::renderer_layer::{masked_mse, reference_render, render, SceneTerms};
+use train::renderer_layer::{reference_render, render, render_loss, SceneTerms};
 use train::testing::{hard_case_samples, synthetic_samples, test_params};
 
 type Ad = Autodiff<Flex>;
@@ -89,14 +89,11 @@ fn scene(batch: &HostBatch, model: BrdfModel) -> Scene {
     }
 }
 
-/// Loss and its gradient w.r.t. the parameter maps.
+/// Loss and its gradient w.r.t. the parameter maps, through the train step's fused loss (on f64 tensors, its
+/// stock-operation path: `kernels::reference::render_masked_mse`).
 fn loss_and_grad(model: BrdfModel, scene: &Scene, params: &[f64]) -> (f64, Vec<f64>) {
     let p = params_tensor(model, params.to_vec(), scene.n).require_grad();
-    let loss = masked_mse(
-        render(p.clone(), &scene.terms),
-        scene.image.clone(),
-        scene.terms.valid.clone(),
-    );
+    let loss = render_loss(p.clone(), &scene.terms, scene.image.clone());
     let value = loss.clone().into_data().into_vec::<f64>().unwrap()[0];
     let grads = loss.backward();
     (

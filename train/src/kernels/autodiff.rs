@@ -12,7 +12,7 @@ use burn::tensor::backend::AutodiffBackend;
 use burn::tensor::ops::{ConvOptions, FloatTensor, IntTensor};
 use burn::tensor::TensorMetadata;
 
-use super::{DropoutOutput, MaxPoolOutput, NormOutput, TrainOps};
+use super::{DropoutOutput, MaxPoolOutput, NormOutput, RenderLoss, TrainOps};
 
 #[derive(Debug)]
 struct Conv2dWithBias;
@@ -172,6 +172,30 @@ impl<B: TrainOps> Backward<B, 2> for JoinChannels {
             if let Some(node) = node {
                 grads.register::<B>(node.id, value);
             }
+        }
+    }
+}
+
+#[derive(Debug)]
+struct RenderMaskedMse;
+
+impl<B: TrainOps> Backward<B, 1> for RenderMaskedMse {
+    /// The raw parameters' checkpoint, the scene terms, ∂loss/∂rendered and the LeakyReLU slope.
+    type State = (NodeId, FloatTensor<B>, FloatTensor<B>, f64);
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 1>,
+        grads: &mut Gradients,
+        checkpointer: &mut Checkpointer,
+    ) {
+        let grad = grads.consume::<B>(&ops.node);
+        let (raw, terms, residual, slope) = ops.state;
+        let raw = checkpointer.retrieve_node_output::<FloatTensor<B>>(raw);
+        let [node_raw] = ops.parents;
+        if let Some(node) = node_raw {
+            let g = B::render_masked_mse_backward(raw, terms, residual, grad, slope);
+            grads.register::<B>(node.id, g);
         }
     }
 }
@@ -337,6 +361,45 @@ impl<B: TrainOps, C: CheckpointStrategy> TrainOps for Autodiff<B, C> {
                 weight.primitive,
                 Some(bias.primitive),
             )),
+        }
+    }
+
+    fn render_masked_mse(
+        raw: FloatTensor<Self>,
+        terms: FloatTensor<Self>,
+        image: FloatTensor<Self>,
+        valid: FloatTensor<Self>,
+        slope: f64,
+    ) -> RenderLoss<Self> {
+        // The scene (terms, image, mask) is a constant of the batch: only `raw` is a parent.
+        let prep = RenderMaskedMse
+            .prepare::<C>([raw.node.clone()])
+            .compute_bound()
+            .stateful();
+        let run = |raw: FloatTensor<B>| {
+            B::render_masked_mse(
+                raw,
+                terms.primitive.clone(),
+                image.primitive,
+                valid.primitive,
+                slope,
+            )
+        };
+        let (loss, residual) = match prep {
+            OpsKind::Tracked(mut prep) => {
+                let raw_id = prep.checkpoint(&raw);
+                let out = run(raw.primitive);
+                let state = (raw_id, terms.primitive, out.residual.clone(), slope);
+                (prep.finish(state, out.loss), out.residual)
+            }
+            OpsKind::UnTracked(prep) => {
+                let out = run(raw.primitive);
+                (prep.finish(out.loss), out.residual)
+            }
+        };
+        RenderLoss {
+            loss,
+            residual: Self::from_inner(residual),
         }
     }
 

@@ -55,6 +55,13 @@ pub struct MaxPoolOutput<B: Backend> {
     pub argmax: IntTensor<B>,
 }
 
+/// The renderer layer's loss (`[1]`) and its gradient with respect to the rendered image, `[N, 1, H, W]`.
+#[derive(Debug, Clone)]
+pub struct RenderLoss<B: Backend> {
+    pub loss: FloatTensor<B>,
+    pub residual: FloatTensor<B>,
+}
+
 /// Gradients of the fused BatchNorm + LeakyReLU with respect to its input, scale and shift.
 #[derive(Debug, Clone)]
 pub struct NormGrads<B: Backend> {
@@ -186,6 +193,31 @@ pub trait TrainOps: Backend {
         first: usize,
     ) -> (FloatTensor<Self>, FloatTensor<Self>) {
         reference::split_channels::<Self>(t, first)
+    }
+
+    /// The renderer layer's masked MSE from raw parameter maps `[N, P, H, W]`, the scene's terms (same shape),
+    /// the photograph and its 0/1 valid mask (`[N, 1, H, W]`): `Σ valid·(Σ_k LeakyReLU(p_k)·T_k − I)² /
+    /// max(Σ valid, 1)`. Under `Autodiff` one graph node whose only tracked input is `raw` (the scene is a
+    /// constant of the batch), in place of a dozen stock operations and their broadcasting backward passes.
+    fn render_masked_mse(
+        raw: FloatTensor<Self>,
+        terms: FloatTensor<Self>,
+        image: FloatTensor<Self>,
+        valid: FloatTensor<Self>,
+        slope: f64,
+    ) -> RenderLoss<Self> {
+        reference::render_masked_mse::<Self>(raw, terms, image, valid, slope)
+    }
+
+    /// ∂L/∂raw of [`TrainOps::render_masked_mse`], given the loss's incoming gradient `loss_grad` (`[1]`).
+    fn render_masked_mse_backward(
+        raw: FloatTensor<Self>,
+        terms: FloatTensor<Self>,
+        residual: FloatTensor<Self>,
+        loss_grad: FloatTensor<Self>,
+        slope: f64,
+    ) -> FloatTensor<Self> {
+        reference::render_masked_mse_backward::<Self>(raw, terms, residual, loss_grad, slope)
     }
 
     /// Training-mode BatchNorm (batch statistics) followed by LeakyReLU with `slope`.
@@ -320,6 +352,30 @@ impl TrainOps for burn::backend::Flex {
         })
     }
 
+    fn render_masked_mse(
+        raw: FloatTensor<Self>,
+        terms: FloatTensor<Self>,
+        image: FloatTensor<Self>,
+        valid: FloatTensor<Self>,
+        slope: f64,
+    ) -> RenderLoss<Self> {
+        timed(Kernel::RenderLoss, || {
+            cpu::render_masked_mse(raw, terms, image, valid, slope)
+        })
+    }
+
+    fn render_masked_mse_backward(
+        raw: FloatTensor<Self>,
+        terms: FloatTensor<Self>,
+        residual: FloatTensor<Self>,
+        loss_grad: FloatTensor<Self>,
+        slope: f64,
+    ) -> FloatTensor<Self> {
+        timed(Kernel::RenderLossBackward, || {
+            cpu::render_masked_mse_backward(raw, terms, residual, loss_grad, slope)
+        })
+    }
+
     fn train_join_channels(a: FloatTensor<Self>, b: FloatTensor<Self>) -> FloatTensor<Self> {
         timed(Kernel::JoinChannels, || cpu::join_channels(a, b))
     }
@@ -434,6 +490,27 @@ pub fn upsample_conv2d<B: TrainOps>(conv: &Conv2d<B>, x: Tensor<B, 4>) -> Tensor
 /// `Tensor::cat(vec![a, b], 1)` through [`TrainOps::train_join_channels`].
 pub fn join_channels<B: TrainOps>(a: Tensor<B, 4>, b: Tensor<B, 4>) -> Tensor<B, 4> {
     tensor(B::train_join_channels(primitive(a), primitive(b)))
+}
+
+/// The renderer layer's masked MSE through [`TrainOps::render_masked_mse`] (LeakyReLU slope `slope` on the raw
+/// parameters); `terms`, `image` and `valid` are constants of the batch and get no gradient.
+pub fn render_masked_mse<B: TrainOps>(
+    raw: Tensor<B, 4>,
+    terms: Tensor<B, 4>,
+    image: Tensor<B, 4>,
+    valid: Tensor<B, 4>,
+    slope: f64,
+) -> Tensor<B, 1> {
+    tensor(
+        B::render_masked_mse(
+            primitive(raw),
+            primitive(terms),
+            primitive(image),
+            primitive(valid),
+            slope,
+        )
+        .loss,
+    )
 }
 
 /// `pool.forward(x)` through [`TrainOps::max_pool2x2`]; the network pools 2 × 2 with stride 2 only (panics on

@@ -25,10 +25,13 @@ pub enum Kernel {
     /// The skip join (channel concatenation) and its gradient's split.
     JoinChannels,
     SplitChannels,
+    /// The renderer layer's fused render + masked MSE, forward and backward.
+    RenderLoss,
+    RenderLossBackward,
 }
 
 impl Kernel {
-    pub const ALL: [Kernel; 14] = [
+    pub const ALL: [Kernel; 16] = [
         Kernel::ConvForward,
         Kernel::ConvInputGrad,
         Kernel::ConvWeightGrad,
@@ -43,6 +46,8 @@ impl Kernel {
         Kernel::UpConvBackward,
         Kernel::JoinChannels,
         Kernel::SplitChannels,
+        Kernel::RenderLoss,
+        Kernel::RenderLossBackward,
     ];
 }
 

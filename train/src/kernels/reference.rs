@@ -5,7 +5,7 @@ use burn::prelude::*;
 use burn::tensor::activation::leaky_relu;
 use burn::tensor::ops::FloatTensor;
 
-use super::{primitive, tensor, DropoutOutput, NormGrads, NormOutput};
+use super::{primitive, tensor, DropoutOutput, NormGrads, NormOutput, RenderLoss};
 
 /// Per-channel mean of `[N, C, H, W]` as `[1, C, 1, 1]`, as Burn's BatchNorm computes it.
 fn channel_mean<B: Backend>(x: Tensor<B, 4>) -> Tensor<B, 4> {
@@ -171,4 +171,40 @@ pub fn split_channels<B: Backend>(
         primitive(t.clone().narrow(1, 0, first)),
         primitive(t.narrow(1, first, c - first)),
     )
+}
+
+/// The renderer layer's masked MSE with stock operations: rendered `r = Σ_k LeakyReLU(p_k)·T_k`,
+/// `loss = Σ valid·(r − I)² / max(Σ valid, 1)`, and `∂loss/∂r = 2·valid·(r − I)/max(Σ valid, 1)`.
+pub fn render_masked_mse<B: Backend>(
+    raw: FloatTensor<B>,
+    terms: FloatTensor<B>,
+    image: FloatTensor<B>,
+    valid: FloatTensor<B>,
+    slope: f64,
+) -> RenderLoss<B> {
+    let rendered = (leaky_relu(tensor::<B, 4>(raw), slope) * tensor::<B, 4>(terms)).sum_dim(1);
+    let valid = tensor::<B, 4>(valid);
+    let count = valid.clone().sum().clamp_min(1.0);
+    let diff = (rendered - tensor::<B, 4>(image)) * valid;
+    let loss = diff.clone().square().sum() / count.clone();
+    let residual = diff * (count.recip() * 2.0).reshape([1, 1, 1, 1]);
+    RenderLoss {
+        loss: primitive(loss),
+        residual: primitive(residual),
+    }
+}
+
+/// ∂loss/∂p_k = g · residual · T_k · LeakyReLU′(p_k) (slope where p_k < 0, else 1, as Burn's LeakyReLU).
+pub fn render_masked_mse_backward<B: Backend>(
+    raw: FloatTensor<B>,
+    terms: FloatTensor<B>,
+    residual: FloatTensor<B>,
+    loss_grad: FloatTensor<B>,
+    slope: f64,
+) -> FloatTensor<B> {
+    let raw = tensor::<B, 4>(raw);
+    let negative = raw.clone().lower_elem(0.0);
+    let lrelu_grad = raw.ones_like().mask_fill(negative, slope);
+    let g = tensor::<B, 1>(loss_grad).reshape([1, 1, 1, 1]);
+    primitive(tensor::<B, 4>(residual) * g * tensor::<B, 4>(terms) * lrelu_grad)
 }

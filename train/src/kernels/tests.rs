@@ -415,3 +415,69 @@ fn join_channels_matches_cat_and_splits_its_gradient() {
     assert_eq!(values(tensor::<Flex, 4>(a)), values(tensor::<Flex, 4>(ra)));
     assert_eq!(values(tensor::<Flex, 4>(b)), values(tensor::<Flex, 4>(rb)));
 }
+
+/// The fused render + masked MSE against the stock composition (LeakyReLU, product with the terms, sum over
+/// terms, squared error under the mask over the mask's count) through autodiff: the loss and ∂raw, with raw values
+/// on both sides of LeakyReLU's kink and a mask with holes; an empty mask gives 0 and a zero gradient, as stock.
+#[test]
+fn render_masked_mse_matches_the_stock_composition() {
+    let slope = 0.01;
+    let (n, p, h, w) = (3, 4, 9, 7);
+    let terms = random([n, p, h, w], 101).abs();
+    let image = random([n, 1, h, w], 102).abs();
+    for (what, valid) in [
+        (
+            "holes",
+            random([n, 1, h, w], 103).greater_elem(-0.5).float(),
+        ),
+        (
+            "empty",
+            Tensor::<Ad, 4>::zeros([n, 1, h, w], &Default::default()),
+        ),
+    ] {
+        let run = |fused: bool| {
+            let raw = random([n, p, h, w], 104).require_grad();
+            let loss = if fused {
+                render_masked_mse(
+                    raw.clone(),
+                    terms.clone(),
+                    image.clone(),
+                    valid.clone(),
+                    slope,
+                )
+            } else {
+                let rendered = (leaky_relu(raw.clone(), slope) * terms.clone()).sum_dim(1);
+                let count = valid.clone().sum().clamp_min(1.0);
+                ((rendered - image.clone()).square() * valid.clone()).sum() / count
+            };
+            let grads = loss.clone().backward();
+            (values(loss), values(raw.grad(&grads).unwrap()))
+        };
+        let (fused, stock) = (run(true), run(false));
+        assert_close(&format!("{what}: loss"), fused.0, stock.0, 1e-6);
+        assert_close(&format!("{what}: d raw"), fused.1, stock.1, 1e-6);
+    }
+    // The stock-op defaults (CUDA's path) against the CPU kernels.
+    let inner = |t: Tensor<Ad, 4>| primitive(t.inner());
+    let valid = random([n, 1, h, w], 103).greater_elem(-0.5).float();
+    let (raw, t, i, v) = (
+        inner(random([n, p, h, w], 104)),
+        inner(terms),
+        inner(image),
+        inner(valid),
+    );
+    let cpu = Flex::render_masked_mse(raw.clone(), t.clone(), i.clone(), v.clone(), slope);
+    let stock = reference::render_masked_mse::<Flex>(raw.clone(), t.clone(), i, v, slope);
+    let loss = |l| values(tensor::<Flex, 1>(l));
+    assert_close("reference loss", loss(stock.loss), loss(cpu.loss), 1e-6);
+    let g = primitive(Tensor::<Flex, 1>::from_floats([0.5], &Default::default()));
+    let d_cpu =
+        Flex::render_masked_mse_backward(raw.clone(), t.clone(), cpu.residual, g.clone(), slope);
+    let d_stock = reference::render_masked_mse_backward::<Flex>(raw, t, stock.residual, g, slope);
+    assert_close(
+        "reference d raw",
+        values(tensor::<Flex, 4>(d_stock)),
+        values(tensor::<Flex, 4>(d_cpu)),
+        1e-6,
+    );
+}
