@@ -25,6 +25,7 @@ pub mod plot;
 pub mod prediction;
 pub mod renderer_layer;
 pub mod report;
+pub mod results_page;
 pub mod run;
 pub mod testing;
 pub mod training;

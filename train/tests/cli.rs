@@ -38,6 +38,7 @@ fn help_lists_every_command() {
         "render",
         "bench",
         "models",
+        "results-page",
     ] {
         assert!(
             text.contains(command),
@@ -184,4 +185,43 @@ fn bad_inputs_fail_with_one_line_naming_the_file_and_the_fix() {
     for name in ["p.tif", "views", "run/best", "no-run"] {
         assert!(!Path::new(&path(name)).exists(), "{name} exists");
     }
+}
+
+#[test]
+fn results_page_writes_the_page_and_check_fails_when_it_differs() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    std::fs::create_dir(d.join("records")).unwrap();
+    std::fs::write(
+        d.join("records/10-a.json"),
+        r#"{"title": "A", "columns": ["what"], "rows": [{"cells": ["x"]}]}"#,
+    )
+    .unwrap();
+    let records = d.join("records").to_string_lossy().into_owned();
+    let page = d.join("results.md").to_string_lossy().into_owned();
+    let write = [
+        "results-page",
+        "--records",
+        records.as_str(),
+        "--out",
+        page.as_str(),
+    ];
+    let check = [&write[..], &["--check"][..]].concat();
+    // No page yet: the check names it.
+    let (ok, stderr) = train_cli(&check);
+    assert!(
+        !ok && error_line(&stderr).contains("results.md"),
+        "{stderr}"
+    );
+    let (ok, stderr) = train_cli(&write);
+    assert!(ok, "{stderr}");
+    let (ok, stderr) = train_cli(&check);
+    assert!(ok, "{stderr}");
+    std::fs::write(d.join("results.md"), "edited by hand\n").unwrap();
+    let (ok, stderr) = train_cli(&check);
+    let line = error_line(&stderr);
+    assert!(
+        !ok && line.contains("differs") && line.contains("results-page --records"),
+        "{stderr}"
+    );
 }
