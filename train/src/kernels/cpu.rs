@@ -2,8 +2,8 @@
 //!
 //! Convolutions (stride 1, dilation 1, one group, symmetric zero padding: every convolution of the network) are
 //! per-sample im2col + `gemm`, parallel over the batch, in blocks of output rows whose im2col matrix fits in a
-//! core's cache: forward `Y = W·col(X) + b`, input gradient `∂X = col⁻¹(Wᵀ·∂Y)` (col⁻¹ scatter-adds columns
-//! back), weight gradient `∂W = Σₙ ∂Yₙ·col(Xₙ)ᵀ`. BatchNorm + LeakyReLU is one pass for the statistics (per channel, two-pass
+//! core's cache: forward `Y = W·col(X) + b`, input gradient the same convolution of ∂Y with the kernel turned
+//! by 180° and its channel axes swapped, weight gradient `∂W = Σₙ ∂Yₙ·col(Xₙ)ᵀ`. BatchNorm + LeakyReLU is one pass for the statistics (per channel, two-pass
 //! variance with f64 sums) and one for the output, and the same two for the backward. Anything else (other
 //! dtypes, strides, groups) goes to the stock path in [`super::reference`].
 
@@ -302,7 +302,12 @@ pub fn conv2d(
     let Some((xc, wc, bias_c, s)) = conv_operands(&x, &weight, bias.as_ref(), &options) else {
         return <Flex as ModuleOps<Flex>>::conv2d(x, weight, bias, options);
     };
-    let (xs, w, bias) = (slice(&xc), slice(&wc), bias_c.as_ref().map(slice));
+    let y = convolve(&s, slice(&xc), slice(&wc), bias_c.as_ref().map(slice));
+    from_vec(y, &[s.batch, s.c_out, s.height, s.width])
+}
+
+/// `Y = W·col(X) (+ b)` for every sample of contiguous `xs` with weights `w` (`c_out × taps`).
+fn convolve(s: &ConvShape, xs: &[f32], w: &[f32], bias: Option<&[f32]>) -> Vec<f32> {
     let (hw, taps) = (s.positions(), s.taps());
     let (plane_in, plane_out) = s.planes();
     let mut y = vec![0.0f32; s.batch * plane_out];
@@ -317,25 +322,28 @@ pub fn conv2d(
             with_scratch([s.block_len(), 0], |buffer, _| {
                 for rows in s.row_blocks() {
                     let (start, n) = (rows.start * s.width, rows.len() * s.width);
-                    // Y[:, block]ᵀ (n × c_out) [+]= colᵀ (n × taps) · Wᵀ (taps × c_out): positions as gemm's
-                    // rows, so its widest micro-kernel applies even where c_out is 16 or 32
+                    // A pointwise convolution's single block is the whole plane, with row stride `hw`.
                     let col_stride = if s.is_pointwise() { hw } else { n };
+                    // Y[:, block] (c_out × n) [+]= W (c_out × taps) · col (taps × n)
                     matmul(
-                        [n, s.c_out, taps],
+                        [s.c_out, n, taps],
                         &mut y[start..],
-                        [1, hw],
+                        [hw, 1],
                         bias.is_some(),
-                        s.block_columns(x, rows, buffer),
-                        [1, col_stride],
                         w,
-                        [1, taps],
+                        [taps, 1],
+                        s.block_columns(x, rows, buffer),
+                        [col_stride, 1],
                     );
                 }
             });
         });
-    from_vec(y, &[s.batch, s.c_out, s.height, s.width])
+    y
 }
 
+/// ∂X of a stride-1 "same" convolution is itself one: ∂Y convolved with the kernel turned by 180° and its
+/// channel axes swapped (`W′[c][o][ky][kx] = W[o][c][kh−1−ky][kw−1−kx]`, the same padding). Computed that way
+/// it writes ∂X once per element; as `col⁻¹(Wᵀ·∂Y)` it scatter-added nine shifted copies per element.
 pub fn conv2d_x_grad(
     x: FloatTensor<Flex>,
     weight: FloatTensor<Flex>,
@@ -346,33 +354,25 @@ pub fn conv2d_x_grad(
     else {
         return <Flex as ModuleOps<Flex>>::conv2d_x_backward(x, weight, output_grad, options);
     };
-    let (w, dy) = (slice(&wc), slice(&dy_c));
-    let (hw, taps) = (s.positions(), s.taps());
-    let (plane_in, plane_out) = s.planes();
-    let block = taps * s.block_rows() * s.width;
-    let mut dx = vec![0.0f32; s.batch * plane_in];
-    dx.par_chunks_mut(plane_in)
-        .zip(dy.par_chunks(plane_out))
-        .for_each(|(dx, dy)| {
-            with_scratch([block, 0], |col, _| {
-                for rows in s.row_blocks() {
-                    let (start, n) = (rows.start * s.width, rows.len() * s.width);
-                    let col = &mut col[..taps * n];
-                    // col (taps × n) = Wᵀ (taps × c_out) · ∂Y[:, block] (c_out × n)
-                    matmul(
-                        [taps, n, s.c_out],
-                        col,
-                        [n, 1],
-                        false,
-                        w,
-                        [1, taps],
-                        &dy[start..],
-                        [hw, 1],
-                    );
-                    s.col2im_rows(col, rows, dx);
+    let w = slice(&wc);
+    let [kh, kw] = s.kernel;
+    let mut turned = vec![0.0f32; w.len()];
+    for o in 0..s.c_out {
+        for c in 0..s.c_in {
+            for ky in 0..kh {
+                for kx in 0..kw {
+                    turned[((c * s.c_out + o) * kh + ky) * kw + kx] =
+                        w[((o * s.c_in + c) * kh + kh - 1 - ky) * kw + kw - 1 - kx];
                 }
-            });
-        });
+            }
+        }
+    }
+    let adjoint = ConvShape {
+        c_in: s.c_out,
+        c_out: s.c_in,
+        ..s
+    };
+    let dx = convolve(&adjoint, slice(&dy_c), &turned, None);
     from_vec(dx, &s.input_shape())
 }
 
@@ -411,16 +411,16 @@ pub fn conv2d_weight_grad(
                         let col_stride = if s.is_pointwise() { hw } else { n };
                         let dy_t = &mut dy_t[..n * s.c_out];
                         transpose_strided(&dy[start..], s.c_out, n, hw, dy_t);
-                        // ∂Wᵀ (taps × c_out) [+]= col (taps × n) · ∂Y[:, block]ᵀ (n × c_out): taps as gemm's rows
+                        // ∂W (c_out × taps) [+]= ∂Y[:, block] (c_out × n) · colᵀ (n × taps), stored column-major
                         matmul(
-                            [taps, s.c_out, n],
+                            [s.c_out, taps, n],
                             dw_t,
-                            [s.c_out, 1],
+                            [1, s.c_out],
                             b > 0,
-                            col,
-                            [col_stride, 1],
                             dy_t,
-                            [s.c_out, 1],
+                            [1, s.c_out],
+                            col,
+                            [1, col_stride],
                         );
                     }
                 },
