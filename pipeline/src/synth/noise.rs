@@ -50,11 +50,10 @@ const GRADIENTS: [(f64, f64); 16] = {
 
 #[inline]
 fn hash3(a: u64, b: u64, key: u64) -> u64 {
-    // splitmix64 finaliser over a combination of the lattice coordinates and the key.
-    let mut z = a.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ b.wrapping_mul(0xC2B2_AE3D_27D4_EB4F) ^ key;
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^ (z >> 31)
+    // The splitmix64 finaliser over a combination of the lattice coordinates and the key.
+    crate::rng::mix64(
+        a.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ b.wrapping_mul(0xC2B2_AE3D_27D4_EB4F) ^ key,
+    )
 }
 
 /// fBm parameters: octaves from `largest_wavelength_m` down to `smallest_wavelength_m`, amplitude ∝ λ^H.

@@ -305,7 +305,7 @@ impl TrainOps for burn::backend::Flex {
         weight: FloatTensor<Self>,
         output_grad: FloatTensor<Self>,
     ) -> FloatTensor<Self> {
-        timed(Kernel::UpConvBackward, || {
+        timed(Kernel::UpConvInputGrad, || {
             cpu::upsample_conv2d_x_grad(x, weight, output_grad)
         })
     }
@@ -315,7 +315,7 @@ impl TrainOps for burn::backend::Flex {
         weight: FloatTensor<Self>,
         output_grad: FloatTensor<Self>,
     ) -> FloatTensor<Self> {
-        timed(Kernel::UpConvBackward, || {
+        timed(Kernel::UpConvWeightGrad, || {
             cpu::upsample_conv2d_weight_grad(x, weight, output_grad)
         })
     }

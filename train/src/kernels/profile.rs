@@ -21,7 +21,8 @@ pub enum Kernel {
     DropoutBackward,
     /// The up path's nearest ×2 + 3×3 convolution (computed on the coarse grid).
     UpConvForward,
-    UpConvBackward,
+    UpConvInputGrad,
+    UpConvWeightGrad,
     /// The skip join (channel concatenation) and its gradient's split.
     JoinChannels,
     SplitChannels,
@@ -31,7 +32,7 @@ pub enum Kernel {
 }
 
 impl Kernel {
-    pub const ALL: [Kernel; 16] = [
+    pub const ALL: [Kernel; 17] = [
         Kernel::ConvForward,
         Kernel::ConvInputGrad,
         Kernel::ConvWeightGrad,
@@ -43,7 +44,8 @@ impl Kernel {
         Kernel::DropoutForward,
         Kernel::DropoutBackward,
         Kernel::UpConvForward,
-        Kernel::UpConvBackward,
+        Kernel::UpConvInputGrad,
+        Kernel::UpConvWeightGrad,
         Kernel::JoinChannels,
         Kernel::SplitChannels,
         Kernel::RenderLoss,
