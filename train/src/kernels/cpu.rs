@@ -883,7 +883,6 @@ pub fn upsample_conv2d(
     let kernels: Vec<Vec<f32>> = (0..4)
         .map(|p| phase_kernel(slice(&wc), s.c_out, s.c_in, p / 2, p % 2))
         .collect();
-    let taps = 4 * s.c_in;
     let block = phase_shape(&s, 0, 0).block_len();
     let mut y = vec![0.0f32; s.batch * s.c_out * 4 * hw];
     y.par_chunks_mut(s.c_out * 4 * hw)
@@ -892,20 +891,7 @@ pub fn upsample_conv2d(
             with_scratch([block, s.c_out * hw], |col, y_ab| {
                 for (p, k) in kernels.iter().enumerate() {
                     let (a, b) = (p / 2, p % 2);
-                    let phase = phase_shape(&s, a, b);
-                    for rows in phase.row_blocks() {
-                        let (start, n) = (rows.start * w, rows.len() * w);
-                        matmul(
-                            [s.c_out, n, taps],
-                            &mut y_ab[start..],
-                            [hw, 1],
-                            false,
-                            k,
-                            [taps, 1],
-                            phase.block_columns(x, rows, col),
-                            [n, 1],
-                        );
-                    }
+                    convolve_sample(&phase_shape(&s, a, b), x, k, y_ab, false, col);
                     for (o, plane) in y_ab.chunks(hw).enumerate() {
                         let shift = bias.map_or(0.0, |b| b[o]);
                         let out = &mut y[o * 4 * hw..(o + 1) * 4 * hw];
