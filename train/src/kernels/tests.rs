@@ -238,6 +238,16 @@ fn kernels_give_the_same_bits_on_any_thread_count() {
     let gamma = primitive(random([6], 63).inner());
     let beta = primitive(random([6], 64).inner());
     let options = ConvOptions::new([1, 1], [1, 1], [1, 1], 1);
+    let bias = primitive(random([7], 65).inner());
+    let up_dy = primitive(random([5, 7, 26, 22], 66).inner());
+    let terms = primitive(random([5, 6, 13, 11], 67).inner());
+    let image = primitive(random([5, 1, 13, 11], 68).inner());
+    let valid = primitive(
+        random([5, 1, 13, 11], 69)
+            .greater_elem(-0.5)
+            .float()
+            .inner(),
+    );
     let run = |threads: usize| {
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
@@ -245,6 +255,13 @@ fn kernels_give_the_same_bits_on_any_thread_count() {
             .unwrap();
         pool.install(|| {
             let t = |p| values(tensor::<Flex, 4>(p));
+            let loss = Flex::render_masked_mse(
+                x.clone(),
+                terms.clone(),
+                image.clone(),
+                valid.clone(),
+                0.01,
+            );
             let norm =
                 Flex::batch_norm_leaky_relu(x.clone(), gamma.clone(), beta.clone(), 1e-5, 0.01);
             let grads = Flex::batch_norm_leaky_relu_backward(
@@ -280,6 +297,33 @@ fn kernels_give_the_same_bits_on_any_thread_count() {
                 t(norm.output),
                 t(grads.x),
                 values(tensor::<Flex, 1>(grads.gamma)),
+                // The up convolution (coarse input `x`, the fine gradient `up_dy`), the fused loss and its
+                // gradient, the skip join's split, and a dropout mask from a fixed seed.
+                t(Flex::train_upsample_conv2d(
+                    x.clone(),
+                    w.clone(),
+                    Some(bias.clone()),
+                )),
+                t(Flex::train_upsample_conv2d_x_grad(
+                    x.clone(),
+                    w.clone(),
+                    up_dy.clone(),
+                )),
+                t(Flex::train_upsample_conv2d_weight_grad(
+                    x.clone(),
+                    w.clone(),
+                    up_dy.clone(),
+                )),
+                values(tensor::<Flex, 1>(loss.loss.clone())),
+                t(Flex::render_masked_mse_backward(
+                    x.clone(),
+                    terms.clone(),
+                    loss.residual,
+                    primitive(Tensor::<Flex, 1>::from_floats([1.0], &Default::default())),
+                    0.01,
+                )),
+                t(Flex::train_split_channels(dy.clone(), 3).1),
+                super::cpu::dropout_mask(&values(tensor::<Flex, 4>(x.clone())), 0.3, 9).1,
             ]
         })
     };
