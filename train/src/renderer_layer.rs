@@ -11,7 +11,6 @@
 //! geometry (M6's azimuths, Hapke's opposition peak), and no per-pixel vector algebra in tensor operations.
 
 use burn::prelude::*;
-use burn::tensor::activation::leaky_relu;
 use dataset::brdf::{BrdfModel, LEAKY_SLOPE};
 use dataset::schema::{CROP_PX, DEM_PX};
 use rayon::prelude::*;
@@ -79,7 +78,7 @@ pub fn host_terms<T: Copy + Default + Send>(
 
 /// Rendered I/F `[N, 1, 128, 128]` = Σ_k LeakyReLU(p_k) · T_k (E = 1: the parameters carry the scale).
 pub fn render<B: Backend>(raw_params: Tensor<B, 4>, scene: &SceneTerms<B>) -> Tensor<B, 4> {
-    (leaky_relu(raw_params, LEAKY_SLOPE) * scene.terms.clone()).sum_dim(1)
+    crate::kernels::reference::render(raw_params, scene.terms.clone(), LEAKY_SLOPE)
 }
 
 /// The train step's loss, the mean squared error of [`render`] over the valid pixels of the whole batch (0, with a

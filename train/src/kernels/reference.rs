@@ -173,6 +173,13 @@ pub fn split_channels<B: Backend>(
     )
 }
 
+/// Rendered I/F `[N, 1, H, W]` = Σ_k LeakyReLU(p_k, slope) · T_k from raw parameter maps and the scene's terms
+/// (both `[N, P, H, W]`): the renderer layer's forward in stock operations, which [`render_masked_mse`] and the
+/// layer's own `render` share.
+pub fn render<B: Backend>(raw: Tensor<B, 4>, terms: Tensor<B, 4>, slope: f64) -> Tensor<B, 4> {
+    (leaky_relu(raw, slope) * terms).sum_dim(1)
+}
+
 /// The renderer layer's masked MSE with stock operations: rendered `r = Σ_k LeakyReLU(p_k)·T_k`,
 /// `loss = Σ valid·(r − I)² / max(Σ valid, 1)`, and `∂loss/∂r = 2·valid·(r − I)/max(Σ valid, 1)`.
 pub fn render_masked_mse<B: Backend>(
@@ -182,7 +189,7 @@ pub fn render_masked_mse<B: Backend>(
     valid: FloatTensor<B>,
     slope: f64,
 ) -> RenderLoss<B> {
-    let rendered = (leaky_relu(tensor::<B, 4>(raw), slope) * tensor::<B, 4>(terms)).sum_dim(1);
+    let rendered = render(tensor::<B, 4>(raw), tensor::<B, 4>(terms), slope);
     let valid = tensor::<B, 4>(valid);
     let count = valid.clone().sum().clamp_min(1.0);
     let diff = (rendered - tensor::<B, 4>(image)) * valid;

@@ -385,14 +385,15 @@ fn upsample_conv2d_matches_interpolate_then_conv() {
 }
 
 /// Planes large enough that the kernels work in several row blocks (`cpu::ConvShape::block_rows`: 3 blocks for
-/// the 3×3 convolution's 288 taps × 64 columns, 2 for the up convolution's 128 phase taps): output and every
-/// gradient against the stock operations and autodiff, so a block boundary that dropped or repeated a row fails.
+/// the 3×3 convolution's 288 taps × 64 columns, forward, weight gradient and the input gradient's adjoint
+/// convolution alike; 2 for the up convolution's 128 phase taps and its adjoints'): output and every gradient
+/// against the stock operations and autodiff, so a block boundary that dropped or repeated a row fails.
 #[test]
 fn blocked_convolutions_match_stock_on_planes_larger_than_a_block() {
     use burn::tensor::module::interpolate;
     use burn::tensor::ops::{InterpolateMode, InterpolateOptions};
     let device = Default::default();
-    let (c_in, c_out, h, w) = (32, 8, 40, 64);
+    let (c_in, c_out, h, w) = (32, 32, 40, 64);
     let conv = Conv2dConfig::new([c_in, c_out], [3, 3])
         .with_padding(PaddingConfig2d::Explicit(1, 1, 1, 1))
         .init::<Ad>(&device);
