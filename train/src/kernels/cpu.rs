@@ -476,9 +476,26 @@ pub fn channel_sums(t: FloatTensor<Flex>) -> FloatTensor<Flex> {
     from_vec(sums, &[c])
 }
 
+/// `f()` compiled for the widest SIMD instruction set this CPU has (AVX-512, else AVX2 + FMA, else the
+/// baseline), chosen at run time. Release builds target baseline x86-64, where the elementwise loops below got
+/// SSE2 code or none at all (`docs/performance.md`). Every variant does the same arithmetic in the same order
+/// (Rust never contracts `a·b + c` into a fused multiply-add, and sums run in fixed lanes), so results are
+/// bitwise identical whichever runs. Callers mark their closure `#[inline(always)]`: only a closure inlined into
+/// the dispatching function is compiled for its instruction set.
+#[inline(always)]
+fn vectorized<R>(f: impl FnOnce() -> R) -> R {
+    pulp::Arch::new().dispatch(f)
+}
+
 /// Sums of `f` over the elements of `a` (and `b`, same length), two f64 totals, in 8 independent lanes: one
 /// serial f64 chain is bound by the add latency (4 cycles an element), lanes let the compiler vectorise.
+#[inline(always)]
 fn lane_sums(a: &[f32], b: &[f32], f: impl Fn(f32, f32) -> (f64, f64)) -> (f64, f64) {
+    vectorized(#[inline(always)] || lane_sums_scalar(a, b, f))
+}
+
+#[inline(always)]
+fn lane_sums_scalar(a: &[f32], b: &[f32], f: impl Fn(f32, f32) -> (f64, f64)) -> (f64, f64) {
     const LANES: usize = 8;
     let (mut s0, mut s1) = ([0.0f64; LANES], [0.0f64; LANES]);
     let (ca, cb) = (a.chunks_exact(LANES), b.chunks_exact(LANES));
@@ -554,9 +571,11 @@ pub fn batch_norm_leaky_relu(
         .enumerate()
         .for_each(|(p, (y, x))| {
             let (scale, shift) = affine[p % c];
-            y.iter_mut().zip(x).for_each(|(y, &x)| {
-                let z = scale * x + shift;
-                *y = if z < 0.0 { slope * z } else { z };
+            vectorized(#[inline(always)] || {
+                y.iter_mut().zip(x).for_each(|(y, &x)| {
+                    let z = scale * x + shift;
+                    *y = if z < 0.0 { slope * z } else { z };
+                })
             });
         });
     NormOutput {
@@ -599,7 +618,8 @@ pub fn batch_norm_leaky_relu_backward(
         .iter()
         .map(|&v| 1.0 / (v as f64 + epsilon).sqrt())
         .collect();
-    let dz = |y: f32, dy: f32| if y < 0.0 { dy * slope as f32 } else { dy };
+    let slope = slope as f32;
+    let dz = |y: f32, dy: f32| if y < 0.0 { dy * slope } else { dy };
     // Σg and Σg·(x − μ) per channel (× σ⁻¹ below gives Σg·x̂).
     let sums: Vec<(f64, f64)> = (0..c)
         .into_par_iter()
@@ -612,10 +632,12 @@ pub fn batch_norm_leaky_relu_backward(
                     let (x, y, dy) = (&xs[r.clone()], &ys[r.clone()], &dys[r]);
                     // g per element first (vectorises), then the two lane sums over (g, x).
                     with_scratch([0, plane], |_, g| {
-                        g.iter_mut()
-                            .zip(y.iter().zip(dy))
-                            .for_each(|(g, (&y, &dy))| *g = dz(y, dy));
-                        lane_sums(g, x, |g, x| (g as f64, g as f64 * (x - m) as f64))
+                        vectorized(#[inline(always)] || {
+                            g.iter_mut()
+                                .zip(y.iter().zip(dy))
+                                .for_each(|(g, (&y, &dy))| *g = dz(y, dy));
+                            lane_sums_scalar(g, x, |g, x| (g as f64, g as f64 * (x - m) as f64))
+                        })
                     })
                 })
                 .fold((0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1));
@@ -634,13 +656,15 @@ pub fn batch_norm_leaky_relu_backward(
         let b = (d_beta / count) as f32;
         let e = (d_gamma / count * s) as f32;
         let m = mean[k];
-        for ((dx, &x), (&y, &dy)) in dx
-            .iter_mut()
-            .zip(&xs[r.clone()])
-            .zip(ys[r.clone()].iter().zip(&dys[r]))
-        {
-            *dx = a * (dz(y, dy) - b - (x - m) * e);
-        }
+        vectorized(#[inline(always)] || {
+            for ((dx, &x), (&y, &dy)) in dx
+                .iter_mut()
+                .zip(&xs[r.clone()])
+                .zip(ys[r.clone()].iter().zip(&dys[r]))
+            {
+                *dx = a * (dz(y, dy) - b - (x - m) * e);
+            }
+        });
     });
     NormGrads {
         x: from_vec(dx, &shape),
@@ -817,9 +841,11 @@ pub fn dropout_backward(
                 .zip(m.par_chunks(DROPOUT_CHUNK)),
         )
         .for_each(|(dx, (dy, m))| {
-            dx.iter_mut()
-                .zip(dy.iter().zip(m))
-                .for_each(|(dx, (&dy, &m))| *dx = dy * m * scale);
+            vectorized(#[inline(always)] || {
+                dx.iter_mut()
+                    .zip(dy.iter().zip(m))
+                    .for_each(|(dx, (&dy, &m))| *dx = dy * m * scale)
+            });
         });
     from_vec(dx, &shape)
 }
