@@ -108,13 +108,12 @@ impl ConvShape {
         self.c_in * self.kernel[0] * self.kernel[1]
     }
 
-    /// For output column `ox` reading tap `kx`: the range of `ox` whose input column is inside the image, and
-    /// the input column of its first element.
-    fn valid_columns(&self, kx: usize) -> (std::ops::Range<usize>, usize) {
+    /// For output column `ox` reading tap `kx`: the range of `ox` whose input column is inside the image.
+    fn valid_columns(&self, kx: usize) -> std::ops::Range<usize> {
         let (w, pad) = (self.width, self.padding[1]);
         let lo = pad.saturating_sub(kx);
         let hi = (w + pad).saturating_sub(kx).min(w);
-        (lo..hi.max(lo), lo + kx - pad)
+        lo..hi.max(lo)
     }
 
     /// A 1×1 convolution without padding: its im2col matrix is the input itself.
@@ -124,27 +123,45 @@ impl ConvShape {
 
     /// `col[(c, ky, kx)][(j, ox)] = x[c][oy + ky − pad][ox + kx − pad]` (0 outside) for the `j`-th output row
     /// `oy` of `rows`, one sample: `col` is `taps × (rows.len() · width)`.
+    ///
+    /// A tap's row of `col`, over the output rows whose input row is inside the image, is one contiguous run of
+    /// the input plane shifted by `kx − pad` (row-major planes continue into the next row), so it is one copy;
+    /// only the few columns that wrapped into a neighbouring row are then zeroed. Copying row by row made
+    /// one small `memcpy` per output row and tap (64 B at the coarsest level) and cost more than the copy itself.
     fn im2col_rows(&self, x: &[f32], rows: std::ops::Range<usize>, col: &mut [f32]) {
         let (h, w, hw) = (self.height, self.width, self.positions());
         let [kh, kw] = self.kernel;
+        let [pad_y, pad_x] = self.padding;
         let n = rows.len() * w;
         for c in 0..self.c_in {
             let plane = &x[c * hw..(c + 1) * hw];
             for ky in 0..kh {
+                // Output rows `oy` of this block whose input row `oy + ky − pad_y` lies in 0..h.
+                let first = rows.start.max(pad_y.saturating_sub(ky));
+                let last = rows.end.min((h + pad_y).saturating_sub(ky)).max(first);
+                let (j0, j1) = (first - rows.start, last - rows.start);
                 for kx in 0..kw {
                     let row = &mut col[((c * kh + ky) * kw + kx) * n..][..n];
-                    let (cols, first) = self.valid_columns(kx);
-                    for (j, oy) in rows.clone().enumerate() {
-                        let dst = &mut row[j * w..(j + 1) * w];
-                        let iy = (oy + ky).checked_sub(self.padding[0]).filter(|&iy| iy < h);
-                        match iy {
-                            Some(iy) => {
-                                dst[..cols.start].fill(0.0);
-                                dst[cols.end..].fill(0.0);
-                                dst[cols.clone()]
-                                    .copy_from_slice(&plane[iy * w + first..][..cols.len()]);
-                            }
-                            None => dst.fill(0.0),
+                    row[..j0 * w].fill(0.0);
+                    row[j1 * w..].fill(0.0);
+                    if j0 == j1 {
+                        continue;
+                    }
+                    let dst = &mut row[j0 * w..j1 * w];
+                    // dst[i] = plane[start + i], with `start` possibly −pad_x (the image's first element, shifted
+                    // left) or running pad_x past the end; those elements are zero padding.
+                    let start = ((first + ky - pad_y) * w + kx) as isize - pad_x as isize;
+                    let lo = (-start).clamp(0, dst.len() as isize) as usize;
+                    let hi = (hw as isize - start).clamp(lo as isize, dst.len() as isize) as usize;
+                    dst[..lo].fill(0.0);
+                    dst[hi..].fill(0.0);
+                    dst[lo..hi].copy_from_slice(&plane[(start + lo as isize) as usize..][..hi - lo]);
+                    let cols = self.valid_columns(kx);
+                    if cols.len() < w {
+                        for line in dst.chunks_exact_mut(w) {
+                            let (left, rest) = line.split_at_mut(cols.start);
+                            let right = &mut rest[cols.len()..];
+                            left.iter_mut().chain(right).for_each(|v| *v = 0.0);
                         }
                     }
                 }
