@@ -205,6 +205,7 @@ impl<B: TrainOps> Backward<B, 1> for RenderMaskedMse {
 struct NormState<B: TrainOps> {
     x: NodeId,
     gamma: NodeId,
+    beta: FloatTensor<B>,
     mean: FloatTensor<B>,
     var: FloatTensor<B>,
     output: FloatTensor<B>,
@@ -226,7 +227,7 @@ impl<B: TrainOps> Backward<B, 3> for BatchNormLeakyRelu {
         let x = checkpointer.retrieve_node_output::<FloatTensor<B>>(s.x);
         let gamma = checkpointer.retrieve_node_output::<FloatTensor<B>>(s.gamma);
         let g = B::batch_norm_leaky_relu_backward(
-            x, gamma, s.mean, s.var, s.output, grad, s.epsilon, s.slope,
+            x, gamma, s.beta, s.mean, s.var, s.output, grad, s.epsilon, s.slope,
         );
         let [node_x, node_gamma, node_beta] = ops.parents;
         for (node, value) in [(node_x, g.x), (node_gamma, g.gamma), (node_beta, g.beta)] {
@@ -436,13 +437,14 @@ impl<B: TrainOps, C: CheckpointStrategy> TrainOps for Autodiff<B, C> {
                 let out = B::batch_norm_leaky_relu(
                     x.primitive,
                     gamma.primitive,
-                    beta.primitive,
+                    beta.primitive.clone(),
                     epsilon,
                     slope,
                 );
                 let state = NormState {
                     x: x_id,
                     gamma: gamma_id,
+                    beta: beta.primitive,
                     mean: out.mean.clone(),
                     var: out.var.clone(),
                     output: out.output.clone(),

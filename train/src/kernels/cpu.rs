@@ -557,6 +557,24 @@ fn channel_stats(values: &[f32], c: usize, plane: usize) -> Vec<(f64, f64)> {
         .collect()
 }
 
+/// Per channel `(scale, shift)` with `BN(x) = scale·x + shift`: `scale = γ/√(var + ε)`, `shift = β − μ·scale`,
+/// from the statistics as stored (f32), so that the backward pass recomputes the forward's pre-activation bit
+/// for bit.
+fn norm_affine(
+    gamma: &[f32],
+    beta: &[f32],
+    mean: &[f32],
+    var: &[f32],
+    epsilon: f64,
+) -> Vec<(f32, f32)> {
+    (0..gamma.len())
+        .map(|k| {
+            let scale = gamma[k] as f64 / (var[k] as f64 + epsilon).sqrt();
+            (scale as f32, (beta[k] as f64 - mean[k] as f64 * scale) as f32)
+        })
+        .collect()
+}
+
 pub fn batch_norm_leaky_relu(
     x: FloatTensor<Flex>,
     gamma: FloatTensor<Flex>,
@@ -571,16 +589,9 @@ pub fn batch_norm_leaky_relu(
     let (c, plane) = (shape[1], shape[2..].iter().product::<usize>());
     let values = slice(&xc);
     let stats = channel_stats(values, c, plane);
-    let (gamma, beta) = (slice(&gamma_c), slice(&beta_c));
-    // y = LeakyReLU(scale·x + shift) with scale = γ/σ, shift = β − μ·scale.
-    let affine: Vec<(f32, f32)> = stats
-        .iter()
-        .enumerate()
-        .map(|(k, &(mean, var))| {
-            let scale = gamma[k] as f64 / (var + epsilon).sqrt();
-            (scale as f32, (beta[k] as f64 - mean * scale) as f32)
-        })
-        .collect();
+    let mean: Vec<f32> = stats.iter().map(|s| s.0 as f32).collect();
+    let var: Vec<f32> = stats.iter().map(|s| s.1 as f32).collect();
+    let affine = norm_affine(slice(&gamma_c), slice(&beta_c), &mean, &var, epsilon);
     let slope = slope as f32;
     let mut out = vec![0.0f32; values.len()];
     out.par_chunks_mut(plane)
@@ -597,15 +608,19 @@ pub fn batch_norm_leaky_relu(
         });
     NormOutput {
         output: from_vec(out, &shape),
-        mean: from_vec(stats.iter().map(|s| s.0 as f32).collect(), &[c]),
-        var: from_vec(stats.iter().map(|s| s.1 as f32).collect(), &[c]),
+        mean: from_vec(mean, &[c]),
+        var: from_vec(var, &[c]),
     }
 }
 
+/// The backward pass of [`batch_norm_leaky_relu`]. The LeakyReLU's slope applies where the pre-activation
+/// `z = scale·x + shift` is negative, recomputed from `x` with the forward's own f32 arithmetic: each pass then
+/// reads `x` and `∂Y` only (the forward's output is not read; it is one memory stream fewer per pass).
 #[allow(clippy::too_many_arguments)]
 pub fn batch_norm_leaky_relu_backward(
     x: FloatTensor<Flex>,
     gamma: FloatTensor<Flex>,
+    beta: FloatTensor<Flex>,
     mean: FloatTensor<Flex>,
     var: FloatTensor<Flex>,
     output: FloatTensor<Flex>,
@@ -613,8 +628,8 @@ pub fn batch_norm_leaky_relu_backward(
     epsilon: f64,
     slope: f64,
 ) -> NormGrads<Flex> {
-    let prepared = [&x, &gamma, &mean, &var, &output, &output_grad].map(f32_data);
-    let [Some((xc, shape)), Some((gamma_c, _)), Some((mean_c, _)), Some((var_c, _)), Some((out_c, _)), Some((dy_c, _))] =
+    let prepared = [&x, &gamma, &beta, &mean, &var, &output_grad].map(f32_data);
+    let [Some((xc, shape)), Some((gamma_c, _)), Some((beta_c, _)), Some((mean_c, _)), Some((var_c, _)), Some((dy_c, _))] =
         prepared
     else {
         return reference::batch_norm_leaky_relu_backward::<Flex>(
@@ -629,32 +644,34 @@ pub fn batch_norm_leaky_relu_backward(
         );
     };
     let (c, plane) = (shape[1], shape[2..].iter().product::<usize>());
-    let (xs, ys, dys) = (slice(&xc), slice(&out_c), slice(&dy_c));
+    let (xs, dys) = (slice(&xc), slice(&dy_c));
     let (gamma, mean, var) = (slice(&gamma_c), slice(&mean_c), slice(&var_c));
+    let affine = norm_affine(gamma, slice(&beta_c), mean, var, epsilon);
     let inv_std: Vec<f64> = var
         .iter()
         .map(|&v| 1.0 / (v as f64 + epsilon).sqrt())
         .collect();
     let slope = slope as f32;
-    let dz = |y: f32, dy: f32| if y < 0.0 { dy * slope } else { dy };
+    // g = ∂L/∂z.
+    let dz = move |(scale, shift): (f32, f32), x: f32, dy: f32| {
+        if scale * x + shift < 0.0 {
+            dy * slope
+        } else {
+            dy
+        }
+    };
     // Σg and Σg·(x − μ) per channel (× σ⁻¹ below gives Σg·x̂).
     let sums: Vec<(f64, f64)> = (0..c)
         .into_par_iter()
         .map(|k| {
-            let m = mean[k];
+            let (m, ab) = (mean[k], affine[k]);
             let (d_beta, d_gamma) = (k..xs.len() / plane)
                 .step_by(c)
                 .map(|p| {
                     let r = p * plane..(p + 1) * plane;
-                    let (x, y, dy) = (&xs[r.clone()], &ys[r.clone()], &dys[r]);
-                    // g per element first (vectorises), then the two lane sums over (g, x).
-                    with_scratch([0, plane], |_, g| {
-                        vectorized(#[inline(always)] || {
-                            g.iter_mut()
-                                .zip(y.iter().zip(dy))
-                                .for_each(|(g, (&y, &dy))| *g = dz(y, dy));
-                            lane_sums_scalar(g, x, |g, x| (g as f64, g as f64 * (x - m) as f64))
-                        })
+                    lane_sums(&xs[r.clone()], &dys[r], |x, dy| {
+                        let g = dz(ab, x, dy) as f64;
+                        (g, g * (x - m) as f64)
                     })
                 })
                 .fold((0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1));
@@ -672,14 +689,10 @@ pub fn batch_norm_leaky_relu_backward(
         let a = (gamma[k] as f64 * s) as f32;
         let b = (d_beta / count) as f32;
         let e = (d_gamma / count * s) as f32;
-        let m = mean[k];
+        let (m, ab) = (mean[k], affine[k]);
         vectorized(#[inline(always)] || {
-            for ((dx, &x), (&y, &dy)) in dx
-                .iter_mut()
-                .zip(&xs[r.clone()])
-                .zip(ys[r.clone()].iter().zip(&dys[r]))
-            {
-                *dx = a * (dz(y, dy) - b - (x - m) * e);
+            for (dx, (&x, &dy)) in dx.iter_mut().zip(xs[r.clone()].iter().zip(&dys[r])) {
+                *dx = a * (dz(ab, x, dy) - b - (x - m) * e);
             }
         });
     });

@@ -231,11 +231,14 @@ pub trait TrainOps: Backend {
         reference::batch_norm_leaky_relu::<Self>(x, gamma, beta, epsilon, slope)
     }
 
-    /// Backward of [`TrainOps::batch_norm_leaky_relu`] given the forward's input, output and statistics.
+    /// Backward of [`TrainOps::batch_norm_leaky_relu`] given the forward's input, parameters, statistics and
+    /// output. The stock path takes the LeakyReLU's slope mask from `output`; a kernel may instead recompute the
+    /// pre-activation from `x`, `gamma`, `beta` and the statistics (one memory stream fewer per pass).
     #[allow(clippy::too_many_arguments)]
     fn batch_norm_leaky_relu_backward(
         x: FloatTensor<Self>,
         gamma: FloatTensor<Self>,
+        beta: FloatTensor<Self>,
         mean: FloatTensor<Self>,
         var: FloatTensor<Self>,
         output: FloatTensor<Self>,
@@ -243,6 +246,7 @@ pub trait TrainOps: Backend {
         epsilon: f64,
         slope: f64,
     ) -> NormGrads<Self> {
+        let _ = beta;
         reference::batch_norm_leaky_relu_backward::<Self>(
             x,
             gamma,
@@ -402,6 +406,7 @@ impl TrainOps for burn::backend::Flex {
     fn batch_norm_leaky_relu_backward(
         x: FloatTensor<Self>,
         gamma: FloatTensor<Self>,
+        beta: FloatTensor<Self>,
         mean: FloatTensor<Self>,
         var: FloatTensor<Self>,
         output: FloatTensor<Self>,
@@ -413,6 +418,7 @@ impl TrainOps for burn::backend::Flex {
             cpu::batch_norm_leaky_relu_backward(
                 x,
                 gamma,
+                beta,
                 mean,
                 var,
                 output,

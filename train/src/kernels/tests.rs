@@ -267,6 +267,7 @@ fn kernels_give_the_same_bits_on_any_thread_count() {
             let grads = Flex::batch_norm_leaky_relu_backward(
                 x.clone(),
                 gamma.clone(),
+                beta.clone(),
                 norm.mean.clone(),
                 norm.var.clone(),
                 norm.output.clone(),
