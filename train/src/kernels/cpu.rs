@@ -514,8 +514,25 @@ fn lane_sums(a: &[f32], b: &[f32], f: impl Fn(f32, f32) -> (f64, f64)) -> (f64, 
 #[inline(always)]
 fn lane_sums_scalar(a: &[f32], b: &[f32], f: impl Fn(f32, f32) -> (f64, f64)) -> (f64, f64) {
     const LANES: usize = 8;
+    // Blocks of `BLOCK` elements are mapped through `f` into two f64 arrays first and only then added into the
+    // lanes: with the map and the sums in one loop the compiler produced scalar conversions (measured 2× slower
+    // per element). Element `i` goes to lane `i % LANES` in order either way, so the sums are the same bits.
+    const BLOCK: usize = 64;
     let (mut s0, mut s1) = ([0.0f64; LANES], [0.0f64; LANES]);
-    let (ca, cb) = (a.chunks_exact(LANES), b.chunks_exact(LANES));
+    let split = a.len().min(b.len()) / BLOCK * BLOCK;
+    let (mut u, mut v) = ([0.0f64; BLOCK], [0.0f64; BLOCK]);
+    for (xa, xb) in a[..split].chunks_exact(BLOCK).zip(b[..split].chunks_exact(BLOCK)) {
+        for i in 0..BLOCK {
+            (u[i], v[i]) = f(xa[i], xb[i]);
+        }
+        for (lanes_u, lanes_v) in u.chunks_exact(LANES).zip(v.chunks_exact(LANES)) {
+            for l in 0..LANES {
+                s0[l] += lanes_u[l];
+                s1[l] += lanes_v[l];
+            }
+        }
+    }
+    let (ca, cb) = (a[split..].chunks_exact(LANES), b[split..].chunks_exact(LANES));
     let (ra, rb) = (ca.remainder(), cb.remainder());
     for (xa, xb) in ca.zip(cb) {
         for l in 0..LANES {
