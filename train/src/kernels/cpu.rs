@@ -155,7 +155,8 @@ impl ConvShape {
                     let hi = (hw as isize - start).clamp(lo as isize, dst.len() as isize) as usize;
                     dst[..lo].fill(0.0);
                     dst[hi..].fill(0.0);
-                    dst[lo..hi].copy_from_slice(&plane[(start + lo as isize) as usize..][..hi - lo]);
+                    dst[lo..hi]
+                        .copy_from_slice(&plane[(start + lo as isize) as usize..][..hi - lo]);
                     let cols = self.valid_columns(kx);
                     if cols.len() < w {
                         for line in dst.chunks_exact_mut(w) {
@@ -508,7 +509,10 @@ fn vectorized<R>(f: impl FnOnce() -> R) -> R {
 /// serial f64 chain is bound by the add latency (4 cycles an element), lanes let the compiler vectorise.
 #[inline(always)]
 fn lane_sums(a: &[f32], b: &[f32], f: impl Fn(f32, f32) -> (f64, f64)) -> (f64, f64) {
-    vectorized(#[inline(always)] || lane_sums_scalar(a, b, f))
+    vectorized(
+        #[inline(always)]
+        || lane_sums_scalar(a, b, f),
+    )
 }
 
 #[inline(always)]
@@ -521,7 +525,10 @@ fn lane_sums_scalar(a: &[f32], b: &[f32], f: impl Fn(f32, f32) -> (f64, f64)) ->
     let (mut s0, mut s1) = ([0.0f64; LANES], [0.0f64; LANES]);
     let split = a.len().min(b.len()) / BLOCK * BLOCK;
     let (mut u, mut v) = ([0.0f64; BLOCK], [0.0f64; BLOCK]);
-    for (xa, xb) in a[..split].chunks_exact(BLOCK).zip(b[..split].chunks_exact(BLOCK)) {
+    for (xa, xb) in a[..split]
+        .chunks_exact(BLOCK)
+        .zip(b[..split].chunks_exact(BLOCK))
+    {
         for i in 0..BLOCK {
             (u[i], v[i]) = f(xa[i], xb[i]);
         }
@@ -532,7 +539,10 @@ fn lane_sums_scalar(a: &[f32], b: &[f32], f: impl Fn(f32, f32) -> (f64, f64)) ->
             }
         }
     }
-    let (ca, cb) = (a[split..].chunks_exact(LANES), b[split..].chunks_exact(LANES));
+    let (ca, cb) = (
+        a[split..].chunks_exact(LANES),
+        b[split..].chunks_exact(LANES),
+    );
     let (ra, rb) = (ca.remainder(), cb.remainder());
     for (xa, xb) in ca.zip(cb) {
         for l in 0..LANES {
@@ -587,7 +597,10 @@ fn norm_affine(
     (0..gamma.len())
         .map(|k| {
             let scale = gamma[k] as f64 / (var[k] as f64 + epsilon).sqrt();
-            (scale as f32, (beta[k] as f64 - mean[k] as f64 * scale) as f32)
+            (
+                scale as f32,
+                (beta[k] as f64 - mean[k] as f64 * scale) as f32,
+            )
         })
         .collect()
 }
@@ -616,12 +629,15 @@ pub fn batch_norm_leaky_relu(
         .enumerate()
         .for_each(|(p, (y, x))| {
             let (scale, shift) = affine[p % c];
-            vectorized(#[inline(always)] || {
-                y.iter_mut().zip(x).for_each(|(y, &x)| {
-                    let z = scale * x + shift;
-                    *y = if z < 0.0 { slope * z } else { z };
-                })
-            });
+            vectorized(
+                #[inline(always)]
+                || {
+                    y.iter_mut().zip(x).for_each(|(y, &x)| {
+                        let z = scale * x + shift;
+                        *y = if z < 0.0 { slope * z } else { z };
+                    })
+                },
+            );
         });
     NormOutput {
         output: from_vec(out, &shape),
@@ -707,11 +723,14 @@ pub fn batch_norm_leaky_relu_backward(
         let b = (d_beta / count) as f32;
         let e = (d_gamma / count * s) as f32;
         let (m, ab) = (mean[k], affine[k]);
-        vectorized(#[inline(always)] || {
-            for (dx, (&x, &dy)) in dx.iter_mut().zip(xs[r.clone()].iter().zip(&dys[r])) {
-                *dx = a * (dz(ab, x, dy) - b - (x - m) * e);
-            }
-        });
+        vectorized(
+            #[inline(always)]
+            || {
+                for (dx, (&x, &dy)) in dx.iter_mut().zip(xs[r.clone()].iter().zip(&dys[r])) {
+                    *dx = a * (dz(ab, x, dy) - b - (x - m) * e);
+                }
+            },
+        );
     });
     NormGrads {
         x: from_vec(dx, &shape),
@@ -863,13 +882,18 @@ pub(super) fn dropout_mask(values: &[f32], prob: f64, seed: u64) -> (Vec<f32>, V
         .enumerate()
         .for_each(|(chunk, ((out, mask), x))| {
             let first = (chunk * DROPOUT_CHUNK) as u64;
-            vectorized(#[inline(always)] || {
-                for (i, ((out, mask), &x)) in out.iter_mut().zip(mask.iter_mut()).zip(x).enumerate() {
-                    let kept = (draw_at(key, first + i as u64) >> 32) < threshold;
-                    *mask = if kept { 1.0 } else { 0.0 };
-                    *out = if kept { x * scale } else { 0.0 };
-                }
-            });
+            vectorized(
+                #[inline(always)]
+                || {
+                    for (i, ((out, mask), &x)) in
+                        out.iter_mut().zip(mask.iter_mut()).zip(x).enumerate()
+                    {
+                        let kept = (draw_at(key, first + i as u64) >> 32) < threshold;
+                        *mask = if kept { 1.0 } else { 0.0 };
+                        *out = if kept { x * scale } else { 0.0 };
+                    }
+                },
+            );
         });
     (out, mask)
 }
@@ -891,11 +915,14 @@ pub fn dropout_backward(
                 .zip(m.par_chunks(DROPOUT_CHUNK)),
         )
         .for_each(|(dx, (dy, m))| {
-            vectorized(#[inline(always)] || {
-                dx.iter_mut()
-                    .zip(dy.iter().zip(m))
-                    .for_each(|(dx, (&dy, &m))| *dx = dy * m * scale)
-            });
+            vectorized(
+                #[inline(always)]
+                || {
+                    dx.iter_mut()
+                        .zip(dy.iter().zip(m))
+                        .for_each(|(dx, (&dy, &m))| *dx = dy * m * scale)
+                },
+            );
         });
     from_vec(dx, &shape)
 }
