@@ -1,5 +1,5 @@
 //! Uniform fits on train crops: one least-squares coefficient set for a BRDF model (what spatial variation
-//! must beat, and the head's `--init uniform`), honest scales for uniform Hapke and Lunar-Lambert.
+//! must beat, and the head's start in `fit`), honest scales for uniform Hapke and Lunar-Lambert.
 
 use anyhow::{bail, Result};
 use dataset::brdf::BrdfModel;

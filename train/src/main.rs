@@ -100,10 +100,6 @@ struct TrainArgs {
     /// Learning-rate schedule: constant, or cosine decay from --lr to 0 over the run.
     #[arg(long, default_value = "constant", value_parser = named::<train::run::LrSchedule>(train::run::LrSchedule::NAMES))]
     lr_schedule: train::run::LrSchedule,
-    /// Head initialisation: uniform (bias = the model's uniform least-squares fit on 256 train crops, so training
-    /// starts at the honest uniform baseline) or zero (black first renderings).
-    #[arg(long, default_value = "uniform", value_parser = named::<train::run::HeadInit>(train::run::HeadInit::NAMES))]
-    init: train::run::HeadInit,
     /// Add absolute elevation as a second input plane (normalised by the mean and std of 256 spread train
     /// crops). The paper's input is relief only (crop mean removed), which hides whether a crop lies on a crater
     /// floor, a mare plain or a highland rim; at the crop scale that explains much of the albedo. Meaningful
@@ -167,6 +163,7 @@ fn parse_ema_decay(text: &str) -> Result<f64, String> {
 impl TrainArgs {
     fn fit_config(&self) -> FitConfig {
         FitConfig {
+            version: train::run::FIT_CONFIG_VERSION,
             model: self.model,
             epochs: self.epochs,
             learning_rate: self.lr,
@@ -181,7 +178,6 @@ impl TrainArgs {
             },
             max_val_samples: self.max_val_samples,
             lr_schedule: self.lr_schedule,
-            head_init: self.init,
             elevation_input: self.elevation_input,
             context_input: self.context_input,
             ema_decay: self.ema,

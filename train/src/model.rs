@@ -6,8 +6,7 @@
 use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::pool::{MaxPool2d, MaxPool2dConfig};
 use burn::nn::{
-    BatchNorm, BatchNormConfig, Dropout, DropoutConfig, Initializer, Linear, LinearConfig,
-    PaddingConfig2d,
+    BatchNorm, BatchNormConfig, Dropout, DropoutConfig, Linear, LinearConfig, PaddingConfig2d,
 };
 use burn::prelude::*;
 use burn::tensor::activation::leaky_relu;
@@ -39,9 +38,6 @@ pub struct UNetConfig {
     pub base_width: usize,
     #[config(default = true)]
     pub dropout: bool,
-    /// Start the 1×1 head at zero (see `init`); off gives random outputs, which tests of inference tiling need.
-    #[config(default = true)]
-    pub zero_head: bool,
 }
 
 #[derive(Module, Debug)]
@@ -174,16 +170,10 @@ impl UNetConfig {
             bottleneck,
             up_convs,
             up_blocks,
-            // Zero head: the first renderings are black instead of O(1) I/F against targets of ~0.03, which the
-            // default init made the first epochs spend on shrinking the output scale (measured: docs/experiments.md).
-            head: if self.zero_head {
-                Conv2dConfig::new([w + self.context_features(), self.out_channels], [1, 1])
-                    .with_initializer(Initializer::Zeros)
-                    .init(device)
-            } else {
-                Conv2dConfig::new([w + self.context_features(), self.out_channels], [1, 1])
-                    .init(device)
-            },
+            // Burn's default initialisation, like every other layer: `fit` then starts the head at the uniform fit
+            // (`UNet::with_uniform_head`), and a checkpoint replaces it when a trained run is loaded.
+            head: Conv2dConfig::new([w + self.context_features(), self.out_channels], [1, 1])
+                .init(device),
             pool: MaxPool2dConfig::new([2, 2]).init(),
         }
     }
@@ -212,14 +202,16 @@ impl UNetConfig {
 }
 
 impl<B: Backend> UNet<B> {
-    /// Replace the head's bias (one value per output channel): with a zero head, every pixel's raw parameters
-    /// start at `bias`.
-    pub fn with_head_bias(mut self, bias: &[f64], device: &B::Device) -> Self {
-        assert_eq!(
-            bias.len(),
-            self.head.weight.dims()[0],
-            "one bias per output channel"
-        );
+    /// Start the head at a uniform model: zero weights and `bias` (raw parameters, one per output channel), so
+    /// every pixel's raw parameters are `bias` whatever the input. `fit` starts here with the model's uniform
+    /// least-squares fit: step 0 renders the honest uniform baseline, and training spends its steps on the
+    /// spatial variation alone. (Burn's default head made the first renderings O(1) I/F against targets of
+    /// ~0.03, and a zero head black ones: the first epochs went on the output's scale; docs/experiments.md.)
+    pub fn with_uniform_head(mut self, bias: &[f64], device: &B::Device) -> Self {
+        let dims = self.head.weight.dims();
+        assert_eq!(bias.len(), dims[0], "one bias per output channel");
+        let weight = Tensor::<B, 4>::zeros(dims, device);
+        self.head.weight = burn::module::Param::from_tensor(weight);
         let tensor =
             Tensor::<B, 1>::from_data(TensorData::new(bias.to_vec(), [bias.len()]), device);
         self.head.bias = Some(burn::module::Param::from_tensor(tensor));

@@ -1,5 +1,4 @@
-//! A run directory: what defines a run (`config.json`: [`FitConfig`] with its head initialisation and learning-rate
-//! schedule), its input normalisation (`normalisation.json`), its history (`metrics.jsonl`), its checkpoints
+//! A run directory: what defines a run (`config.json`: [`FitConfig`], versioned), its input normalisation (`normalisation.json`), its history (`metrics.jsonl`), its checkpoints
 //! (`best/`, `ema-best/`, `last/` with the optimiser state and the resume [`Cursor`]), and loading trained runs for
 //! `eval`, `infer` and `report`.
 
@@ -17,9 +16,21 @@ use crate::data::{InputNormalisation, StreamConfig, CONTEXT_CHANNELS};
 use crate::metrics::AggregateMetrics;
 use crate::model::{UNet, UNetConfig};
 
-/// Everything that defines a run (saved as `config.json`; a resume must match it).
+/// The `config.json` format this build writes: version 2 since 2026-11-25. Version 1 (files without a
+/// `version` key) added fields one at a time, each absent in older files; those files load with the values
+/// every run had before the field existed (constant learning rate, relief input only, no context window). From
+/// version 2 on every field is written and required, and a new field means a new version with its conversion
+/// in [`StoredFitConfig`].
+pub const FIT_CONFIG_VERSION: u32 = 2;
+
+/// Everything that defines a run (saved as `config.json`; a resume must match it). The network's head always
+/// starts at the model's uniform least-squares fit ([`crate::model::UNet::with_uniform_head`]); version-1
+/// files also record a `head_init`, which only mattered when their run started and is not read.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(try_from = "StoredFitConfig")]
 pub struct FitConfig {
+    /// [`FIT_CONFIG_VERSION`]: older files are converted when read.
+    pub version: u32,
     pub model: BrdfModel,
     pub epochs: usize,
     pub learning_rate: f64,
@@ -28,24 +39,78 @@ pub struct FitConfig {
     pub stream: StreamConfig,
     /// Cap on validation samples per epoch (`None` = the whole split).
     pub max_val_samples: Option<usize>,
-    /// Learning rate over the run; runs written before this field existed were constant.
-    #[serde(default)]
+    /// Learning rate over the run.
     pub lr_schedule: LrSchedule,
-    /// How the head starts; runs written before this field existed started at zero.
-    #[serde(default)]
-    pub head_init: HeadInit,
-    /// Feed absolute elevation as a second input plane ([`InputNormalisation`]); runs written before this field
-    /// existed had relief only.
-    #[serde(default)]
+    /// Feed absolute elevation as a second input plane ([`InputNormalisation`]).
     pub elevation_input: bool,
-    /// Feed each sample's wide context window through a context encoder ([`InputNormalisation`]); runs written
-    /// before this field existed had none.
-    #[serde(default)]
+    /// Feed each sample's wide context window through a context encoder ([`InputNormalisation`]).
     pub context_input: bool,
     /// Keep an exponential moving average of the weights with this decay ([`crate::averaging`]), validated and
-    /// checkpointed beside the raw network; `None` (and runs written before this field existed): no average.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
+    /// checkpointed beside the raw network; `None`: no average.
     pub ema_decay: Option<f64>,
+}
+
+/// `config.json` as any version wrote it: the fields version 1 always had, and the later ones as options.
+#[derive(serde::Deserialize)]
+struct StoredFitConfig {
+    version: Option<u32>,
+    model: BrdfModel,
+    epochs: usize,
+    learning_rate: f64,
+    base_width: usize,
+    dropout: bool,
+    stream: StreamConfig,
+    max_val_samples: Option<usize>,
+    lr_schedule: Option<LrSchedule>,
+    elevation_input: Option<bool>,
+    context_input: Option<bool>,
+    #[serde(default)]
+    ema_decay: Option<f64>,
+}
+
+impl TryFrom<StoredFitConfig> for FitConfig {
+    type Error = String;
+
+    fn try_from(stored: StoredFitConfig) -> Result<Self, String> {
+        let version = stored.version.unwrap_or(1);
+        let (lr_schedule, elevation_input, context_input) = match version {
+            // Version 1: a field absent from the file did not exist when its run was written.
+            1 => (
+                stored.lr_schedule.unwrap_or(LrSchedule::Constant),
+                stored.elevation_input.unwrap_or(false),
+                stored.context_input.unwrap_or(false),
+            ),
+            FIT_CONFIG_VERSION => {
+                let required = |name: &str| {
+                    format!("config.json version {version} lacks `{name}`: the file was edited or cut short; rewrite it from the run's flags")
+                };
+                (
+                    stored.lr_schedule.ok_or_else(|| required("lr_schedule"))?,
+                    stored.elevation_input.ok_or_else(|| required("elevation_input"))?,
+                    stored.context_input.ok_or_else(|| required("context_input"))?,
+                )
+            }
+            newer => {
+                return Err(format!(
+                    "config.json version {newer} is newer than this g2r-train reads (up to {FIT_CONFIG_VERSION}): update g2r-train"
+                ))
+            }
+        };
+        Ok(Self {
+            version: FIT_CONFIG_VERSION,
+            model: stored.model,
+            epochs: stored.epochs,
+            learning_rate: stored.learning_rate,
+            base_width: stored.base_width,
+            dropout: stored.dropout,
+            stream: stored.stream,
+            max_val_samples: stored.max_val_samples,
+            lr_schedule,
+            elevation_input,
+            context_input,
+            ema_decay: stored.ema_decay,
+        })
+    }
 }
 
 impl FitConfig {
@@ -61,18 +126,6 @@ impl FitConfig {
             .with_base_width(self.base_width)
             .with_dropout(self.dropout)
     }
-}
-
-/// Where the network's output starts.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum HeadInit {
-    /// Zero head: every parameter map starts at 0 (black renderings).
-    #[default]
-    Zero,
-    /// Zero head weights, bias = the model's uniform least-squares fit on train crops: step 0 renders the honest
-    /// uniform baseline, and training spends its steps on the spatial variation alone.
-    Uniform,
 }
 
 /// How the learning rate changes over a run's optimiser steps.
@@ -371,7 +424,6 @@ macro_rules! named_enum {
     };
 }
 
-named_enum!(HeadInit { Zero => "zero", Uniform => "uniform" });
 named_enum!(LrSchedule { Constant => "constant", Cosine => "cosine" });
 named_enum!(Checkpoint {
     Auto => "auto",
@@ -475,12 +527,65 @@ mod schedule_tests {
     }
 
     #[test]
-    fn configs_written_before_the_schedule_existed_load_as_constant() {
-        let json = r#"{"model":"m2","epochs":3,"learning_rate":0.001,"base_width":4,"dropout":true,
+    fn version_1_configs_load_with_the_values_runs_had_before_each_field() {
+        // The oldest layout, and one with `head_init` (version 1 wrote it; it is not read any more).
+        let oldest = r#"{"model":"m2","epochs":3,"learning_rate":0.001,"base_width":4,"dropout":true,
             "stream":{"seed":42,"batch_size":8,"window_groups":4,"augment":true,"max_samples":null},
             "max_val_samples":null}"#;
-        let config: FitConfig = serde_json::from_str(json).unwrap();
+        let config: FitConfig = serde_json::from_str(oldest).unwrap();
+        assert_eq!(config.version, FIT_CONFIG_VERSION);
         assert_eq!(config.lr_schedule, LrSchedule::Constant);
-        assert_eq!(config.head_init, HeadInit::Zero);
+        assert!(!config.elevation_input && !config.context_input);
+        assert_eq!(config.ema_decay, None);
+        let later = oldest.replace(
+            r#""max_val_samples":null"#,
+            r#""max_val_samples":null,"lr_schedule":"cosine","head_init":"zero","elevation_input":true"#,
+        );
+        let config: FitConfig = serde_json::from_str(&later).unwrap();
+        assert_eq!(config.lr_schedule, LrSchedule::Cosine);
+        assert!(config.elevation_input && !config.context_input);
+    }
+
+    #[test]
+    fn version_2_configs_round_trip_and_require_every_field() {
+        let config = FitConfig {
+            version: FIT_CONFIG_VERSION,
+            model: BrdfModel::L3,
+            epochs: 2,
+            learning_rate: 3e-4,
+            base_width: 8,
+            dropout: false,
+            stream: StreamConfig {
+                seed: 7,
+                batch_size: 4,
+                window_groups: 2,
+                augment: true,
+                max_samples: Some(100),
+            },
+            max_val_samples: Some(16),
+            lr_schedule: LrSchedule::Cosine,
+            elevation_input: true,
+            context_input: false,
+            ema_decay: Some(0.995),
+        };
+        let json = serde_json::to_string(&config).unwrap();
+        assert!(json.contains(r#""version":2"#), "{json}");
+        assert_eq!(serde_json::from_str::<FitConfig>(&json).unwrap(), config);
+        let cut = json.replace(r#","context_input":false"#, "");
+        let err = serde_json::from_str::<FitConfig>(&cut)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("version 2") && err.contains("`context_input`"),
+            "{err}"
+        );
+        let newer = json.replace(r#""version":2"#, r#""version":3"#);
+        let err = serde_json::from_str::<FitConfig>(&newer)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("version 3") && err.contains("update g2r-train"),
+            "{err}"
+        );
     }
 }

@@ -33,7 +33,7 @@ use dataset::schema::{Split, CROP_PX};
 use crate::prediction::{net_outputs, predict_images};
 use crate::run::{
     append_jsonl, read_history, read_json, run_input, save_last, save_model, write_json,
-    Checkpoint, Cursor, EpochMetrics, FitConfig, HeadInit, Normalisation, Rec, ValMetrics,
+    Checkpoint, Cursor, EpochMetrics, FitConfig, Normalisation, Rec, ValMetrics,
 };
 
 /// Train crops the elevation input's mean and std are taken over (spread over the split).
@@ -230,18 +230,16 @@ pub fn fit<B: TrainBackend>(
             },
         )?;
         B::seed(device, keyed_u64(seed, "init", 0));
-        let mut net = net_config.init::<B>(device);
+        let net = net_config.init::<B>(device);
         let _ = net.num_params(); // materialise the lazily initialised weights now, in a fixed order
-        if config.head_init == HeadInit::Uniform {
-            let fit = crate::calibration::calibrate(&*source, UNIFORM_INIT_SAMPLES, config.model)?;
-            tracing::info!(coefficients = ?fit.model_uniform, samples = fit.samples, "head bias = uniform fit");
-            let raw: Vec<f64> = fit
-                .model_uniform
-                .iter()
-                .map(|&c| dataset::brdf::inverse_leaky_relu(c))
-                .collect();
-            net = net.with_head_bias(&raw, device);
-        }
+        let fit = crate::calibration::calibrate(&*source, UNIFORM_INIT_SAMPLES, config.model)?;
+        tracing::info!(coefficients = ?fit.model_uniform, samples = fit.samples, "head = uniform fit");
+        let raw: Vec<f64> = fit
+            .model_uniform
+            .iter()
+            .map(|&c| dataset::brdf::inverse_leaky_relu(c))
+            .collect();
+        let net = net.with_uniform_head(&raw, device);
         let optim = AdamConfig::new().with_epsilon(1e-8).init::<B, UNet<B>>();
         let average = config.ema_decay.map(|_| net.valid());
         (net, optim, Cursor::start(), Vec::new(), input, average)

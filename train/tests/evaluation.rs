@@ -22,6 +22,7 @@ use train::training::validate;
 /// The FitConfig of the small untrained M2 networks these tests evaluate.
 fn m2_config() -> FitConfig {
     FitConfig {
+        version: train::run::FIT_CONFIG_VERSION,
         model: BrdfModel::M2,
         epochs: 1,
         learning_rate: 1e-3,
@@ -36,7 +37,6 @@ fn m2_config() -> FitConfig {
         },
         max_val_samples: None,
         lr_schedule: train::run::LrSchedule::Constant,
-        head_init: train::run::HeadInit::Zero,
         elevation_input: false,
         context_input: false,
         ema_decay: None,
@@ -53,7 +53,6 @@ fn eval_rows_equal_validation_and_direct_baselines() {
     Flex::seed(&device, 3);
     let net = UNetConfig::new(BrdfModel::M2.param_count())
         .with_base_width(4)
-        .with_zero_head(false)
         .init::<Flex>(&device);
     let _ = net.num_params();
     let config = m2_config();
@@ -229,7 +228,6 @@ fn ensemble_learned_is_the_mean_of_its_members_renderings() {
                 input,
                 net: UNetConfig::new(BrdfModel::M2.param_count())
                     .with_base_width(4)
-                    .with_zero_head(false)
                     .init::<Flex>(&device),
                 checkpoint: format!("seed-{seed}"),
             }

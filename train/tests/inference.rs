@@ -82,7 +82,6 @@ fn random_net_seeded(in_channels: usize, context_channels: usize, seed: u64) -> 
         .with_in_channels(in_channels)
         .with_context_channels(context_channels)
         .with_base_width(4)
-        .with_zero_head(false)
         .init::<B>(&device);
     let _ = net.num_params(); // Burn initialises lazily: materialise every weight under the lock
     net

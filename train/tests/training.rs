@@ -1,6 +1,7 @@
 //! The fit loop on a tiny published dataset of synthetic samples (written with the real shard writer and
-//! manifest): the loss falls ≥ 10× when overfitting a handful of samples, a run stopped mid-epoch and resumed ends
-//! with the same network as an uninterrupted one, and a checkpoint for another BRDF model is refused.
+//! manifest): overfitting a handful of samples takes the loss ≥ 10× below the uniform fit it starts at, a run
+//! stopped mid-epoch and resumed ends with the same network as an uninterrupted one, and a checkpoint for another
+//! BRDF model is refused.
 
 use std::path::Path;
 use std::sync::Arc;
@@ -31,6 +32,7 @@ fn config(
     dropout: bool,
 ) -> FitConfig {
     FitConfig {
+        version: train::run::FIT_CONFIG_VERSION,
         model,
         epochs,
         learning_rate: lr,
@@ -45,14 +47,13 @@ fn config(
         },
         max_val_samples: Some(4),
         lr_schedule: train::run::LrSchedule::Constant,
-        head_init: train::run::HeadInit::Zero,
         elevation_input: false,
         context_input: false,
         ema_decay: None,
     }
 }
 
-/// `--init uniform` sets only the head's bias: every pixel's raw parameters are then that bias, so step 0 renders
+/// A uniform head (zero weights, the fit as bias) makes every pixel's raw parameters that bias, so step 0 renders
 /// exactly the uniform model (checked against the scalar reference, negative coefficients included).
 #[test]
 fn a_head_bias_renders_the_uniform_model_before_any_step() {
@@ -71,7 +72,7 @@ fn a_head_bias_renders_the_uniform_model_before_any_step() {
         let net = UNetConfig::new(model.param_count())
             .with_base_width(4)
             .init::<Flex>(&device)
-            .with_head_bias(&raw, &device);
+            .with_uniform_head(&raw, &device);
         let got = predict_images(&net, model, &batch, &device);
         let planar: Vec<f64> = (0..batch.len())
             .flat_map(|_| raw.iter().flat_map(|&r| std::iter::repeat_n(r, npx)))
@@ -88,8 +89,12 @@ fn a_head_bias_renders_the_uniform_model_before_any_step() {
     }
 }
 
+/// Every run starts at the model's uniform least-squares fit, which on these four samples (the calibration's
+/// crops too) is the best any spatially constant parameter set can do: the first step's loss is that floor. The
+/// truth varies in space, so a network that learns must go far below it: a tenth within 120 steps (measured
+/// 1.56e-4 → 7.8e-6, 20×; 11× at step 100).
 #[test]
-fn overfitting_a_handful_of_samples_drops_the_loss_tenfold() {
+fn overfitting_a_handful_of_samples_drops_the_loss_tenfold_below_the_uniform_fit() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let tmp = tempfile::tempdir().unwrap();
     train::testing::write_synthetic_dataset(
@@ -98,7 +103,7 @@ fn overfitting_a_handful_of_samples_drops_the_loss_tenfold() {
         synthetic_samples(4, 2),
     );
     let source: Arc<dyn SampleSource> = Arc::new(LocalSource::open(tmp.path()).unwrap());
-    let mut cfg = config(BrdfModel::M2, 40, 1e-2, 4, false);
+    let mut cfg = config(BrdfModel::M2, 120, 1e-2, 4, false);
     cfg.stream.augment = false;
     let out = fit::<Ad>(
         source,
@@ -126,7 +131,7 @@ fn overfitting_a_handful_of_samples_drops_the_loss_tenfold() {
         first / best,
         out.cursor.step
     );
-    assert_eq!(out.history.len(), 40);
+    assert_eq!(out.history.len(), 120);
     assert!(
         tmp.path().join("run/best/model.mpk").exists()
             && tmp.path().join("run/metrics.jsonl").exists()
@@ -174,7 +179,6 @@ fn stopping_and_resuming_gives_the_same_network_as_an_uninterrupted_run() {
     // elevation plane and the context input, the resumed half must feed the network what the first half did.
     let cfg = FitConfig {
         lr_schedule: train::run::LrSchedule::Cosine,
-        head_init: train::run::HeadInit::Uniform,
         elevation_input: true,
         context_input: true,
         ema_decay: Some(0.9),
