@@ -263,8 +263,9 @@ impl<B: Backend> UNet<B> {
                 (h, w) == (2 * coarse_h, 2 * coarse_w),
                 "up stage {coarse_h}x{coarse_w} -> {h}x{w} is not x2"
             );
-            let up = leaky_relu(upsample_conv2d(conv, x), ACTIVATION_SLOPE);
-            x = block.forward(join_channels(up, skip));
+            // LeakyReLU(up convolution) joined with the skip, in one pass.
+            let up = upsample_conv2d(conv, x);
+            x = block.forward(join_channels(up, skip, ACTIVATION_SLOPE));
         }
         conv2d(&self.head, join(x))
     }

@@ -10,7 +10,6 @@ use burn::backend::autodiff::NodeId;
 use burn::backend::Autodiff;
 use burn::tensor::backend::AutodiffBackend;
 use burn::tensor::ops::{ConvOptions, FloatTensor, IntTensor};
-use burn::tensor::TensorMetadata;
 
 use super::{DropoutOutput, MaxPoolOutput, NormOutput, RenderLoss, TrainOps};
 
@@ -156,17 +155,19 @@ impl<B: TrainOps> Backward<B, 3> for UpsampleConv2d {
 struct JoinChannels;
 
 impl<B: TrainOps> Backward<B, 2> for JoinChannels {
-    /// Channels of the first input.
-    type State = usize;
+    /// The first input (its sign sets LeakyReLU's slope) and the slope.
+    type State = (NodeId, f64);
 
     fn backward(
         self,
         ops: Ops<Self::State, 2>,
         grads: &mut Gradients,
-        _checkpointer: &mut Checkpointer,
+        checkpointer: &mut Checkpointer,
     ) {
         let grad = grads.consume::<B>(&ops.node);
-        let (grad_a, grad_b) = B::train_split_channels(grad, ops.state);
+        let (a, slope) = ops.state;
+        let a = checkpointer.retrieve_node_output::<FloatTensor<B>>(a);
+        let (grad_a, grad_b) = B::train_join_channels_backward(a, grad, slope);
         let [node_a, node_b] = ops.parents;
         for (node, value) in [(node_a, grad_a), (node_b, grad_b)] {
             if let Some(node) = node {
@@ -404,18 +405,25 @@ impl<B: TrainOps, C: CheckpointStrategy> TrainOps for Autodiff<B, C> {
         }
     }
 
-    fn train_join_channels(a: FloatTensor<Self>, b: FloatTensor<Self>) -> FloatTensor<Self> {
-        let first = a.primitive.shape()[1];
+    fn train_join_channels(
+        a: FloatTensor<Self>,
+        b: FloatTensor<Self>,
+        slope: f64,
+    ) -> FloatTensor<Self> {
         match JoinChannels
             .prepare::<C>([a.node.clone(), b.node.clone()])
             .compute_bound()
             .stateful()
         {
-            OpsKind::Tracked(prep) => {
-                prep.finish(first, B::train_join_channels(a.primitive, b.primitive))
+            OpsKind::Tracked(mut prep) => {
+                let a_id = prep.checkpoint(&a);
+                prep.finish(
+                    (a_id, slope),
+                    B::train_join_channels(a.primitive, b.primitive, slope),
+                )
             }
             OpsKind::UnTracked(prep) => {
-                prep.finish(B::train_join_channels(a.primitive, b.primitive))
+                prep.finish(B::train_join_channels(a.primitive, b.primitive, slope))
             }
         }
     }

@@ -1140,19 +1140,19 @@ pub fn upsample_conv2d_weight_grad(
     from_vec(dw, &[s.c_out, s.c_in, 3, 3])
 }
 
-/// `[a, b]` joined along channels: per sample, `a`'s planes then `b`'s, two contiguous copies.
-pub fn join_channels(a: FloatTensor<Flex>, b: FloatTensor<Flex>) -> FloatTensor<Flex> {
-    use burn::tensor::ops::FloatTensorOps;
+/// `[LeakyReLU(a), b]` along channels, per sample: the first part activated as it is copied, the second copied.
+pub fn join_channels(a: FloatTensor<Flex>, b: FloatTensor<Flex>, slope: f64) -> FloatTensor<Flex> {
     let (Some((ac, a_shape)), Some((bc, b_shape))) = (f32_data(&a), f32_data(&b)) else {
-        return <Flex as FloatTensorOps<Flex>>::float_cat(vec![a, b], 1);
+        return reference::join_channels::<Flex>(a, b, slope);
     };
     let (sample_a, sample_b) = (
         a_shape[1..].iter().product::<usize>(),
         b_shape[1..].iter().product::<usize>(),
     );
     if sample_a == 0 || sample_b == 0 {
-        return <Flex as FloatTensorOps<Flex>>::float_cat(vec![a, b], 1);
+        return reference::join_channels::<Flex>(a, b, slope);
     }
+    let slope = slope as f32;
     let mut out = vec![0.0f32; a_shape[0] * (sample_a + sample_b)];
     out.par_chunks_mut(sample_a + sample_b)
         .zip(
@@ -1161,43 +1161,67 @@ pub fn join_channels(a: FloatTensor<Flex>, b: FloatTensor<Flex>) -> FloatTensor<
                 .zip(slice(&bc).par_chunks(sample_b)),
         )
         .for_each(|(out, (a, b))| {
-            out[..sample_a].copy_from_slice(a);
-            out[sample_a..].copy_from_slice(b);
+            let (out_a, out_b) = out.split_at_mut(sample_a);
+            vectorized(
+                #[inline(always)]
+                || {
+                    out_a
+                        .iter_mut()
+                        .zip(a)
+                        .for_each(|(y, &x)| *y = if x < 0.0 { slope * x } else { x })
+                },
+            );
+            out_b.copy_from_slice(b);
         });
     let mut shape = a_shape;
     shape[1] += b_shape[1];
     from_vec(out, &shape)
 }
 
-/// Channels `..first` and `first..` of `[N, C, ...]` as two contiguous tensors.
-pub fn split_channels(
-    t: FloatTensor<Flex>,
-    first: usize,
+/// The gradient of [`join_channels`]: per sample the output gradient's first `a` channels times LeakyReLU's
+/// slope where `a < 0`, and the rest copied, each into a contiguous tensor.
+pub fn join_channels_backward(
+    a: FloatTensor<Flex>,
+    grad: FloatTensor<Flex>,
+    slope: f64,
 ) -> (FloatTensor<Flex>, FloatTensor<Flex>) {
-    let Some((tc, shape)) = f32_data(&t) else {
-        return reference::split_channels::<Flex>(t, first);
+    let (Some((ac, a_shape)), Some((gc, shape))) = (f32_data(&a), f32_data(&grad)) else {
+        return reference::join_channels_backward::<Flex>(a, grad, slope);
     };
     let plane = shape[2..].iter().product::<usize>();
-    let (sample, sample_a) = (shape[1] * plane, first * plane);
+    let (sample, sample_a) = (shape[1] * plane, a_shape[1] * plane);
     let sample_b = sample - sample_a;
     if sample_a == 0 || sample_b == 0 {
-        return reference::split_channels::<Flex>(t, first);
+        return reference::join_channels_backward::<Flex>(a, grad, slope);
     }
-    let (mut a, mut b) = (
+    let slope = slope as f32;
+    let (mut grad_a, mut grad_b) = (
         vec![0.0f32; shape[0] * sample_a],
         vec![0.0f32; shape[0] * sample_b],
     );
-    a.par_chunks_mut(sample_a)
-        .zip(b.par_chunks_mut(sample_b))
-        .zip(slice(&tc).par_chunks(sample))
-        .for_each(|((a, b), t)| {
-            a.copy_from_slice(&t[..sample_a]);
-            b.copy_from_slice(&t[sample_a..]);
+    grad_a
+        .par_chunks_mut(sample_a)
+        .zip(grad_b.par_chunks_mut(sample_b))
+        .zip(
+            slice(&gc)
+                .par_chunks(sample)
+                .zip(slice(&ac).par_chunks(sample_a)),
+        )
+        .for_each(|((grad_a, grad_b), (g, a))| {
+            vectorized(
+                #[inline(always)]
+                || {
+                    grad_a
+                        .iter_mut()
+                        .zip(g[..sample_a].iter().zip(a))
+                        .for_each(|(d, (&g, &a))| *d = if a < 0.0 { g * slope } else { g })
+                },
+            );
+            grad_b.copy_from_slice(&g[sample_a..]);
         });
-    let (mut a_shape, mut b_shape) = (shape.clone(), shape);
-    a_shape[1] = first;
-    b_shape[1] -= first;
-    (from_vec(a, &a_shape), from_vec(b, &b_shape))
+    let mut b_shape = shape;
+    b_shape[1] -= a_shape[1];
+    (from_vec(grad_a, &a_shape), from_vec(grad_b, &b_shape))
 }
 
 /// The renderer layer's loss in one pass per sample: rendered `r = Σ_k LeakyReLU(p_k)·T_k`, masked squared error

@@ -179,20 +179,26 @@ pub trait TrainOps: Backend {
         .x_grad
     }
 
-    /// `[a, b]` joined along channels (`[N, Ca, H, W]`, `[N, Cb, H, W]` → `[N, Ca + Cb, H, W]`): the U-Net's skip
-    /// join. Graph node under `Autodiff`, whose backward hands each input a contiguous gradient
-    /// ([`TrainOps::train_split_channels`]) where the stock concatenation's slices left strided views that every
-    /// following operation, and the gradient sum at the skip, iterated slowly.
-    fn train_join_channels(a: FloatTensor<Self>, b: FloatTensor<Self>) -> FloatTensor<Self> {
-        Self::float_cat(vec![a, b], 1)
+    /// `[LeakyReLU(a), b]` joined along channels (`[N, Ca, H, W]`, `[N, Cb, H, W]` → `[N, Ca + Cb, H, W]`): the
+    /// U-Net's up path, the up convolution's raw output activated and joined with the skip in one pass. Graph
+    /// node under `Autodiff`, whose backward ([`TrainOps::train_join_channels_backward`]) hands each input a
+    /// contiguous gradient where the stock concatenation's slices left strided views that every following
+    /// operation, and the gradient sum at the skip, iterated slowly.
+    fn train_join_channels(
+        a: FloatTensor<Self>,
+        b: FloatTensor<Self>,
+        slope: f64,
+    ) -> FloatTensor<Self> {
+        reference::join_channels::<Self>(a, b, slope)
     }
 
-    /// The inverse of [`TrainOps::train_join_channels`]: channels `..first` and `first..` of `[N, C, H, W]`.
-    fn train_split_channels(
-        t: FloatTensor<Self>,
-        first: usize,
+    /// The gradients of [`TrainOps::train_join_channels`] for `a` and `b` from the output's gradient.
+    fn train_join_channels_backward(
+        a: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        slope: f64,
     ) -> (FloatTensor<Self>, FloatTensor<Self>) {
-        reference::split_channels::<Self>(t, first)
+        reference::join_channels_backward::<Self>(a, grad, slope)
     }
 
     /// The renderer layer's masked MSE from raw parameter maps `[N, P, H, W]`, the scene's terms (same shape),
@@ -380,15 +386,22 @@ impl TrainOps for burn::backend::Flex {
         })
     }
 
-    fn train_join_channels(a: FloatTensor<Self>, b: FloatTensor<Self>) -> FloatTensor<Self> {
-        timed(Kernel::JoinChannels, || cpu::join_channels(a, b))
+    fn train_join_channels(
+        a: FloatTensor<Self>,
+        b: FloatTensor<Self>,
+        slope: f64,
+    ) -> FloatTensor<Self> {
+        timed(Kernel::JoinChannels, || cpu::join_channels(a, b, slope))
     }
 
-    fn train_split_channels(
-        t: FloatTensor<Self>,
-        first: usize,
+    fn train_join_channels_backward(
+        a: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        slope: f64,
     ) -> (FloatTensor<Self>, FloatTensor<Self>) {
-        timed(Kernel::SplitChannels, || cpu::split_channels(t, first))
+        timed(Kernel::JoinChannelsBackward, || {
+            cpu::join_channels_backward(a, grad, slope)
+        })
     }
 
     fn batch_norm_leaky_relu(
@@ -493,9 +506,9 @@ pub fn upsample_conv2d<B: TrainOps>(conv: &Conv2d<B>, x: Tensor<B, 4>) -> Tensor
     ))
 }
 
-/// `Tensor::cat(vec![a, b], 1)` through [`TrainOps::train_join_channels`].
-pub fn join_channels<B: TrainOps>(a: Tensor<B, 4>, b: Tensor<B, 4>) -> Tensor<B, 4> {
-    tensor(B::train_join_channels(primitive(a), primitive(b)))
+/// `Tensor::cat(vec![leaky_relu(a, slope), b], 1)` through [`TrainOps::train_join_channels`].
+pub fn join_channels<B: TrainOps>(a: Tensor<B, 4>, b: Tensor<B, 4>, slope: f64) -> Tensor<B, 4> {
+    tensor(B::train_join_channels(primitive(a), primitive(b), slope))
 }
 
 /// The renderer layer's masked MSE through [`TrainOps::render_masked_mse`] (LeakyReLU slope `slope` on the raw

@@ -23,9 +23,10 @@ pub enum Kernel {
     UpConvForward,
     UpConvInputGrad,
     UpConvWeightGrad,
-    /// The skip join (channel concatenation) and its gradient's split.
+    /// The up path's join (LeakyReLU of the up convolution's output, concatenated with the skip) and its backward
+    /// (the gradient split, the first part through LeakyReLU's slope).
     JoinChannels,
-    SplitChannels,
+    JoinChannelsBackward,
     /// The renderer layer's fused render + masked MSE, forward and backward.
     RenderLoss,
     RenderLossBackward,
@@ -47,7 +48,7 @@ impl Kernel {
         Kernel::UpConvInputGrad,
         Kernel::UpConvWeightGrad,
         Kernel::JoinChannels,
-        Kernel::SplitChannels,
+        Kernel::JoinChannelsBackward,
         Kernel::RenderLoss,
         Kernel::RenderLossBackward,
     ];

@@ -161,6 +161,35 @@ pub fn upsample_conv2d_weight_grad<B: Backend>(
 }
 
 /// Channels `..first` and `first..` of `[N, C, H, W]` (stock slices: views where the backend makes them).
+/// `[LeakyReLU(a), b]` along channels.
+pub fn join_channels<B: Backend>(
+    a: FloatTensor<B>,
+    b: FloatTensor<B>,
+    slope: f64,
+) -> FloatTensor<B> {
+    primitive(Tensor::cat(
+        vec![leaky_relu(tensor::<B, 4>(a), slope), tensor::<B, 4>(b)],
+        1,
+    ))
+}
+
+/// The gradient of [`join_channels`] for `a` and `b`: the output gradient's channels split at `a`'s count, the
+/// first part times `slope` where `a < 0`.
+pub fn join_channels_backward<B: Backend>(
+    a: FloatTensor<B>,
+    grad: FloatTensor<B>,
+    slope: f64,
+) -> (FloatTensor<B>, FloatTensor<B>) {
+    let a = tensor::<B, 4>(a);
+    let (grad_a, grad_b) = split_channels::<B>(grad, a.dims()[1]);
+    let grad_a = tensor::<B, 4>(grad_a);
+    let negative = a.lower_elem(0.0);
+    (
+        primitive(grad_a.clone().mask_where(negative, grad_a * slope)),
+        grad_b,
+    )
+}
+
 pub fn split_channels<B: Backend>(
     t: FloatTensor<B>,
     first: usize,

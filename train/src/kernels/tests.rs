@@ -323,7 +323,8 @@ fn kernels_give_the_same_bits_on_any_thread_count() {
                     primitive(Tensor::<Flex, 1>::from_floats([1.0], &Default::default())),
                     0.01,
                 )),
-                t(Flex::train_split_channels(dy.clone(), 3).1),
+                t(Flex::train_join_channels(x.clone(), dy.clone(), 0.01)),
+                t(Flex::train_join_channels_backward(x.clone(), dy.clone(), 0.01).0),
                 super::cpu::dropout_mask(&values(tensor::<Flex, 4>(x.clone())), 0.3, 9).1,
             ]
         })
@@ -428,18 +429,19 @@ fn blocked_convolutions_match_stock_on_planes_larger_than_a_block() {
     }
 }
 
-/// The skip join against `Tensor::cat` through autodiff (values and both inputs' gradients, which must also come
-/// back contiguous), and the stock-op split (CUDA's path) against the CPU split.
+/// The up path's join against the stock composition (LeakyReLU, then `Tensor::cat`) through autodiff: output and
+/// both gradients exactly (values on both sides of the kink), each gradient contiguous; the CPU backward equals
+/// the stock-operation default.
 #[test]
-fn join_channels_matches_cat_and_splits_its_gradient() {
+fn join_channels_matches_leaky_relu_then_cat_and_splits_its_gradient() {
     let weights = random([3, 7, 6, 5], 91);
     let run = |fused: bool| {
         let a = random([3, 4, 6, 5], 92).require_grad();
         let b = random([3, 3, 6, 5], 93).require_grad();
         let y = if fused {
-            join_channels(a.clone(), b.clone())
+            join_channels(a.clone(), b.clone(), 0.01)
         } else {
-            Tensor::cat(vec![a.clone(), b.clone()], 1)
+            Tensor::cat(vec![leaky_relu(a.clone(), 0.01), b.clone()], 1)
         };
         let grads = (y.clone() * weights.clone()).sum().backward();
         let (ga, gb) = (a.grad(&grads).unwrap(), b.grad(&grads).unwrap());
@@ -454,12 +456,16 @@ fn join_channels_matches_cat_and_splits_its_gradient() {
         (values(y), values(ga), values(gb))
     };
     let (fused, stock) = (run(true), run(false));
-    assert_eq!(fused, stock, "a copy and its split are exact");
-    let t = primitive(weights.inner());
-    let (a, b) = Flex::train_split_channels(t.clone(), 4);
-    let (ra, rb) = reference::split_channels::<Flex>(t, 4);
-    assert_eq!(values(tensor::<Flex, 4>(a)), values(tensor::<Flex, 4>(ra)));
-    assert_eq!(values(tensor::<Flex, 4>(b)), values(tensor::<Flex, 4>(rb)));
+    assert!(fused.1.iter().any(|&g| g != 0.0) && fused.0.iter().any(|&y| y < 0.0));
+    assert_eq!(fused, stock, "the join and its gradient are exact");
+    let (a, g) = (
+        primitive(random([3, 4, 6, 5], 94).inner()),
+        primitive(weights.inner()),
+    );
+    let (fa, fb) = Flex::train_join_channels_backward(a.clone(), g.clone(), 0.01);
+    let (ra, rb) = reference::join_channels_backward::<Flex>(a, g, 0.01);
+    assert_eq!(values(tensor::<Flex, 4>(fa)), values(tensor::<Flex, 4>(ra)));
+    assert_eq!(values(tensor::<Flex, 4>(fb)), values(tensor::<Flex, 4>(rb)));
 }
 
 /// The fused render + masked MSE against the stock composition (LeakyReLU, product with the terms, sum over
