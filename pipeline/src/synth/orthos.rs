@@ -3,11 +3,10 @@
 //! sensor noise. The ortho grid is the map grid, so rendering here is also orthorectification.
 
 use dataset::crs::{LocalFrame, LunarCrs, MOON_RADIUS_M};
-use dataset::geometry::Cosines;
+use dataset::geometry::{plane_normal, Cosines};
 use dataset::hapke::{hapke_i_over_f, HFunction, HapkeParams};
 use dataset::horizon::{visibility_window, HeightField, SUN_ANGULAR_RADIUS_RAD};
 use dataset::raster::bilinear;
-use glam::DVec3;
 use rand_distr::{Distribution, Normal};
 use rayon::prelude::*;
 
@@ -140,13 +139,9 @@ pub fn render_ortho(
                     let grad_e = inv_e.x * dzdx + inv_e.y * dzdy;
                     let grad_n = inv_n.x * dzdx + inv_n.y * dzdy;
                     let p = frame.map_to_enu(x, y, h);
-                    // The local vertical at p is tilted from the tile's by (E, N)/R.
-                    let normal = DVec3::new(
-                        -grad_e - p.x / MOON_RADIUS_M,
-                        -grad_n - p.y / MOON_RADIUS_M,
-                        1.0,
-                    )
-                    .normalize();
+                    // The local vertical at p is tilted from the tile's by (E, N)/R: a slope of its own.
+                    let normal =
+                        plane_normal(grad_e + p.x / MOON_RADIUS_M, grad_n + p.y / MOON_RADIUS_M);
                     let camera_visible = camera_vis.at(fc, fr);
                     if camera_visible < 0.5 {
                         stats.occluded += 1;
