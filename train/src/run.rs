@@ -1,4 +1,5 @@
-//! A run directory: what defines a run (`config.json`: [`FitConfig`], versioned), its input normalisation (`normalisation.json`), its history (`metrics.jsonl`), its checkpoints
+//! A run directory: what defines a run (`config.json`: [`FitConfig`], versioned), its input normalisation
+//! (`normalisation.json`), its history (`metrics.jsonl`), its checkpoints
 //! (`best/`, `ema-best/`, `last/` with the optimiser state and the resume [`Cursor`]), and loading trained runs for
 //! `eval`, `infer` and `report`.
 
@@ -50,7 +51,8 @@ pub struct FitConfig {
     pub ema_decay: Option<f64>,
 }
 
-/// `config.json` as any version wrote it: the fields version 1 always had, and the later ones as options.
+/// `config.json` as any version wrote it: the fields version 1 always had, and the later ones as options
+/// (`None` = absent from the file; for the nullable fields, a key written as `null` is `Some(None)`).
 #[derive(serde::Deserialize)]
 struct StoredFitConfig {
     version: Option<u32>,
@@ -60,12 +62,23 @@ struct StoredFitConfig {
     base_width: usize,
     dropout: bool,
     stream: StreamConfig,
-    max_val_samples: Option<usize>,
+    #[serde(default, deserialize_with = "present")]
+    max_val_samples: Option<Option<usize>>,
     lr_schedule: Option<LrSchedule>,
     elevation_input: Option<bool>,
     context_input: Option<bool>,
-    #[serde(default)]
-    ema_decay: Option<f64>,
+    #[serde(default, deserialize_with = "present")]
+    ema_decay: Option<Option<f64>>,
+}
+
+/// A key that is in the file, whatever its value (`null` included): serde alone reads a missing `Option` field
+/// and a `null` one alike.
+fn present<'de, D, T>(deserializer: D) -> Result<Option<Option<T>>, D::Error>
+where
+    D: serde::Deserializer<'de>,
+    T: serde::Deserialize<'de>,
+{
+    <Option<T> as serde::Deserialize>::deserialize(deserializer).map(Some)
 }
 
 impl TryFrom<StoredFitConfig> for FitConfig {
@@ -73,23 +86,30 @@ impl TryFrom<StoredFitConfig> for FitConfig {
 
     fn try_from(stored: StoredFitConfig) -> Result<Self, String> {
         let version = stored.version.unwrap_or(1);
-        let (lr_schedule, elevation_input, context_input) = match version {
-            // Version 1: a field absent from the file did not exist when its run was written.
+        let required = |name: &str| {
+            format!("config.json version {version} lacks `{name}`: the file was edited or cut short; rewrite it from the run's flags")
+        };
+        // Every version wrote this one (as `null` when uncapped).
+        let max_val_samples = stored
+            .max_val_samples
+            .ok_or_else(|| required("max_val_samples"))?;
+        let (lr_schedule, elevation_input, context_input, ema_decay) = match version {
+            // Version 1: a field absent from the file did not exist when its run was written (and `ema_decay`
+            // was left out when there was no average).
             1 => (
                 stored.lr_schedule.unwrap_or(LrSchedule::Constant),
                 stored.elevation_input.unwrap_or(false),
                 stored.context_input.unwrap_or(false),
+                stored.ema_decay.flatten(),
             ),
-            FIT_CONFIG_VERSION => {
-                let required = |name: &str| {
-                    format!("config.json version {version} lacks `{name}`: the file was edited or cut short; rewrite it from the run's flags")
-                };
-                (
-                    stored.lr_schedule.ok_or_else(|| required("lr_schedule"))?,
-                    stored.elevation_input.ok_or_else(|| required("elevation_input"))?,
-                    stored.context_input.ok_or_else(|| required("context_input"))?,
-                )
-            }
+            FIT_CONFIG_VERSION => (
+                stored.lr_schedule.ok_or_else(|| required("lr_schedule"))?,
+                stored
+                    .elevation_input
+                    .ok_or_else(|| required("elevation_input"))?,
+                stored.context_input.ok_or_else(|| required("context_input"))?,
+                stored.ema_decay.ok_or_else(|| required("ema_decay"))?,
+            ),
             newer => {
                 return Err(format!(
                     "config.json version {newer} is newer than this g2r-train reads (up to {FIT_CONFIG_VERSION}): update g2r-train"
@@ -104,11 +124,11 @@ impl TryFrom<StoredFitConfig> for FitConfig {
             base_width: stored.base_width,
             dropout: stored.dropout,
             stream: stored.stream,
-            max_val_samples: stored.max_val_samples,
+            max_val_samples,
             lr_schedule,
             elevation_input,
             context_input,
-            ema_decay: stored.ema_decay,
+            ema_decay,
         })
     }
 }
@@ -579,6 +599,11 @@ mod schedule_tests {
             err.contains("version 2") && err.contains("`context_input`"),
             "{err}"
         );
+        let cut = json.replace(r#","ema_decay":0.995"#, "");
+        let err = serde_json::from_str::<FitConfig>(&cut)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("`ema_decay`"), "{err}");
         let newer = json.replace(r#""version":2"#, r#""version":3"#);
         let err = serde_json::from_str::<FitConfig>(&newer)
             .unwrap_err()
