@@ -3,9 +3,10 @@
 //! Convolutions (stride 1, dilation 1, one group, symmetric zero padding: every convolution of the network) are
 //! per-sample im2col + `gemm`, parallel over the batch, in blocks of output rows whose im2col matrix fits in a
 //! core's cache: forward `Y = W·col(X) + b`, input gradient the same convolution of ∂Y with the kernel turned
-//! by 180° and its channel axes swapped, weight gradient `∂W = Σₙ ∂Yₙ·col(Xₙ)ᵀ`. BatchNorm + LeakyReLU is one pass for the statistics (per channel, two-pass
-//! variance with f64 sums) and one for the output, and the same two for the backward. Anything else (other
-//! dtypes, strides, groups) goes to the stock path in [`super::reference`].
+//! by 180° and its channel axes swapped, weight gradient `∂W = Σₙ ∂Yₙ·col(Xₙ)ᵀ`. BatchNorm + LeakyReLU is one
+//! pass for the statistics (per channel, f64 sums of x and x²) and one for the output, and the same two for the
+//! backward. Elementwise loops run in [`vectorized`]. Anything else (other dtypes, strides, groups) goes to the
+//! stock path in [`super::reference`].
 
 use burn::backend::Flex;
 use burn::tensor::ops::{ConvOptions, FloatTensor, IntTensor, ModuleOps};
@@ -398,49 +399,59 @@ pub fn conv2d_weight_grad(
         return <Flex as ModuleOps<Flex>>::conv2d_weight_backward(x, weight, output_grad, options);
     };
     let (xs, dy) = (slice(&xc), slice(&dy_c));
-    let (hw, taps) = (s.positions(), s.taps());
+    let taps = s.taps();
     let (plane_in, plane_out) = s.planes();
-    // Accumulated as ∂Wᵀ (taps × c_out, i.e. c_out contiguous) with ∂Y transposed to position-major first, so
-    // that every gemm operand has its rows contiguous: the long reduction over positions then packs at memory
-    // speed (with ∂Y·colᵀ on row-major data, packing the transposed operand cost more than the arithmetic).
-    // Blocks of output rows keep each block's columns and transposed ∂Y in cache ([`ConvShape::block_rows`]).
     // One partial per sample, summed in sample order: the result does not depend on how rayon split the work
     // (a fold/reduce would sum in an order set by work stealing, and training must be reproducible bit for bit).
-    let block_positions = s.block_rows() * s.width;
     let mut partials = vec![0.0f32; s.batch * taps * s.c_out];
     partials
         .par_chunks_mut(taps * s.c_out)
         .zip(xs.par_chunks(plane_in).zip(dy.par_chunks(plane_out)))
         .for_each(|(dw_t, (x, dy))| {
             with_scratch(
-                [s.block_len(), block_positions * s.c_out],
-                |buffer, dy_t| {
-                    for (b, rows) in s.row_blocks().enumerate() {
-                        let (start, n) = (rows.start * s.width, rows.len() * s.width);
-                        let col = s.block_columns(x, rows, buffer);
-                        // A pointwise convolution's single block is the whole plane, with row stride `hw`.
-                        let col_stride = if s.is_pointwise() { hw } else { n };
-                        let dy_t = &mut dy_t[..n * s.c_out];
-                        transpose_strided(&dy[start..], s.c_out, n, hw, dy_t);
-                        // ∂W (c_out × taps) [+]= ∂Y[:, block] (c_out × n) · colᵀ (n × taps), stored column-major
-                        matmul(
-                            [s.c_out, taps, n],
-                            dw_t,
-                            [1, s.c_out],
-                            b > 0,
-                            dy_t,
-                            [1, s.c_out],
-                            col,
-                            [1, col_stride],
-                        );
-                    }
-                },
+                [s.block_len(), s.block_rows() * s.width * s.c_out],
+                |col, dy_t| weight_grad_sample(&s, x, dy, dw_t, col, dy_t),
             );
         });
     let dw_t = sum_in_order(&partials, taps * s.c_out);
     let mut dw = vec![0.0f32; s.c_out * taps];
     transpose(&dw_t, taps, s.c_out, &mut dw);
     from_vec(dw, &[s.c_out, s.c_in, s.kernel[0], s.kernel[1]])
+}
+
+/// One sample's weight gradient of the convolution `s`, stored as ∂Wᵀ (`taps × c_out`, c_out contiguous):
+/// `∂W (c_out × taps) = Σ_blocks ∂Y[:, block] · col(x)[:, block]ᵀ`, `dy` the sample's `c_out × hw` output
+/// gradient. Each block of ∂Y is transposed to position-major first (into `dy_t`, `block_rows · width · c_out`),
+/// so that every gemm operand has its rows contiguous: the long reduction over positions then packs at memory
+/// speed (with ∂Y·colᵀ on row-major data, packing the transposed operand cost more than the arithmetic). Blocks
+/// of output rows keep each block's columns (in `col`, [`ConvShape::block_len`]) and ∂Y in cache.
+fn weight_grad_sample(
+    s: &ConvShape,
+    x: &[f32],
+    dy: &[f32],
+    dw_t: &mut [f32],
+    col: &mut [f32],
+    dy_t: &mut [f32],
+) {
+    let (hw, taps) = (s.positions(), s.taps());
+    for (b, rows) in s.row_blocks().enumerate() {
+        let (start, n) = (rows.start * s.width, rows.len() * s.width);
+        let dy_t = &mut dy_t[..n * s.c_out];
+        transpose_strided(&dy[start..], s.c_out, n, hw, dy_t);
+        // A pointwise convolution's single block is the whole plane, with row stride `hw`.
+        let col_stride = if s.is_pointwise() { hw } else { n };
+        // ∂W (c_out × taps) [+]= ∂Y[:, block] (c_out × n) · colᵀ (n × taps), stored column-major
+        matmul(
+            [s.c_out, taps, n],
+            dw_t,
+            [1, s.c_out],
+            b > 0,
+            dy_t,
+            [1, s.c_out],
+            s.block_columns(x, rows, col),
+            [1, col_stride],
+        );
+    }
 }
 
 /// The sum of consecutive `len`-element partials (one per sample), added in order: the same bits however the
@@ -503,6 +514,26 @@ pub fn channel_sums(t: FloatTensor<Flex>) -> FloatTensor<Flex> {
 #[inline(always)]
 fn vectorized<R>(f: impl FnOnce() -> R) -> R {
     pulp::Arch::new().dispatch(f)
+}
+
+/// LeakyReLU with `slope` as Burn computes it (`slope·z` where `z < 0`): the one f32 form the kernels here use.
+#[inline(always)]
+fn leaky_relu(z: f32, slope: f32) -> f32 {
+    if z < 0.0 {
+        slope * z
+    } else {
+        z
+    }
+}
+
+/// The gradient `g` through [`leaky_relu`] at pre-activation `z`: `g·slope` where `z < 0`, else `g`.
+#[inline(always)]
+fn leaky_relu_grad(z: f32, g: f32, slope: f32) -> f32 {
+    if z < 0.0 {
+        g * slope
+    } else {
+        g
+    }
 }
 
 /// Sums of `f` over the elements of `a` (and `b`, same length), two f64 totals, in 8 independent lanes: one
@@ -632,10 +663,9 @@ pub fn batch_norm_leaky_relu(
             vectorized(
                 #[inline(always)]
                 || {
-                    y.iter_mut().zip(x).for_each(|(y, &x)| {
-                        let z = scale * x + shift;
-                        *y = if z < 0.0 { slope * z } else { z };
-                    })
+                    y.iter_mut()
+                        .zip(x)
+                        .for_each(|(y, &x)| *y = leaky_relu(scale * x + shift, slope))
                 },
             );
         });
@@ -687,11 +717,7 @@ pub fn batch_norm_leaky_relu_backward(
     let slope = slope as f32;
     // g = ∂L/∂z.
     let dz = move |(scale, shift): (f32, f32), x: f32, dy: f32| {
-        if scale * x + shift < 0.0 {
-            dy * slope
-        } else {
-            dy
-        }
+        leaky_relu_grad(scale * x + shift, dy, slope)
     };
     // Σg and Σg·(x − μ) per channel (× σ⁻¹ below gives Σg·x̂).
     let sums: Vec<(f64, f64)> = (0..c)
@@ -1079,11 +1105,11 @@ pub fn upsample_conv2d_weight_grad(
         return reference::upsample_conv2d_weight_grad::<Flex>(x, weight, output_grad);
     };
     let (xs, dy) = (slice(&xc), slice(&dy_c));
-    let (w, hw) = (s.width, s.positions());
+    let hw = s.positions();
     let (plane_in, _) = s.planes();
-    let taps = 4 * s.c_in;
-    let phase_len = taps * s.c_out;
-    let block = phase_shape(&s, 0, 0).block_len();
+    let phase_len = 4 * s.c_in * s.c_out;
+    let phase = |a: usize, b: usize| phase_shape(&s, a, b);
+    let block_positions = phase(0, 0).block_rows() * s.width;
     // One partial per sample of the four phase kernels' gradients ∂K_ab (stored ∂K_abᵀ: taps × c_out), summed
     // in sample order (bit-reproducible, as the plain convolution's); the fold of each coarse tap back onto the
     // 3×3 taps it summed is linear, so it runs once on the sum instead of once per sample (it scatters with a
@@ -1093,27 +1119,13 @@ pub fn upsample_conv2d_weight_grad(
         .par_chunks_mut(4 * phase_len)
         .zip(xs.par_chunks(plane_in).zip(dy.par_chunks(s.c_out * 4 * hw)))
         .for_each(|(dk_t, (x, dy))| {
-            with_scratch([block, 2 * s.c_out * hw], |col, buffers| {
+            let lens = [phase(0, 0).block_len(), s.c_out * (hw + block_positions)];
+            with_scratch(lens, |col, buffers| {
                 let (dy_ab, dy_t) = buffers.split_at_mut(s.c_out * hw);
                 for (p, dk_t) in dk_t.chunks_mut(phase_len).enumerate() {
                     let (a, b) = (p / 2, p % 2);
-                    let phase = phase_shape(&s, a, b);
                     gather_phase(dy, &s, a, b, dy_ab);
-                    transpose(dy_ab, s.c_out, hw, dy_t);
-                    for (i, rows) in phase.row_blocks().enumerate() {
-                        let (start, n) = (rows.start * w, rows.len() * w);
-                        // ∂K_ab (c_out × taps) [+]= ∂Y_ab[:, block] · colᵀ, stored column-major (taps × c_out)
-                        matmul(
-                            [s.c_out, taps, n],
-                            dk_t,
-                            [1, s.c_out],
-                            i > 0,
-                            &dy_t[start * s.c_out..],
-                            [1, s.c_out],
-                            phase.block_columns(x, rows, col),
-                            [1, n],
-                        );
-                    }
+                    weight_grad_sample(&phase(a, b), x, dy_ab, dk_t, col, dy_t);
                 }
             });
         });
@@ -1168,7 +1180,7 @@ pub fn join_channels(a: FloatTensor<Flex>, b: FloatTensor<Flex>, slope: f64) -> 
                     out_a
                         .iter_mut()
                         .zip(a)
-                        .for_each(|(y, &x)| *y = if x < 0.0 { slope * x } else { x })
+                        .for_each(|(y, &x)| *y = leaky_relu(x, slope))
                 },
             );
             out_b.copy_from_slice(b);
@@ -1214,7 +1226,7 @@ pub fn join_channels_backward(
                     grad_a
                         .iter_mut()
                         .zip(g[..sample_a].iter().zip(a))
-                        .for_each(|(d, (&g, &a))| *d = if a < 0.0 { g * slope } else { g })
+                        .for_each(|(d, (&g, &a))| *d = leaky_relu_grad(a, g, slope))
                 },
             );
             grad_b.copy_from_slice(&g[sample_a..]);
@@ -1268,10 +1280,7 @@ pub fn render_masked_mse(
             );
             resid.iter_mut().enumerate().for_each(|(px, r)| {
                 let rendered: f32 = (0..p)
-                    .map(|k| {
-                        let v = raw[k * plane + px];
-                        (if v < 0.0 { slope * v } else { v }) * terms[k * plane + px]
-                    })
+                    .map(|k| leaky_relu(raw[k * plane + px], slope) * terms[k * plane + px])
                     .sum();
                 *r = valid[px] * (rendered - image[px]);
             });
@@ -1320,8 +1329,7 @@ pub fn render_masked_mse_backward(
         );
         let resid = &resid[n * plane..(n + 1) * plane];
         for (px, d) in d.iter_mut().enumerate() {
-            let lrelu_grad = if raw[px] < 0.0 { slope } else { 1.0 };
-            *d = g * resid[px] * terms[px] * lrelu_grad;
+            *d = leaky_relu_grad(raw[px], g * resid[px] * terms[px], slope);
         }
     });
     from_vec(d_raw, &shape)

@@ -160,7 +160,6 @@ pub fn upsample_conv2d_weight_grad<B: Backend>(
     B::conv2d_weight_backward(fine, weight, output_grad, same_3x3())
 }
 
-/// Channels `..first` and `first..` of `[N, C, H, W]` (stock slices: views where the backend makes them).
 /// `[LeakyReLU(a), b]` along channels.
 pub fn join_channels<B: Backend>(
     a: FloatTensor<B>,
@@ -190,10 +189,8 @@ pub fn join_channels_backward<B: Backend>(
     )
 }
 
-pub fn split_channels<B: Backend>(
-    t: FloatTensor<B>,
-    first: usize,
-) -> (FloatTensor<B>, FloatTensor<B>) {
+/// Channels `..first` and `first..` of `[N, C, H, W]` (stock slices: views where the backend makes them).
+fn split_channels<B: Backend>(t: FloatTensor<B>, first: usize) -> (FloatTensor<B>, FloatTensor<B>) {
     let t = tensor::<B, 4>(t);
     let c = t.dims()[1];
     (
