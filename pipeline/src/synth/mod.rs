@@ -96,6 +96,8 @@ pub struct OrthoSummary {
 #[derive(Serialize)]
 struct WorldManifest<'a> {
     name: &'a str,
+    /// [`layout::WORLD_VERSION`]: which generator's truth and images these are.
+    world_version: u32,
     seed: u64,
     generator: String,
     crs: &'a str,
@@ -189,11 +191,17 @@ pub fn generate(
         stamping.inc(chunk.len() as u64);
     }
     stamping.finish_and_clear();
-    if let Some(cc) = &config.complex_crater {
+    let complex_crater = config.complex_crater.as_ref().map(|cc| {
+        (
+            (cx + cc.offset_east_m, cy + cc.offset_north_m),
+            cc.diameter_m / 2.0,
+        )
+    });
+    if let (Some(cc), Some((centre, _))) = (&config.complex_crater, complex_crater) {
         terrain::stamp_complex_crater(
             cc,
             &fine,
-            (cx + cc.offset_east_m, cy + cc.offset_north_m),
+            centre,
             &mut heights,
             &mut freshness,
             &mut melt,
@@ -342,6 +350,25 @@ pub fn generate(
         &[],
     )?;
     write_json_atomic(&partial.join(layout::TRUE_CRATERS), &craters)?;
+    // On the delivered DEM's grid: evaluation classifies crops, which live on that grid.
+    let (class, highland) = terrain::terrain_classes(&dem_grid, &units, complex_crater);
+    write_geotiff(
+        &partial.join(layout::TRUE_TERRAIN_CLASS),
+        &dem_grid.layout(&crs, -1.0),
+        &[
+            BandOut {
+                values: BandValues::Grid(&class),
+                description:
+                    "terrain class: 1 melt floor, 2 terraced wall, 3 rim, 4 ejecta, 5 plains",
+            },
+            BandOut {
+                values: BandValues::Grid(&highland),
+                description: "highland fraction (0 mare, 1 highland)",
+            },
+        ],
+        &[],
+    )?;
+    drop((class, highland));
 
     let mut files = Vec::new();
     let mut relative: Vec<String> = vec![
@@ -350,6 +377,7 @@ pub fn generate(
         layout::TRUE_HAPKE.into(),
         layout::TRUE_W_MORPHOLOGY.into(),
         layout::TRUE_CRATERS.into(),
+        layout::TRUE_TERRAIN_CLASS.into(),
     ];
     let (label, table) = lroc_products::index_files(&index_rows);
     std::fs::write(partial.join(layout::INDEX_LABEL), label)?;
@@ -366,6 +394,7 @@ pub fn generate(
     }
     let manifest = WorldManifest {
         name: &w.name,
+        world_version: layout::WORLD_VERSION,
         seed,
         generator: format!("g2r-pipeline {}", env!("CARGO_PKG_VERSION")),
         crs: &crs.definition,

@@ -11,6 +11,7 @@ use super::noise::Fbm;
 use super::units::Units;
 use super::Grid;
 use crate::rng::{keyed_rng, keyed_u64};
+use dataset::world::TerrainClass;
 
 /// One crater of the catalogue written to `truth/craters.json`.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -80,11 +81,7 @@ pub fn simple_crater_profile(rho: f64, depth_m: f64, rim_m: f64, sigma_rel: f64)
     // Rim rounding: blend the two sides over a width ∝ σ around ρ = 1.
     let width = (0.15 + sigma_rel).min(0.8);
     let inside = h - d * (1.0 - rho * rho).max(0.0);
-    let outside = if rho < 3.0 {
-        h * rho.max(1.0).powi(-3) * smoothstep(3.0, 2.4, rho)
-    } else {
-        0.0
-    };
+    let outside = h * rho.max(1.0).powi(-3) * ejecta_taper(rho);
     let t = smoothstep(1.0 - width * 0.5, 1.0 + width * 0.5, rho);
     let blended = inside * (1.0 - t) + outside * t;
     if rho <= 1.0 - width * 0.5 {
@@ -93,6 +90,35 @@ pub fn simple_crater_profile(rho: f64, depth_m: f64, rim_m: f64, sigma_rel: f64)
         outside
     } else {
         blended
+    }
+}
+
+/// Where a crater's ejecta ends: 1 inside ρ = 2.4, falling smoothly (C¹) to 0 at ρ = 3 and 0 beyond. Heights and
+/// freshness both fade with it, so neither ends in a step that no topography explains (world v3).
+pub fn ejecta_taper(rho: f64) -> f64 {
+    smoothstep(3.0, 2.4, rho)
+}
+
+/// Freshness a fresh simple crater lends its surface at normalised radius ρ: all of it inside the rim (ρ ≤ 1.1),
+/// then rays of ejecta (`rays`, the azimuthal modulation) thinning like the blanket, ∝ ρ⁻³, and tapered to 0 by
+/// ρ = 3.
+pub fn simple_ejecta_freshness(rho: f64, rays: f64) -> f64 {
+    if rho <= 1.1 {
+        1.0
+    } else {
+        (1.1 / rho).powi(3) * rays * ejecta_taper(rho)
+    }
+}
+
+/// Freshness of the complex crater's material at normalised radius ρ: its floor (ρ < `floor_rho`, where melt
+/// covers it) 0.3, the wall 1, the ejecta ∝ ρ⁻² tapered to 0 by ρ = 3.
+pub fn complex_crater_freshness(rho: f64, floor_rho: f64) -> f64 {
+    if rho < floor_rho {
+        0.3
+    } else if rho <= 1.0 {
+        1.0
+    } else {
+        rho.powi(-2) * ejecta_taper(rho)
     }
 }
 
@@ -171,11 +197,7 @@ pub fn stamp_craters(
                 if crater.freshness > 1e-3 {
                     // Excavated material inside and on the rim; rays of ejecta outside, thinning like the blanket.
                     let rays = 0.6 + 0.4 * (ray_count * dy.atan2(dx) + ray_phase).sin();
-                    let weight = if rho <= 1.1 {
-                        1.0
-                    } else {
-                        (1.1 / rho).powi(3) * rays
-                    };
+                    let weight = simple_ejecta_freshness(rho, rays);
                     let f = crater.freshness * weight;
                     let prev = freshness[i] as f64;
                     freshness[i] = (prev * (1.0 - weight) + f).clamp(0.0, 1.0) as f32;
@@ -186,6 +208,33 @@ pub fn stamp_craters(
             }
         }
     }
+}
+
+/// Normalised radius of the complex crater's flat melt floor.
+pub const COMPLEX_FLOOR_RHO: f64 = 0.45;
+
+/// Per cell of `grid`: the terrain class code ([`TerrainClass`], by radius from the complex crater at `complex`
+/// = (centre, radius), if any) and the highland fraction. Written as `truth/terrain_class.tif` for evaluation.
+pub fn terrain_classes(
+    grid: &Grid,
+    units: &Units,
+    complex: Option<((f64, f64), f64)>,
+) -> (Vec<f32>, Vec<f32>) {
+    let mut class = vec![0f32; grid.width * grid.height];
+    let mut highland = vec![0f32; grid.width * grid.height];
+    class
+        .par_chunks_mut(grid.width)
+        .zip(highland.par_chunks_mut(grid.width))
+        .enumerate()
+        .for_each(|(row, (class_row, highland_row))| {
+            for col in 0..grid.width {
+                let (x, y) = grid.center(col, row);
+                let rho = complex.map(|((cx, cy), radius)| (x - cx).hypot(y - cy) / radius);
+                class_row[col] = TerrainClass::at_radius(rho, COMPLEX_FLOOR_RHO).code() as f32;
+                highland_row[col] = units.highland(x, y) as f32;
+            }
+        });
+    (class, highland)
 }
 
 /// Stamp the complex crater: terraced wall, flat melt floor with hummocks, central peak, raised rim and ejecta.
@@ -202,7 +251,7 @@ pub fn stamp_complex_crater(
     let radius = cc.diameter_m / 2.0;
     let depth = cc.depth_to_diameter * cc.diameter_m;
     let rim = 0.02 * cc.diameter_m;
-    let floor_rho = 0.45;
+    let floor_rho = COMPLEX_FLOOR_RHO;
     let hummocks = Fbm {
         key: keyed_u64(seed, "melt-hummocks", 0),
         hurst: 0.7,
@@ -239,15 +288,13 @@ pub fn stamp_complex_crater(
                     let profile = (stairs / terraces).powf(1.3);
                     -depth + (depth + rim) * profile
                 } else {
-                    rim * rho.powi(-3) * smoothstep(3.0, 2.4, rho)
+                    rim * rho.powi(-3) * ejecta_taper(rho)
                 };
                 h_row[col] += dh as f32;
                 if rho < floor_rho {
                     m_row[col] = smoothstep(floor_rho, floor_rho - 0.05, rho) as f32;
                 }
-                let weight = if rho <= 1.0 { 1.0 } else { rho.powi(-2) };
-                f_row[col] =
-                    f_row[col].max(weight as f32 * if rho < floor_rho { 0.3 } else { 1.0 });
+                f_row[col] = f_row[col].max(complex_crater_freshness(rho, floor_rho) as f32);
             }
         });
 }
@@ -271,5 +318,46 @@ mod tests {
         assert_eq!(simple_crater_profile(3.1, depth, rim, 0.0), 0.0);
         // Heavily degraded craters are nearly erased.
         assert!(simple_crater_profile(0.0, depth, rim, 2.0).abs() < 0.01 * depth);
+    }
+
+    /// World v3: ejecta freshness (simple craters' rays, the complex crater's ρ⁻² blanket) falls continuously to
+    /// 0 at ρ = 3 instead of stopping with a step (v2: 5 % and 11 % of the material's freshness, i.e. straight
+    /// albedo edges with no topography under them). Checked on a fine sweep: no jump between neighbouring radii
+    /// larger than the smooth profile's own slope allows, and nothing at or past the cutoff.
+    #[test]
+    fn ejecta_freshness_fades_to_zero_without_a_step() {
+        let step = 1e-4;
+        for (name, profile) in [
+            (
+                "simple",
+                Box::new(|rho: f64| simple_ejecta_freshness(rho, 1.0)) as Box<dyn Fn(f64) -> f64>,
+            ),
+            (
+                "complex",
+                Box::new(|rho| complex_crater_freshness(rho, 0.45)),
+            ),
+        ] {
+            assert_eq!(profile(3.0), 0.0, "{name}: zero at the cutoff");
+            assert_eq!(profile(3.5), 0.0, "{name}: zero beyond it");
+            assert!(
+                profile(3.0 - step) < 1e-6,
+                "{name}: {}",
+                profile(3.0 - step)
+            );
+            // Outside the rim the profile is smooth: a step of 1e-4 in ρ moves it by far less than 1e-3.
+            let mut rho = 1.2;
+            while rho < 3.2 {
+                let jump = (profile(rho + step) - profile(rho)).abs();
+                assert!(jump < 1e-3, "{name}: jump {jump} at ρ = {rho}");
+                rho += step;
+            }
+        }
+        // Inside ρ = 2.4 the taper leaves the v2 profiles unchanged.
+        assert_eq!(
+            simple_ejecta_freshness(2.0, 0.8),
+            (1.1f64 / 2.0).powi(3) * 0.8
+        );
+        assert_eq!(complex_crater_freshness(2.0, 0.45), 0.25);
+        assert_eq!(complex_crater_freshness(0.2, 0.45), 0.3);
     }
 }
