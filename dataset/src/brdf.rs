@@ -9,6 +9,14 @@
 //! And H1: one per-pixel scale on the Moon-wide Hapke shape ([`hapke_shape`]); its uniform fit is the honest
 //! scaled-Hapke baseline, so its maps say exactly what the DEM adds to Hapke.
 //!
+//! Why H3: one scale cannot follow a material whose phase function or albedo differs from the Moon-wide one. Its
+//! ratio to the Moon-wide I/F then changes with the acquisition's geometry (fresh crater material, w ≈ 0.6 and
+//! b = 0.2: by a factor 1.4 between phase angles of 5° and 100°), and a map that cannot see the geometry must
+//! average it. H3 keeps Hapke's structure and its linearity in the parameters: single scattering under a
+//! back-scattering and a less back-scattering double-HG lobe ([`H3_LOBES_B`]; any asymmetry between them is nearly
+//! a positive mix of the two), and multiple scattering, each with the Moon-wide opposition surge, roughness and
+//! Lommel–Seeliger ratio ([`hapke_decomposed`]).
+//!
 //! Convention (the reference renderer's): `f` returns the reflected fraction *including* the cos i factor, and the
 //! image is `I = E · V_sun · f(p; geometry)`. Raw per-pixel parameters pass through LeakyReLU(0.01) inside `f`.
 //! Terms are ordered (cos i, cos g, …) — the GeoTIFF band descriptions name them in this order.
@@ -17,7 +25,7 @@
 use glam::DVec3;
 
 use crate::geometry::{Cosines, HalfDiffCosines, PixelGeometry};
-use crate::hapke::{hapke_i_over_f, HFunction, HapkeParams};
+use crate::hapke::{double_hg, hapke_i_over_f, hapke_parts, HFunction, HapkeParams};
 
 /// Negative slope of the LeakyReLU applied to every raw parameter.
 pub const LEAKY_SLOPE: f64 = 0.01;
@@ -54,6 +62,7 @@ pub enum BrdfModel {
     L3,
     L4,
     H1,
+    H3,
 }
 
 /// The Moon-wide Hapke I/F ([`HapkeParams::lunar_typical`], 2002 H-function): H1's one term. Depends only on the
@@ -69,6 +78,23 @@ pub fn hapke_shape(cos_i: f64, cos_e: f64, cos_g: f64) -> f64 {
     )
 }
 
+/// Double-HG asymmetries b of H3's two single-scattering lobes, around the Moon-wide 0.25: the lunar range of
+/// fitted b lies between them, and a mix of the two follows a lobe anywhere between to about 1 % (tested).
+pub const H3_LOBES_B: [f64; 2] = [0.35, 0.15];
+
+/// H3's terms: Moon-wide Hapke ([`HapkeParams::lunar_typical`]) split into single scattering under each of
+/// [`H3_LOBES_B`] and multiple scattering ([`hapke_parts`]). Like [`hapke_shape`], a function of the cosines only.
+#[inline]
+pub fn hapke_decomposed(cos_i: f64, cos_e: f64, cos_g: f64) -> [f64; 3] {
+    let p = HapkeParams::lunar_typical();
+    let parts = hapke_parts(&p, cos_i, cos_e, cos_g, HFunction::Hapke2002);
+    [
+        parts.single_per_phase * double_hg(cos_g, H3_LOBES_B[0], p.c),
+        parts.single_per_phase * double_hg(cos_g, H3_LOBES_B[1], p.c),
+        parts.multiple,
+    ]
+}
+
 /// Below this μ0 + μ the Lommel–Seeliger ratio's denominator is held (both grazing: the ratio is bounded by 1
 /// anyway, and the floor keeps f32 and backward free of 0/0). The Burn layer uses the same floor.
 pub const LS_DENOMINATOR_FLOOR: f64 = 1e-6;
@@ -80,7 +106,7 @@ pub fn lommel_seeliger(cos_i: f64, cos_e: f64) -> f64 {
 }
 
 impl BrdfModel {
-    pub const ALL: [BrdfModel; 10] = [
+    pub const ALL: [BrdfModel; 11] = [
         Self::M1,
         Self::M2,
         Self::M3,
@@ -91,6 +117,7 @@ impl BrdfModel {
         Self::L3,
         Self::L4,
         Self::H1,
+        Self::H3,
     ];
 
     pub fn param_count(self) -> usize {
@@ -110,6 +137,7 @@ impl BrdfModel {
             Self::L3 => &["ls", "ls*cos_g", "cos_i"],
             Self::L4 => &["ls", "ls*cos_g", "ls*cos_g^2", "cos_i"],
             Self::H1 => &["hapke_moonwide"],
+            Self::H3 => &["hapke_single_b0.35", "hapke_single_b0.15", "hapke_multiple"],
         }
     }
 
@@ -125,6 +153,7 @@ impl BrdfModel {
             Self::L3 => "l3",
             Self::L4 => "l4",
             Self::H1 => "h1",
+            Self::H3 => "h3",
         }
     }
 
@@ -170,6 +199,11 @@ impl BrdfModel {
             Self::M5 => [c.cos_i, c.cos_g, c.cos_g * c.cos_g, 1.0],
             Self::M6 => [hd.cos_theta_h, hd.cos_theta_d, hd.cos_phi_h, hd.cos_phi_d],
             Self::H1 => [hapke_shape(c.cos_i, c.cos_e, c.cos_g), 0.0, 0.0, 0.0],
+            Self::H3 => {
+                let [single_back, single_less, multiple] =
+                    hapke_decomposed(c.cos_i, c.cos_e, c.cos_g);
+                [single_back, single_less, multiple, 0.0]
+            }
             Self::L2 | Self::L3 | Self::L4 => {
                 let ls = lommel_seeliger(c.cos_i, c.cos_e);
                 match self {
@@ -193,6 +227,111 @@ impl BrdfModel {
             .map(|(&p, t)| leaky_relu(p) * t)
             .sum()
     }
+}
+
+/// Solve the small system `a x = b` (Gaussian elimination with partial pivoting); singular directions (a term
+/// that is zero everywhere) get 0. The normal equations of every least-squares fit of a model's coefficients.
+pub fn solve_small_system(mut a: Vec<Vec<f64>>, mut b: Vec<f64>) -> Vec<f64> {
+    let n = b.len();
+    for col in 0..n {
+        let pivot = (col..n)
+            .max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))
+            .expect("non-empty");
+        a.swap(col, pivot);
+        b.swap(col, pivot);
+        if a[col][col].abs() < 1e-300 {
+            continue;
+        }
+        for row in col + 1..n {
+            let f = a[row][col] / a[col][col];
+            let (upper, lower) = a.split_at_mut(row);
+            for (x, p) in lower[0][col..].iter_mut().zip(&upper[col][col..]) {
+                *x -= f * p;
+            }
+            b[row] -= f * b[col];
+        }
+    }
+    let mut x = vec![0.0; n];
+    for row in (0..n).rev() {
+        if a[row][row].abs() < 1e-300 {
+            continue;
+        }
+        let rest: f64 = (row + 1..n).map(|k| a[row][k] * x[k]).sum();
+        x[row] = (b[row] - rest) / a[row][row];
+    }
+    x
+}
+
+/// The geometries of lunar orbital images on a flat surface: incidence 20–80° (5° steps), emission 0–30°, the
+/// camera's azimuth from the sun's 0–180° (30° steps). What a map that cannot see the geometry has to serve.
+pub fn orbital_geometries() -> Vec<Cosines> {
+    let mut out = Vec::new();
+    for i_deg in (20..=80).step_by(5) {
+        for e_deg in [0, 5, 10, 20, 30] {
+            for az_deg in (0..=180).step_by(30) {
+                let (i, e, az) = (
+                    f64::from(i_deg).to_radians(),
+                    f64::from(e_deg).to_radians(),
+                    f64::from(az_deg).to_radians(),
+                );
+                out.push(Cosines {
+                    cos_i: i.cos(),
+                    cos_e: e.cos(),
+                    cos_g: i.cos() * e.cos() + i.sin() * e.sin() * az.cos(),
+                });
+            }
+        }
+    }
+    out
+}
+
+/// The best geometry-blind coefficients of `model` (activated values, one per term) for a material whose I/F is
+/// `target` at each of `geometries`: least squares over them. Also returns the fit's RMS residual relative to the
+/// target's RMS, the error that model's form leaves for that material whatever its maps hold. Not for M6, whose
+/// half-angle terms these cosines do not carry.
+pub fn best_coefficients(
+    model: BrdfModel,
+    geometries: &[Cosines],
+    target: impl Fn(&Cosines) -> f64,
+) -> (Vec<f64>, f64) {
+    assert!(
+        !model.uses_half_diff(),
+        "best_coefficients: {} needs half-angle cosines",
+        model.name()
+    );
+    let p = model.param_count();
+    let no_half = HalfDiffCosines {
+        cos_theta_h: f64::NAN,
+        cos_theta_d: f64::NAN,
+        cos_phi_h: f64::NAN,
+        cos_phi_d: f64::NAN,
+    };
+    let rows: Vec<([f64; 4], f64)> = geometries
+        .iter()
+        .map(|c| (model.terms(c, &no_half), target(c)))
+        .collect();
+    let (mut ata, mut atb) = (vec![vec![0.0; p]; p], vec![0.0; p]);
+    for (terms, t) in &rows {
+        for i in 0..p {
+            atb[i] += terms[i] * t;
+            for j in 0..p {
+                ata[i][j] += terms[i] * terms[j];
+            }
+        }
+    }
+    let x = solve_small_system(ata, atb);
+    let (mut residual, mut norm) = (0.0, 0.0);
+    for (terms, t) in &rows {
+        let fit: f64 = terms.iter().zip(&x).map(|(a, b)| a * b).sum();
+        residual += (fit - t).powi(2);
+        norm += t * t;
+    }
+    let relative = if norm > 0.0 {
+        (residual / norm).sqrt()
+    } else {
+        0.0
+    };
+    (x, relative)
 }
 
 impl std::str::FromStr for BrdfModel {
@@ -386,6 +525,47 @@ mod tests {
             assert_eq!(BrdfModel::H1.evaluate(&[1.0], &c, &hd), hapke);
             assert!((BrdfModel::H1.evaluate(&[1.7], &c, &hd) - 1.7 * hapke).abs() < 1e-15);
         }
+    }
+
+    /// Why H3 exists: over the geometries of lunar orbital images (incidence 20–80°, emission 0–30°, every
+    /// azimuth), the best single H1 scale misses a fresh, bright, less back-scattering material by several per cent
+    /// (the ratio to the Moon-wide I/F moves with phase angle), while H3's best coefficients follow it, and follow
+    /// any asymmetry between its two lobes to about 1 %. Materials like the Moon-wide one H1 already fits.
+    #[test]
+    fn h3_follows_materials_whose_phase_function_a_single_scale_cannot() {
+        let geometries = orbital_geometries();
+        let material = |w: f64, b: f64| {
+            let p = HapkeParams {
+                w,
+                b,
+                ..HapkeParams::lunar_typical()
+            };
+            move |c: &Cosines| hapke_i_over_f(&p, c.cos_i, c.cos_e, c.cos_g, HFunction::Hapke2002)
+        };
+        let error = |model, w, b| best_coefficients(model, &geometries, material(w, b)).1;
+        // Fresh crater material of the synthetic worlds: w = 0.36 × 1.6, b = 0.25 − 0.05.
+        let (h1_fresh, h3_fresh) = (
+            error(BrdfModel::H1, 0.576, 0.2),
+            error(BrdfModel::H3, 0.576, 0.2),
+        );
+        assert!(h1_fresh > 0.05, "H1 on fresh material: {h1_fresh}");
+        assert!(h3_fresh < 0.01, "H3 on fresh material: {h3_fresh}");
+        for (w, b) in [
+            (0.24, 0.25),
+            (0.36, 0.25),
+            (0.5, 0.15),
+            (0.3, 0.35),
+            (0.7, 0.2),
+        ] {
+            let err = error(BrdfModel::H3, w, b);
+            assert!(err < 0.012, "H3 on w = {w}, b = {b}: {err}");
+        }
+        // Where the material is the Moon-wide one up to its albedo, a single scale suffices.
+        assert!(error(BrdfModel::H1, 0.32, 0.25) < 1e-12);
+        assert!(error(BrdfModel::H1, 0.24, 0.25) < 0.015);
+        // The fit itself: the Moon-wide material is H1 with coefficient 1.
+        let (moonwide, _) = best_coefficients(BrdfModel::H1, &geometries, material(0.32, 0.25));
+        assert!((moonwide[0] - 1.0).abs() < 1e-12, "{moonwide:?}");
     }
 
     #[test]

@@ -218,6 +218,46 @@ pub fn hapke_reflectance(
     r.max(0.0)
 }
 
+/// Hapke's I/F split by scattering order: `single_per_phase · p(g)` is the single-scattering part for a phase
+/// function p (opposition surge, roughness and the Lommel–Seeliger ratio included), `multiple` the
+/// multiple-scattering part, so `hapke_i_over_f = single_per_phase · double_hg(cos g, b, c) + multiple` (tested).
+/// The pieces of the H3 model ([`crate::brdf`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HapkeParts {
+    pub single_per_phase: f64,
+    pub multiple: f64,
+}
+
+pub fn hapke_parts(
+    p: &HapkeParams,
+    cos_i: f64,
+    cos_e: f64,
+    cos_g: f64,
+    form: HFunction,
+) -> HapkeParts {
+    let none = HapkeParts {
+        single_per_phase: 0.0,
+        multiple: 0.0,
+    };
+    let (mu0, mu) = (clamp_unit(cos_i), clamp_unit(cos_e));
+    if mu0 <= 0.0 || mu <= 0.0 {
+        return none;
+    }
+    let w = p.w.clamp(0.0, 1.0);
+    let k = p.porosity_k.max(1e-6);
+    let rough = roughness(mu0, mu, cos_g, p.theta_bar_rad);
+    let (mu0e, mue) = (rough.mu0_eff.max(0.0), rough.mu_eff.max(0.0));
+    if mu0e + mue <= 0.0 {
+        return none;
+    }
+    // π · r without the bracket: I/F = common · (p(g)·(1 + B_S) + M).
+    let common = PI * k * w / (4.0 * PI) * mu0e / (mu0e + mue) * rough.shadowing;
+    HapkeParts {
+        single_per_phase: common * (1.0 + p.b_s0 * shoe(cos_g, p.h_s)),
+        multiple: common * (h_function(mu0e / k, w, form) * h_function(mue / k, w, form) - 1.0),
+    }
+}
+
 /// Hapke radiance factor I/F = π·r.
 pub fn hapke_i_over_f(p: &HapkeParams, cos_i: f64, cos_e: f64, cos_g: f64, form: HFunction) -> f64 {
     PI * hapke_reflectance(p, cos_i, cos_e, cos_g, form)
@@ -294,6 +334,27 @@ mod tests {
             weights[i] = 1.0 / ((1.0 - x * x) * dp * dp);
         }
         (nodes, weights)
+    }
+
+    proptest! {
+        /// The split recomposes the whole: single × p(g) + multiple is Hapke's I/F, for any material and geometry.
+        #[test]
+        fn hapke_parts_recompose_the_i_over_f(
+            w in 0.02f64..0.95, b in 0.05f64..0.6, c in -0.5f64..1.0, theta in 0.0f64..40.0,
+            cos_i in 0.01f64..1.0, cos_e in 0.01f64..1.0, t in 0.0f64..1.0,
+        ) {
+            let p = HapkeParams { w, b, c, theta_bar_rad: theta.to_radians(), ..HapkeParams::lunar_typical() };
+            // A phase consistent with i and e: anywhere between the two azimuth extremes.
+            let (si, se) = ((1.0 - cos_i * cos_i).sqrt(), (1.0 - cos_e * cos_e).sqrt());
+            let cos_g = cos_i * cos_e + si * se * (1.0 - 2.0 * t);
+            for form in [HFunction::Hapke1981, HFunction::Hapke2002] {
+                let whole = hapke_i_over_f(&p, cos_i, cos_e, cos_g, form);
+                let parts = hapke_parts(&p, cos_i, cos_e, cos_g, form);
+                let recomposed = parts.single_per_phase * double_hg(cos_g, b, c) + parts.multiple;
+                prop_assert!((whole - recomposed).abs() <= 1e-12 * whole.abs().max(1e-300), "{whole} vs {recomposed}");
+                prop_assert!(parts.multiple >= 0.0 && parts.single_per_phase >= 0.0);
+            }
+        }
     }
 
     #[test]

@@ -102,39 +102,6 @@ pub fn model_uniform_render(sample: &Sample, model: BrdfModel, coefficients: &[f
     )
 }
 
-/// Solve the small symmetric system `a x = b` (Gaussian elimination with partial pivoting); singular directions
-/// (a term that is zero on every pixel) get 0.
-fn solve(mut a: Vec<Vec<f64>>, mut b: Vec<f64>) -> Vec<f64> {
-    let n = b.len();
-    for col in 0..n {
-        let pivot = (col..n)
-            .max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))
-            .expect("non-empty");
-        a.swap(col, pivot);
-        b.swap(col, pivot);
-        if a[col][col].abs() < 1e-300 {
-            continue;
-        }
-        for row in col + 1..n {
-            let f = a[row][col] / a[col][col];
-            let (upper, lower) = a.split_at_mut(row);
-            for (x, p) in lower[0][col..].iter_mut().zip(&upper[col][col..]) {
-                *x -= f * p;
-            }
-            b[row] -= f * b[col];
-        }
-    }
-    let mut x = vec![0.0; n];
-    for row in (0..n).rev() {
-        if a[row][row].abs() < 1e-300 {
-            continue;
-        }
-        let rest: f64 = (row + 1..n).map(|k| a[row][k] * x[k]).sum();
-        x[row] = (b[row] - rest) / a[row][row];
-    }
-    x
-}
-
 pub fn calibrate(
     source: &dyn SampleSource,
     samples: usize,
@@ -174,6 +141,6 @@ pub fn calibrate(
         hapke_scale: hapke.scale(),
         lunar_lambert_albedo: ll.scale(),
         model,
-        model_uniform: solve(ata, atb),
+        model_uniform: dataset::brdf::solve_small_system(ata, atb),
     })
 }

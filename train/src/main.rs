@@ -15,7 +15,7 @@ use train::training::fit;
 #[command(
     name = "g2r-train",
     version,
-    about = "Train a U-Net that maps 128x128 DEM crops to per-pixel BRDF parameters (M1-M6, L2-L4, H1) through a differentiable renderer",
+    about = "Train a U-Net that maps 128x128 DEM crops to per-pixel BRDF parameters (M1-M6, L2-L4, H1, H3) through a differentiable renderer",
     long_about = "Train a U-Net that maps 128x128 DEM crops (5 m/px) to per-pixel parameters of a small \
 cosine-polynomial BRDF, supervised by rendering through a differentiable renderer layer and comparing with the \
 orthoimage (MSE over valid pixels).\n\nData: a dataset directory published by `g2r-pipeline run` (manifest.json + \
@@ -64,7 +64,7 @@ impl RunsArgs {
 
 #[derive(Args, Debug, Clone)]
 struct TrainArgs {
-    /// BRDF model: m1..m6 (the paper's), l2..l4 (Lommel–Seeliger) or h1 (per-pixel scale on Moon-wide Hapke); see `g2r-train models`.
+    /// BRDF model: m1..m6 (the paper's), l2..l4 (Lommel–Seeliger), h1 (per-pixel scale on Moon-wide Hapke) or h3 (Moon-wide Hapke split into two single-scattering lobes and multiple scattering); see `g2r-train models`.
     #[arg(long, default_value = "m2")]
     model: BrdfModel,
     #[arg(long, default_value_t = 20)]
@@ -187,7 +187,7 @@ impl TrainArgs {
 
 #[derive(Subcommand)]
 enum Command {
-    /// List the BRDF models (M1-M6, L2-L4, H1) with their parameter order (the band order of parameter GeoTIFFs).
+    /// List the BRDF models (M1-M6, L2-L4, H1, H3) with their parameter order (the band order of parameter GeoTIFFs).
     Models,
     /// Train one model; writes config.json, metrics.jsonl (one line per epoch), best/ and last/ checkpoints.
     Fit {
@@ -207,7 +207,7 @@ enum Command {
         #[command(flatten)]
         train: TrainArgs,
     },
-    /// Train every BRDF model (M1-M6, L2-L4, H1) under the same budget and write a comparison table (val MSE, parameters, step time).
+    /// Train every BRDF model (M1-M6, L2-L4, H1, H3) under the same budget and write a comparison table (val MSE, parameters, step time).
     CompareModels {
         /// Dataset directory or server URL, as for `fit`.
         #[arg(long)]
