@@ -48,9 +48,13 @@ pub struct MetricsAccumulator {
 impl MetricsAccumulator {
     /// Add one image (`edge²`, row-major); images without a valid pixel are skipped.
     pub fn add(&mut self, rendered: &[f64], truth: &[f64], valid: &[bool], edge: usize) {
-        let Some(m) = image_metrics(rendered, truth, valid, edge) else {
-            return;
-        };
+        if let Some(m) = image_metrics(rendered, truth, valid, edge) {
+            self.add_metrics(&m);
+        }
+    }
+
+    /// Add one image's metrics, computed already (by [`image_metrics`]).
+    pub fn add_metrics(&mut self, m: &ImageMetrics) {
         self.images += 1;
         self.pixels += m.valid_pixels;
         self.sse_sum += m.sse;

@@ -6,10 +6,11 @@ use dataset::schema::Sample;
 use crate::baseline::{hapke_render, normalise_like_paper, truth_and_valid};
 use crate::calibration::{lunar_lambert_render, model_uniform_render, Calibration};
 
+use super::model_form::ModelFormTable;
 use super::truth::{TrueAlbedo, TruthMaps};
 
 /// The methods, in report order.
-pub const METHODS: [(&str, &str); 8] = [
+pub const METHODS: [(&str, &str); 10] = [
     ("learned", "U-Net → SVBRDF parameters → renderer layer"),
     (
         "learned_paper_norm",
@@ -33,6 +34,17 @@ pub const METHODS: [(&str, &str); 8] = [
         "the oracle without the world's independent albedo component, which no terrain predicts (units, \
          freshness, slope and melt only; needs --world)",
     ),
+    (
+        "oracle_true_dem",
+        "the oracle on the true DEM averaged to the same 5 m cells (needs --world): oracle − this is the error of the \
+         delivered DEM's noise, smoothing and blunders, which no reflectance can fix",
+    ),
+    (
+        "oracle_model_form",
+        "the run's BRDF model with, at each pixel, the best geometry-blind coefficients for the true material \
+         (least squares over orbital geometries), on the delivered DEM (needs --world): what the model's form \
+         costs against `oracle`, whatever its maps hold",
+    ),
 ];
 
 /// Renderings of one sample by every method that runs (learned supplied by the caller, batched).
@@ -41,6 +53,7 @@ pub(super) fn method_renderings(
     learned: &[f64],
     calibration: &Calibration,
     truth_maps: Option<&TruthMaps>,
+    model_form: Option<&ModelFormTable>,
 ) -> Vec<(&'static str, Vec<f64>)> {
     let (truth, valid) = truth_and_valid(sample);
     let hapke = hapke_render(sample, &HapkeParams::lunar_typical());
@@ -74,6 +87,15 @@ pub(super) fn method_renderings(
                 "oracle_morphology",
                 maps.render(sample, TrueAlbedo::Morphology),
             ));
+        }
+        if let Some(on_true_dem) = maps.on_true_dem(sample) {
+            out.push((
+                "oracle_true_dem",
+                maps.render(&on_true_dem, TrueAlbedo::Full),
+            ));
+        }
+        if let Some(table) = model_form {
+            out.push(("oracle_model_form", maps.render_model_form(sample, table)));
         }
     }
     out

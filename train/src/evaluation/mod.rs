@@ -13,11 +13,13 @@
 //!   could go, so the gap to it is the part of the error a DEM-driven model can still remove.
 
 mod methods;
+mod model_form;
 mod panels;
 mod tables;
 mod truth;
 
 pub use methods::*;
+pub use model_form::*;
 pub use panels::*;
 pub use tables::*;
 pub use truth::*;
@@ -27,6 +29,7 @@ use std::path::Path;
 
 use anyhow::{bail, Context, Result};
 use dataset::schema::{Sample, Split, CROP_PX};
+use rayon::prelude::*;
 
 use crate::baseline::truth_and_valid;
 use crate::calibration::{calibrate, Calibration};
@@ -75,49 +78,47 @@ pub fn evaluate<B: TrainOps>(
     let mut matches: BTreeMap<&str, MatchStats> = BTreeMap::new();
     let mut per_image = Vec::new();
     let mut failure: Option<anyhow::Error> = None;
+    let model_form = truth_maps
+        .and_then(TruthMaps::fixed_material)
+        .and_then(|fixed| ModelFormTable::new(config.model, fixed));
     for_each_sample_group(source, options.split, options.max_samples, |samples| {
         for chunk in samples.chunks(options.batch_size) {
             let learned = predict_ensemble(runs, chunk, options.symmetry_mean, device);
-            for (i, sample) in chunk.iter().enumerate() {
-                let px = CROP_PX * CROP_PX;
-                let renderings = method_renderings(
-                    sample,
-                    &learned[i * px..(i + 1) * px],
-                    &calibration,
-                    truth_maps,
-                );
-                let (truth, mut valid) = truth_and_valid(sample);
-                // Compare every method on the same pixels: where all of them are defined.
-                for (_, r) in &renderings {
-                    for (v, x) in valid.iter_mut().zip(r) {
-                        *v &= x.is_finite();
-                    }
+            // Each crop's renderings, metrics and matches in parallel; then added up in crop order, so every
+            // sum (and so every reported bit) is the same whatever the thread count.
+            let scored: Vec<ScoredImage> = chunk
+                .par_iter()
+                .enumerate()
+                .map(|(i, sample)| {
+                    let px = CROP_PX * CROP_PX;
+                    let renderings = method_renderings(
+                        sample,
+                        &learned[i * px..(i + 1) * px],
+                        &calibration,
+                        truth_maps,
+                        model_form.as_ref(),
+                    );
+                    score_image(sample, renderings, &matcher, truth_maps)
+                })
+                .collect();
+            for (sample, scored) in chunk.iter().zip(scored) {
+                for (name, distances) in &scored.match_distances {
+                    matches.entry(name).or_default().add_distances(distances);
                 }
-                let mut metrics = BTreeMap::new();
-                for (name, rendered) in &renderings {
-                    matches
-                        .entry(name)
-                        .or_default()
-                        .add_distances(&matcher.match_distances(&truth, rendered, &valid, CROP_PX));
-                    if let Some(m) = image_metrics(rendered, &truth, &valid, CROP_PX) {
-                        accumulators
-                            .entry(name)
-                            .or_default()
-                            .add(rendered, &truth, &valid, CROP_PX);
-                        metrics.insert(name.to_string(), m);
-                    }
+                for (name, m) in &scored.image.metrics {
+                    let name = METHODS
+                        .iter()
+                        .map(|(n, _)| *n)
+                        .find(|n| n == name)
+                        .expect("a known method");
+                    accumulators.entry(name).or_default().add_metrics(m);
                 }
                 if failure.is_none() {
-                    if let Err(e) = on_image(per_image.len(), sample, &renderings) {
+                    if let Err(e) = on_image(per_image.len(), sample, &scored.renderings) {
                         failure = Some(e);
                     }
                 }
-                per_image.push(PerImage {
-                    sample_id: sample.sample_id.clone(),
-                    ortho_id: sample.ortho_id.clone(),
-                    incidence_deg: sample.incidence_deg,
-                    metrics,
-                });
+                per_image.push(scored.image);
             }
         }
     })?;
@@ -173,11 +174,94 @@ pub fn evaluate<B: TrainOps>(
             .map(|(name, stats)| (name.to_string(), stats.summary()))
             .collect(),
         per_ortho: per_ortho(&per_image),
+        breakdowns: breakdowns(&per_image),
         per_image,
     })
 }
 
-/// Write `metrics.json` and `metrics.md` into `out` (atomically).
+/// Mean slope of the crop's delivered DEM in degrees: central differences over the crop's own cells (the apron
+/// gives their neighbours), on the map grid.
+pub fn mean_slope_deg(sample: &Sample) -> f64 {
+    let (n, gsd) = (dataset::schema::DEM_PX, sample.gsd_m);
+    let h = |c: usize, r: usize| sample.dem_m[r * n + c] as f64;
+    let mut sum = 0.0;
+    for r in 1..n - 1 {
+        for c in 1..n - 1 {
+            let dx = (h(c + 1, r) - h(c - 1, r)) / (2.0 * gsd);
+            let dy = (h(c, r + 1) - h(c, r - 1)) / (2.0 * gsd);
+            sum += dx.hypot(dy).atan();
+        }
+    }
+    (sum / ((n - 2) * (n - 2)) as f64).to_degrees()
+}
+
+/// Mean visible fraction of the sun disk over the valid pixels (0 when none is valid).
+pub fn lit_fraction(sample: &Sample, valid: &[bool]) -> f64 {
+    let (sum, count) = sample
+        .sun_lit
+        .iter()
+        .zip(valid)
+        .filter(|(_, &v)| v)
+        .fold((0.0, 0usize), |(s, k), (&lit, _)| (s + lit as f64, k + 1));
+    if count == 0 {
+        0.0
+    } else {
+        sum / count as f64
+    }
+}
+
+/// One crop's renderings and what evaluation keeps of them.
+struct ScoredImage {
+    renderings: Vec<(&'static str, Vec<f64>)>,
+    /// Feature-match distances per method, in rendering order.
+    match_distances: Vec<(&'static str, Vec<f64>)>,
+    image: PerImage,
+}
+
+/// Score one crop's renderings against its ground truth, every method on the same pixels: where all of them are
+/// defined.
+fn score_image(
+    sample: &Sample,
+    renderings: Vec<(&'static str, Vec<f64>)>,
+    matcher: &FeatureMatcher,
+    truth_maps: Option<&TruthMaps>,
+) -> ScoredImage {
+    let (truth, mut valid) = truth_and_valid(sample);
+    for (_, r) in &renderings {
+        for (v, x) in valid.iter_mut().zip(r) {
+            *v &= x.is_finite();
+        }
+    }
+    let mut metrics = BTreeMap::new();
+    let mut match_distances = Vec::new();
+    for (name, rendered) in &renderings {
+        match_distances.push((
+            *name,
+            matcher.match_distances(&truth, rendered, &valid, CROP_PX),
+        ));
+        if let Some(m) = image_metrics(rendered, &truth, &valid, CROP_PX) {
+            metrics.insert(name.to_string(), m);
+        }
+    }
+    let ground = truth_maps.and_then(|t| t.ground_at(sample.center_x_m, sample.center_y_m));
+    let image = PerImage {
+        sample_id: sample.sample_id.clone(),
+        ortho_id: sample.ortho_id.clone(),
+        incidence_deg: sample.incidence_deg,
+        phase_deg: sample.phase_deg,
+        terrain_class: ground.map(|g| g.class.name()),
+        highland: ground.map(|g| g.highland),
+        mean_slope_deg: mean_slope_deg(sample),
+        lit_fraction: lit_fraction(sample, &valid),
+        metrics,
+    };
+    ScoredImage {
+        renderings,
+        match_distances,
+        image,
+    }
+}
+
 /// `g2r-train eval` as data: which runs, on which data, with which options, into which directory.
 pub struct EvalJob<'a> {
     /// The run, then the further members of a seed ensemble.
@@ -222,6 +306,7 @@ pub fn run_job<B: TrainOps>(job: &EvalJob, device: &B::Device) -> Result<EvalRep
     Ok(report)
 }
 
+/// Write `metrics.json` and `metrics.md` into `out` (atomically).
 pub fn write_report(report: &EvalReport, out: &Path) -> Result<()> {
     std::fs::create_dir_all(out)?;
     dataset::manifest::write_json_atomic(&out.join("metrics.json"), report)?;
@@ -237,6 +322,7 @@ mod tests {
     use dataset::crs::LunarCrs;
     use dataset::hapke::lunar_lambert_i_over_f;
     use dataset::raster::{write_geotiff, BandOut, BandValues, GeoTransform, RasterLayout};
+    use dataset::world::TerrainClass;
 
     /// A 4 × 4 truth/ folder: constant Hapke bands, and (optionally) a morphology albedo on `morphology_gsd_m`.
     fn tiny_world(dir: &Path, morphology_gsd_m: Option<f64>) {
@@ -319,12 +405,216 @@ mod tests {
         );
     }
 
+    /// The oracle on the true DEM reads the true heights at the crop's own 5 m cells: on a tilted plane (which
+    /// bilinear sampling reproduces exactly) every cell gets the plane's height at its map position, and the
+    /// terrain class and unit come from the class map's cell under the centre.
+    #[test]
+    fn the_true_dem_replaces_the_crop_heights_cell_by_cell_and_the_class_map_names_the_ground() {
+        use dataset::schema::DEM_PX;
+        let tmp = tempfile::tempdir().unwrap();
+        tiny_world(tmp.path(), None);
+        let mut sample = crate::testing::synthetic_samples(1, 5).remove(0);
+        sample.center_x_m = 5000.0;
+        sample.center_y_m = -3000.0;
+        sample.map_to_en = [1.0, 0.0, 0.0, 1.0];
+        let crs = LunarCrs::equirectangular(0.0, 0.0);
+        // A 2.5 m true DEM around the crop: z = 0.1 x − 0.05 y.
+        let (gsd, n) = (2.5, 400);
+        let (x0, y0) = (sample.center_x_m - 500.0, sample.center_y_m + 500.0);
+        let plane = |x: f64, y: f64| 0.1 * x - 0.05 * y;
+        let transform = GeoTransform::north_up(x0, y0, gsd);
+        let heights: Vec<f32> = (0..n * n)
+            .map(|k| {
+                let (x, y) = transform.pixel_center((k % n) as f64, (k / n) as f64);
+                plane(x, y) as f32
+            })
+            .collect();
+        let layout = RasterLayout {
+            width: n,
+            height: n,
+            transform,
+            crs: &crs,
+            nodata: -32768.0,
+        };
+        let band = |values, description| BandOut {
+            values: BandValues::Grid(values),
+            description,
+        };
+        write_geotiff(
+            &tmp.path().join(dataset::world::TRUE_DEM),
+            &layout,
+            &[band(&heights, "h")],
+            &[],
+        )
+        .unwrap();
+        // Class map on a 5 m grid: wall west of the centre, rim east; mare north, highland south.
+        let class_transform = GeoTransform::north_up(x0, y0, 5.0);
+        let (class, highland): (Vec<f32>, Vec<f32>) = (0..200 * 200)
+            .map(|k| {
+                let (x, y) = class_transform.pixel_center((k % 200) as f64, (k / 200) as f64);
+                let class = if x < sample.center_x_m { 2.0 } else { 3.0 };
+                (class, if y > sample.center_y_m { 0.1 } else { 0.9 })
+            })
+            .unzip();
+        write_geotiff(
+            &tmp.path().join(dataset::world::TRUE_TERRAIN_CLASS),
+            &RasterLayout {
+                width: 200,
+                height: 200,
+                transform: class_transform,
+                crs: &crs,
+                nodata: -1.0,
+            },
+            &[band(&class, "class"), band(&highland, "highland")],
+            &[],
+        )
+        .unwrap();
+
+        let maps = TruthMaps::open(tmp.path()).unwrap();
+        let on_true = maps.on_true_dem(&sample).expect("inside the true DEM");
+        let grid = sample.crop_grid();
+        for (col, row) in [(0, 0), (64, 65), (DEM_PX - 1, 17), (DEM_PX - 1, DEM_PX - 1)] {
+            let (dx, dy) = grid.map_offset(col, row, DEM_PX);
+            let expected = plane(sample.center_x_m + dx, sample.center_y_m + dy);
+            let got = on_true.dem_m[row * DEM_PX + col] as f64;
+            assert!(
+                (got - expected).abs() < 1e-3,
+                "({col}, {row}): {got} vs {expected}"
+            );
+        }
+        assert_eq!(on_true.image, sample.image, "only the heights change");
+        // A crop reaching past the true DEM has no such rendering.
+        let mut outside = sample.clone();
+        outside.center_x_m += 600.0;
+        assert!(maps.on_true_dem(&outside).is_none());
+
+        let ground = |dx: f64, dy: f64| {
+            maps.ground_at(sample.center_x_m + dx, sample.center_y_m + dy)
+                .unwrap()
+        };
+        assert_eq!(ground(-20.0, 20.0).class, TerrainClass::TerracedWall);
+        assert_eq!(ground(20.0, -20.0).class, TerrainClass::Rim);
+        assert!((ground(-20.0, 20.0).highland - 0.1).abs() < 1e-6);
+        assert!((ground(20.0, -20.0).highland - 0.9).abs() < 1e-6);
+        assert!(maps.ground_at(x0 - 100.0, y0).is_none());
+    }
+
+    #[test]
+    fn breakdowns_group_by_class_and_bins_and_sum_sse_within_groups() {
+        let image =
+            |class: &'static str, highland: f64, incidence: f64, learned: f64, paper: f64| {
+                let metrics = [("learned", learned), ("hapke_paper", paper)]
+                    .into_iter()
+                    .map(|(name, sse)| {
+                        let m = crate::metrics::ImageMetrics {
+                            valid_pixels: 2,
+                            sse,
+                            mse: sse / 2.0,
+                            psnr_db: 0.0,
+                            ssim: None,
+                        };
+                        (name.to_string(), m)
+                    })
+                    .collect();
+                PerImage {
+                    sample_id: "M1:0:0".into(),
+                    ortho_id: "M1".into(),
+                    incidence_deg: incidence,
+                    phase_deg: incidence,
+                    terrain_class: Some(class),
+                    highland: Some(highland),
+                    mean_slope_deg: 12.0,
+                    lit_fraction: 0.97,
+                    metrics,
+                }
+            };
+        let images = [
+            image("plains", 0.2, 30.0, 1.0, 2.0),
+            image("terraced_wall", 0.8, 70.0, 6.0, 2.0),
+            image("plains", 0.9, 40.0, 3.0, 2.0),
+            image("terraced_wall", 0.8, 80.0, 2.0, 2.0),
+        ];
+        let all = breakdowns(&images);
+        let by = |name: &str| all.iter().find(|b| b.by == name).unwrap();
+        let classes = by("terrain_class");
+        // In the data flow's order (floor → plains), not alphabetically.
+        let names: Vec<&str> = classes.groups.iter().map(|g| g.group.as_str()).collect();
+        assert_eq!(names, ["terraced_wall", "plains"]);
+        assert_eq!(classes.groups[0].images, 2);
+        assert_eq!(classes.groups[0].sse["learned"], 8.0);
+        assert_eq!(classes.groups[0].sse["hapke_paper"], 4.0);
+        assert_eq!(classes.groups[1].mean_pixel_mse["learned"], 1.0);
+        let units = by("unit");
+        assert_eq!(
+            units
+                .groups
+                .iter()
+                .map(|g| (g.group.as_str(), g.images))
+                .collect::<Vec<_>>(),
+            [("highland", 3), ("mare", 1)]
+        );
+        let incidence = by("incidence_deg");
+        let labels: Vec<(&str, usize)> = incidence
+            .groups
+            .iter()
+            .map(|g| (g.group.as_str(), g.images))
+            .collect();
+        assert_eq!(
+            labels,
+            [("0–35", 1), ("35–50", 1), ("65–75", 1), ("≥ 75", 1)]
+        );
+        assert_eq!(by("mean_slope_deg").groups[0].group, "10–15");
+        assert_eq!(by("lit_fraction").groups[0].group, "0.95–0.99");
+        // Images without a class map give no class breakdowns, only the geometric ones.
+        let bare: Vec<PerImage> = images
+            .iter()
+            .cloned()
+            .map(|mut i| {
+                i.terrain_class = None;
+                i.highland = None;
+                i
+            })
+            .collect();
+        let kinds: Vec<String> = breakdowns(&bare).into_iter().map(|b| b.by).collect();
+        assert_eq!(
+            kinds,
+            [
+                "incidence_deg",
+                "phase_deg",
+                "mean_slope_deg",
+                "lit_fraction"
+            ]
+        );
+    }
+
+    #[test]
+    fn mean_slope_of_a_tilted_plane_is_its_angle() {
+        let mut sample = crate::testing::synthetic_samples(1, 3).remove(0);
+        let n = dataset::schema::DEM_PX;
+        // 5 m cells rising 5 m per cell eastwards: 45°.
+        sample.gsd_m = 5.0;
+        sample.dem_m = (0..n * n).map(|k| (k % n) as f32 * 5.0).collect();
+        assert!((mean_slope_deg(&sample) - 45.0).abs() < 1e-9);
+        let valid = vec![true; sample.sun_lit.len()];
+        sample
+            .sun_lit
+            .iter_mut()
+            .enumerate()
+            .for_each(|(k, l)| *l = if k % 2 == 0 { 1.0 } else { 0.5 });
+        assert!((lit_fraction(&sample, &valid) - 0.75).abs() < 1e-12);
+    }
+
     #[test]
     fn per_ortho_means_group_images_by_their_ortho() {
         let image = |ortho: &str, incidence: f64, learned: f64, scaled: f64| PerImage {
             sample_id: format!("{ortho}:0:0"),
             ortho_id: ortho.into(),
             incidence_deg: incidence,
+            phase_deg: incidence,
+            terrain_class: None,
+            highland: None,
+            mean_slope_deg: 0.0,
+            lit_fraction: 1.0,
             metrics: [("learned", learned), ("hapke_scaled", scaled)]
                 .into_iter()
                 .map(|(name, mse)| {

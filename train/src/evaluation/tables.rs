@@ -7,13 +7,159 @@ use crate::calibration::Calibration;
 use crate::features::MatchSummary;
 use crate::metrics::{AggregateMetrics, ImageMetrics};
 
-/// One image's metrics per method.
+/// One image's metrics per method, with what is known of its ground and light (the breakdowns' keys).
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct PerImage {
     pub sample_id: String,
     pub ortho_id: String,
     pub incidence_deg: f64,
+    /// Phase angle at the crop centre, degrees.
+    pub phase_deg: f64,
+    /// Terrain class under the crop's centre (`truth/terrain_class.tif`; `None` without it).
+    pub terrain_class: Option<&'static str>,
+    /// Highland fraction under the crop's centre (0 mare, 1 highland; `None` without the class map).
+    pub highland: Option<f64>,
+    /// Mean slope of the delivered DEM over the crop, degrees.
+    pub mean_slope_deg: f64,
+    /// Mean visible fraction of the sun disk over the crop's valid pixels.
+    pub lit_fraction: f64,
     pub metrics: BTreeMap<String, ImageMetrics>,
+}
+
+/// One group of images in a [`Breakdown`]: how many, each method's mean per-image pixel MSE, and each method's
+/// summed per-image SSE (whose ratios are the headline's ratios restricted to the group).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct PerGroup {
+    pub group: String,
+    pub images: usize,
+    pub mean_pixel_mse: BTreeMap<String, f64>,
+    pub sse: BTreeMap<String, f64>,
+}
+
+/// The images grouped by one property (terrain class, unit, incidence, slope, lit fraction).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct Breakdown {
+    pub by: String,
+    pub groups: Vec<PerGroup>,
+}
+
+/// Group images by `key` (groups in key order; images with no key left out).
+fn group_images<K: Ord + ToString>(
+    per_image: &[PerImage],
+    key: impl Fn(&PerImage) -> Option<K>,
+) -> Vec<PerGroup> {
+    let mut groups: BTreeMap<K, Vec<&PerImage>> = BTreeMap::new();
+    for image in per_image {
+        if let Some(k) = key(image) {
+            groups.entry(k).or_default().push(image);
+        }
+    }
+    groups
+        .into_iter()
+        .map(|(k, images)| {
+            let mut sse: BTreeMap<String, f64> = BTreeMap::new();
+            let mut mse: BTreeMap<String, f64> = BTreeMap::new();
+            for image in &images {
+                for (method, m) in &image.metrics {
+                    *sse.entry(method.clone()).or_default() += m.sse;
+                    *mse.entry(method.clone()).or_default() += m.mse;
+                }
+            }
+            let n = images.len() as f64;
+            PerGroup {
+                group: k.to_string(),
+                images: images.len(),
+                mean_pixel_mse: mse.into_iter().map(|(k, v)| (k, v / n)).collect(),
+                sse,
+            }
+        })
+        .collect()
+}
+
+/// The label of the bin of `edges` (ascending) holding `x`: "a–b", with the last bin open ("≥ a").
+fn bin_label(x: f64, edges: &[f64]) -> (usize, String) {
+    let k = edges.iter().rposition(|&e| x >= e).unwrap_or(0);
+    match edges.get(k + 1) {
+        Some(next) => (k, format!("{}–{}", edges[k], next)),
+        None => (k, format!("≥ {}", edges[k])),
+    }
+}
+
+/// Sortable bin key: the bin's index, shown as its label.
+#[derive(PartialEq, Eq, PartialOrd, Ord)]
+struct Bin(usize, String);
+impl std::fmt::Display for Bin {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.1)
+    }
+}
+
+/// Incidence bins, degrees (the worlds' acquisitions span 20–80°).
+pub const INCIDENCE_BINS_DEG: [f64; 5] = [0.0, 35.0, 50.0, 65.0, 75.0];
+/// Phase-angle bins, degrees.
+pub const PHASE_BINS_DEG: [f64; 5] = [0.0, 30.0, 50.0, 70.0, 90.0];
+/// Mean-slope bins, degrees.
+pub const SLOPE_BINS_DEG: [f64; 5] = [0.0, 5.0, 10.0, 15.0, 20.0];
+/// Lit-fraction bins.
+pub const LIT_BINS: [f64; 5] = [0.0, 0.5, 0.8, 0.95, 0.99];
+
+/// Every breakdown the images support: by terrain class, by unit and by both (worlds with the class map), and
+/// by incidence, mean slope and lit fraction.
+pub fn breakdowns(per_image: &[PerImage]) -> Vec<Breakdown> {
+    let unit = |i: &PerImage| {
+        i.highland
+            .map(|h| if h >= 0.5 { "highland" } else { "mare" })
+    };
+    let class_order = |name: &str| {
+        dataset::world::TerrainClass::ALL
+            .iter()
+            .position(|c| c.name() == name)
+    };
+    let binned = |x: f64, edges: &[f64]| {
+        let (k, label) = bin_label(x, edges);
+        Some(Bin(k, label))
+    };
+    let mut out = Vec::new();
+    if per_image.iter().any(|i| i.terrain_class.is_some()) {
+        out.push(Breakdown {
+            by: "terrain_class".into(),
+            groups: group_images(per_image, |i| {
+                i.terrain_class
+                    .map(|c| Bin(class_order(c).unwrap_or(usize::MAX), c.to_string()))
+            }),
+        });
+        out.push(Breakdown {
+            by: "unit".into(),
+            groups: group_images(per_image, unit),
+        });
+        out.push(Breakdown {
+            by: "terrain_class_and_unit".into(),
+            groups: group_images(per_image, |i| {
+                let c = i.terrain_class?;
+                Some(Bin(
+                    2 * class_order(c).unwrap_or(usize::MAX) + usize::from(unit(i)? == "mare"),
+                    format!("{c}, {}", unit(i)?),
+                ))
+            }),
+        });
+    }
+    out.push(Breakdown {
+        by: "incidence_deg".into(),
+        groups: group_images(per_image, |i| binned(i.incidence_deg, &INCIDENCE_BINS_DEG)),
+    });
+    out.push(Breakdown {
+        by: "phase_deg".into(),
+        groups: group_images(per_image, |i| binned(i.phase_deg, &PHASE_BINS_DEG)),
+    });
+    out.push(Breakdown {
+        by: "mean_slope_deg".into(),
+        groups: group_images(per_image, |i| binned(i.mean_slope_deg, &SLOPE_BINS_DEG)),
+    });
+    out.push(Breakdown {
+        by: "lit_fraction".into(),
+        groups: group_images(per_image, |i| binned(i.lit_fraction, &LIT_BINS)),
+    });
+    out
 }
 
 /// One ortho's share of an evaluation: mean per-image pixel MSE per method over its images. Shards are written
@@ -24,6 +170,7 @@ pub struct PerOrtho {
     pub ortho_id: String,
     pub images: usize,
     pub mean_incidence_deg: f64,
+    pub mean_phase_deg: f64,
     pub mean_pixel_mse: BTreeMap<String, f64>,
 }
 
@@ -47,6 +194,7 @@ pub fn per_ortho(per_image: &[PerImage]) -> Vec<PerOrtho> {
                 ortho_id: ortho_id.to_string(),
                 images: images.len(),
                 mean_incidence_deg: images.iter().map(|i| i.incidence_deg).sum::<f64>() / n,
+                mean_phase_deg: images.iter().map(|i| i.phase_deg).sum::<f64>() / n,
                 mean_pixel_mse: sums.into_iter().map(|(k, v)| (k, v / n)).collect(),
             }
         })
@@ -88,6 +236,8 @@ pub struct EvalReport {
     /// [`crate::features`]); the paper's Table 1 used a learned matcher.
     pub feature_matching: BTreeMap<String, MatchSummary>,
     pub per_ortho: Vec<PerOrtho>,
+    /// The same images grouped by terrain class, unit, incidence, slope and lit fraction.
+    pub breakdowns: Vec<Breakdown>,
     pub per_image: Vec<PerImage>,
 }
 
@@ -173,6 +323,7 @@ pub fn markdown(report: &EvalReport) -> String {
         }
     }
     text.push_str(&per_ortho_markdown(report));
+    text.push_str(&breakdowns_markdown(report));
     text.push_str(&format!(
         "\nUniform {} coefficients (least squares on the same crops): {:?}.\n",
         report.calibration.model.name(),
@@ -191,7 +342,7 @@ fn per_ortho_markdown(report: &EvalReport) -> String {
     let names: Vec<&str> = report.methods.iter().map(|m| m.name.as_str()).collect();
     let mut text = format!(
         "\n## Per ortho\n\nMean per-image pixel MSE over each ortho's images (a per-ortho mean, so it differs from the \
-         pooled figures above).\n\n| ortho | images | mean incidence ° | {} |\n|---|---|---|{}\n",
+         pooled figures above).\n\n| ortho | images | mean incidence ° | mean phase ° | {} |\n|---|---|---|---|{}\n",
         names.join(" | "),
         "---|".repeat(names.len())
     );
@@ -205,12 +356,69 @@ fn per_ortho_markdown(report: &EvalReport) -> String {
             })
             .collect();
         text.push_str(&format!(
-            "| {} | {} | {:.1} | {} |\n",
+            "| {} | {} | {:.1} | {:.1} | {} |\n",
             o.ortho_id,
             o.images,
             o.mean_incidence_deg,
+            o.mean_phase_deg,
             cells.join(" | ")
         ));
+    }
+    text
+}
+
+/// One table per breakdown: images, learned / paper-Hapke SSE within the group, each group's share of learned's
+/// summed SSE, and the mean per-image pixel MSE of every method.
+fn breakdowns_markdown(report: &EvalReport) -> String {
+    let names: Vec<&str> = report.methods.iter().map(|m| m.name.as_str()).collect();
+    let mut text = String::from(
+        "\n## Where the error sits\n\nThe images grouped by the ground under the crop's centre (the world's \
+         `truth/terrain_class.tif`), by incidence, by the delivered DEM's mean slope and by the lit fraction. \
+         *learned / paper* is the ratio of summed per-image SSE within the group (the headline's ratio, restricted \
+         to it); *share* is the group's part of learned's summed SSE; then the mean per-image pixel MSE.\n",
+    );
+    let total_learned: f64 = report
+        .per_image
+        .iter()
+        .filter_map(|i| i.metrics.get("learned").map(|m| m.sse))
+        .sum();
+    for b in &report.breakdowns {
+        text.push_str(&format!(
+            "\n### By {}\n\n| {} | images | learned / paper | share | {} |\n|---|---|---|---|{}\n",
+            b.by,
+            b.by,
+            names.join(" | "),
+            "---|".repeat(names.len())
+        ));
+        for g in &b.groups {
+            let ratio = match (g.sse.get("learned"), g.sse.get("hapke_paper")) {
+                (Some(l), Some(p)) if *p > 0.0 => format!("{:.3}", l / p),
+                _ => "—".into(),
+            };
+            let share = g
+                .sse
+                .get("learned")
+                .filter(|_| total_learned > 0.0)
+                .map_or("—".into(), |l| {
+                    format!("{:.1} %", 100.0 * l / total_learned)
+                });
+            let cells: Vec<String> = names
+                .iter()
+                .map(|n| {
+                    g.mean_pixel_mse
+                        .get(*n)
+                        .map_or("—".into(), |v| format!("{v:.3e}"))
+                })
+                .collect();
+            text.push_str(&format!(
+                "| {} | {} | {} | {} | {} |\n",
+                g.group,
+                g.images,
+                ratio,
+                share,
+                cells.join(" | ")
+            ));
+        }
     }
     text
 }

@@ -1,17 +1,33 @@
-//! The world's hidden truth maps (Hapke parameters, morphology albedo) sampled at a crop's pixels: the oracle rows.
+//! The world's hidden truth maps (Hapke parameters, morphology albedo, the true DEM, terrain classes) sampled at a
+//! crop's pixels: the oracle rows and the breakdown of errors by kind of ground.
 
 use std::path::Path;
 
 use anyhow::{bail, Result};
 use dataset::hapke::{hapke_i_over_f, HFunction, HapkeParams};
-use dataset::raster::{read_bands, Raster};
-use dataset::schema::{Sample, CROP_PX};
+use dataset::raster::{read_bands, read_raster, Raster};
+use dataset::schema::{Sample, CROP_PX, DEM_PX};
+use dataset::world::TerrainClass;
+
+use super::model_form::ModelFormTable;
 
 /// The world's true Hapke parameter maps (`truth/hapke_params.tif`: w, b, c, B_S0, h_S, θ̄ in degrees), and w
 /// without its independent component (`truth/w_morphology.tif`, on the same grid) when the world has it.
 pub struct TruthMaps {
     bands: Vec<Raster>,
     w_morphology: Option<Raster>,
+    /// `truth/dem_true.tif`, for the oracle on the true DEM (worlds always carry it; tiny test worlds may not).
+    true_dem: Option<Raster>,
+    /// `truth/terrain_class.tif` (world v3 on): class code and highland fraction per delivered-DEM cell.
+    terrain: Option<(Raster, Raster)>,
+}
+
+/// The ground under a crop's centre, from `truth/terrain_class.tif`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Ground {
+    pub class: TerrainClass,
+    /// 0 mare, 1 highland.
+    pub highland: f64,
 }
 
 /// Which true albedo an oracle rendering uses.
@@ -58,9 +74,83 @@ impl TruthMaps {
         } else {
             None
         };
+        let true_dem_path = world.join(dataset::world::TRUE_DEM);
+        let true_dem = if true_dem_path.exists() {
+            Some(read_raster(&true_dem_path)?)
+        } else {
+            None
+        };
+        let terrain_path = world.join(dataset::world::TRUE_TERRAIN_CLASS);
+        let terrain = if terrain_path.exists() {
+            let mut bands = read_bands(&terrain_path)?;
+            if bands.len() != 2 {
+                bail!(
+                    "{}: {} bands, expected 2 (class, highland fraction); regenerate the world",
+                    terrain_path.display(),
+                    bands.len()
+                );
+            }
+            let highland = bands.pop().expect("two bands");
+            Some((bands.pop().expect("two bands"), highland))
+        } else {
+            None
+        };
         Ok(Self {
             bands,
             w_morphology,
+            true_dem,
+            terrain,
+        })
+    }
+
+    /// Whether the world carries its true DEM (the `oracle_true_dem` method).
+    pub fn has_true_dem(&self) -> bool {
+        self.true_dem.is_some()
+    }
+
+    /// The terrain class and highland fraction of the delivered-DEM cell holding (x, y); `None` for worlds
+    /// without `truth/terrain_class.tif` (before world v3) or outside it.
+    pub fn ground_at(&self, x: f64, y: f64) -> Option<Ground> {
+        let (class, highland) = self.terrain.as_ref()?;
+        let (col, row) = class.transform.map_to_pixel(x, y);
+        let (col, row) = (col.round(), row.round());
+        if col < 0.0 || row < 0.0 || col >= class.width as f64 || row >= class.height as f64 {
+            return None;
+        }
+        let (col, row) = (col as usize, row as usize);
+        Some(Ground {
+            class: TerrainClass::from_code(class.get(col, row) as f64)?,
+            highland: highland.get(col, row) as f64,
+        })
+    }
+
+    /// The sample with its DEM crop replaced by the true DEM averaged over the same 5 m cells (bilinear at each
+    /// cell's centre: the mean of the 2 × 2 true cells when the grids nest, as the world's do): the delivered
+    /// DEM's smoothing, noise, blunders and long-wavelength error removed, its resolution kept. `None` without
+    /// the true DEM or where the crop leaves it.
+    pub fn on_true_dem(&self, sample: &Sample) -> Option<Sample> {
+        let dem = self.true_dem.as_ref()?;
+        let grid = sample.crop_grid();
+        let mut heights = Vec::with_capacity(DEM_PX * DEM_PX);
+        for row in 0..DEM_PX {
+            for col in 0..DEM_PX {
+                let (dx, dy) = grid.map_offset(col, row, DEM_PX);
+                let (c, r) = dem
+                    .transform
+                    .map_to_pixel(sample.center_x_m + dx, sample.center_y_m + dy);
+                if c < 0.0 || r < 0.0 || c > dem.width as f64 - 1.0 || r > dem.height as f64 - 1.0 {
+                    return None;
+                }
+                let h = dem.bilinear(c, r);
+                if !h.is_finite() {
+                    return None;
+                }
+                heights.push(h);
+            }
+        }
+        Some(Sample {
+            dem_m: heights,
+            ..sample.clone()
         })
     }
 
@@ -99,6 +189,64 @@ impl TruthMaps {
     /// Whether the world carries the morphology albedo (the `oracle_morphology` method).
     pub fn has_morphology(&self) -> bool {
         self.w_morphology.is_some()
+    }
+
+    /// The material parameters the model-form fits hold fixed (c, B_S0, h_S, θ̄), when they are the same across
+    /// the maps (sampled at the centre and the four quadrants' centres), as the generator writes them; `None`
+    /// otherwise, and then no model-form oracle is drawn.
+    pub fn fixed_material(&self) -> Option<HapkeParams> {
+        let first = &self.bands[0];
+        let probe = |fx: f64, fy: f64| {
+            let (x, y) = first
+                .transform
+                .pixel_center(fx * first.width as f64, fy * first.height as f64);
+            self.params_at(x, y, TrueAlbedo::Full)
+        };
+        let centre = probe(0.5, 0.5)?;
+        for (fx, fy) in [(0.25, 0.25), (0.75, 0.25), (0.25, 0.75), (0.75, 0.75)] {
+            let p = probe(fx, fy)?;
+            let same = |a: f64, b: f64| (a - b).abs() <= 1e-6 * a.abs().max(1.0);
+            if !(same(p.c, centre.c)
+                && same(p.b_s0, centre.b_s0)
+                && same(p.h_s, centre.h_s)
+                && same(p.theta_bar_rad, centre.theta_bar_rad))
+            {
+                return None;
+            }
+        }
+        Some(centre)
+    }
+
+    /// I/F of a crop under `table`'s model with, at each pixel, the best geometry-blind coefficients for the true
+    /// (w, b) there ([`ModelFormTable`]); NaN outside the maps.
+    pub fn render_model_form(&self, sample: &Sample, table: &ModelFormTable) -> Vec<f64> {
+        let grid = sample.crop_grid();
+        sample
+            .pixel_geometry()
+            .iter()
+            .zip(&sample.sun_lit)
+            .enumerate()
+            .map(|(k, (g, &lit))| {
+                let (dx, dy) = grid.map_offset(k % CROP_PX, k / CROP_PX, CROP_PX);
+                let Some(p) = self.params_at(
+                    sample.center_x_m + dx,
+                    sample.center_y_m + dy,
+                    TrueAlbedo::Full,
+                ) else {
+                    return f64::NAN;
+                };
+                let Some(terms) = table.model.visible_terms(&g.cosines, &g.half_diff) else {
+                    return 0.0;
+                };
+                lit as f64
+                    * table
+                        .coefficients(p.w, p.b)
+                        .iter()
+                        .zip(terms)
+                        .map(|(c, t)| c * t)
+                        .sum::<f64>()
+            })
+            .collect()
     }
 
     /// I/F of a crop under the true maps (lit fraction × Hapke); pixels outside the maps render NaN.
