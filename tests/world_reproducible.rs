@@ -34,8 +34,8 @@ fn same_seed_gives_byte_identical_world_and_other_seed_differs() {
     let (ha, hb, hc) = (file_hashes(&a), file_hashes(&b), file_hashes(&c));
     assert_eq!(
         ha.len(),
-        5 + 2 + 3 * 3,
-        "dem, 4 truth files, index table + label, 3 × (ortho + metadata + ISD)"
+        6 + 2 + 3 * 3,
+        "dem, 5 truth files, index table + label, 3 × (ortho + metadata + ISD)"
     );
     assert_eq!(ha, hb);
     assert_eq!(

@@ -233,8 +233,21 @@ fn score_image(
         }
     }
     let mut metrics = BTreeMap::new();
+    let mut level = BTreeMap::new();
     let mut match_distances = Vec::new();
+    let mean_over_valid = |x: &[f64]| {
+        let (sum, n) = x
+            .iter()
+            .zip(&valid)
+            .filter(|(_, &v)| v)
+            .fold((0.0, 0usize), |(s, n), (x, _)| (s + x, n + 1));
+        sum / n.max(1) as f64
+    };
+    let truth_mean = mean_over_valid(&truth);
     for (name, rendered) in &renderings {
+        if truth_mean > 0.0 {
+            level.insert(name.to_string(), mean_over_valid(rendered) / truth_mean);
+        }
         match_distances.push((
             *name,
             matcher.match_distances(&truth, rendered, &valid, CROP_PX),
@@ -253,6 +266,7 @@ fn score_image(
         highland: ground.map(|g| g.highland),
         mean_slope_deg: mean_slope_deg(sample),
         lit_fraction: lit_fraction(sample, &valid),
+        level,
         metrics,
     };
     ScoredImage {
@@ -525,6 +539,7 @@ mod tests {
                     highland: Some(highland),
                     mean_slope_deg: 12.0,
                     lit_fraction: 0.97,
+                    level: [("learned".to_string(), learned / paper)].into(),
                     metrics,
                 }
             };
@@ -544,6 +559,8 @@ mod tests {
         assert_eq!(classes.groups[0].sse["learned"], 8.0);
         assert_eq!(classes.groups[0].sse["hapke_paper"], 4.0);
         assert_eq!(classes.groups[1].mean_pixel_mse["learned"], 1.0);
+        // Levels average per image: (6/2 + 2/2) / 2 on the wall.
+        assert_eq!(classes.groups[0].mean_level["learned"], 2.0);
         let units = by("unit");
         assert_eq!(
             units
@@ -615,6 +632,7 @@ mod tests {
             highland: None,
             mean_slope_deg: 0.0,
             lit_fraction: 1.0,
+            level: BTreeMap::new(),
             metrics: [("learned", learned), ("hapke_scaled", scaled)]
                 .into_iter()
                 .map(|(name, mse)| {

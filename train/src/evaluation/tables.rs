@@ -23,6 +23,9 @@ pub struct PerImage {
     pub mean_slope_deg: f64,
     /// Mean visible fraction of the sun disk over the crop's valid pixels.
     pub lit_fraction: f64,
+    /// Each method's mean over the compared pixels divided by the ground truth's: the brightness level it
+    /// renders (1 = right on average; the paper's normalisation makes it 1 by construction).
+    pub level: BTreeMap<String, f64>,
     pub metrics: BTreeMap<String, ImageMetrics>,
 }
 
@@ -32,6 +35,8 @@ pub struct PerImage {
 pub struct PerGroup {
     pub group: String,
     pub images: usize,
+    /// Each method's mean per-image brightness level ([`PerImage::level`]).
+    pub mean_level: BTreeMap<String, f64>,
     pub mean_pixel_mse: BTreeMap<String, f64>,
     pub sse: BTreeMap<String, f64>,
 }
@@ -59,7 +64,11 @@ fn group_images<K: Ord + ToString>(
         .map(|(k, images)| {
             let mut sse: BTreeMap<String, f64> = BTreeMap::new();
             let mut mse: BTreeMap<String, f64> = BTreeMap::new();
+            let mut level: BTreeMap<String, f64> = BTreeMap::new();
             for image in &images {
+                for (method, l) in &image.level {
+                    *level.entry(method.clone()).or_default() += l;
+                }
                 for (method, m) in &image.metrics {
                     *sse.entry(method.clone()).or_default() += m.sse;
                     *mse.entry(method.clone()).or_default() += m.mse;
@@ -69,6 +78,7 @@ fn group_images<K: Ord + ToString>(
             PerGroup {
                 group: k.to_string(),
                 images: images.len(),
+                mean_level: level.into_iter().map(|(k, v)| (k, v / n)).collect(),
                 mean_pixel_mse: mse.into_iter().map(|(k, v)| (k, v / n)).collect(),
                 sse,
             }
@@ -375,7 +385,9 @@ fn breakdowns_markdown(report: &EvalReport) -> String {
         "\n## Where the error sits\n\nThe images grouped by the ground under the crop's centre (the world's \
          `truth/terrain_class.tif`), by incidence, by the delivered DEM's mean slope and by the lit fraction. \
          *learned / paper* is the ratio of summed per-image SSE within the group (the headline's ratio, restricted \
-         to it); *share* is the group's part of learned's summed SSE; then the mean per-image pixel MSE.\n",
+         to it); *share* is the group's part of learned's summed SSE; *learned level* the mean \
+         per-image ratio of learned's mean brightness to the ground truth's (1: right on average); then the mean \
+         per-image pixel MSE.\n",
     );
     let total_learned: f64 = report
         .per_image
@@ -384,7 +396,7 @@ fn breakdowns_markdown(report: &EvalReport) -> String {
         .sum();
     for b in &report.breakdowns {
         text.push_str(&format!(
-            "\n### By {}\n\n| {} | images | learned / paper | share | {} |\n|---|---|---|---|{}\n",
+            "\n### By {}\n\n| {} | images | learned / paper | share | learned level | {} |\n|---|---|---|---|---|{}\n",
             b.by,
             b.by,
             names.join(" | "),
@@ -410,12 +422,17 @@ fn breakdowns_markdown(report: &EvalReport) -> String {
                         .map_or("—".into(), |v| format!("{v:.3e}"))
                 })
                 .collect();
+            let level = g
+                .mean_level
+                .get("learned")
+                .map_or("—".into(), |l| format!("{l:.3}"));
             text.push_str(&format!(
-                "| {} | {} | {} | {} | {} |\n",
+                "| {} | {} | {} | {} | {} | {} |\n",
                 g.group,
                 g.images,
                 ratio,
                 share,
+                level,
                 cells.join(" | ")
             ));
         }
