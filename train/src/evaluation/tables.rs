@@ -153,22 +153,18 @@ pub fn breakdowns(per_image: &[PerImage]) -> Vec<Breakdown> {
             }),
         });
     }
-    out.push(Breakdown {
-        by: "incidence_deg".into(),
-        groups: group_images(per_image, |i| binned(i.incidence_deg, &INCIDENCE_BINS_DEG)),
-    });
-    out.push(Breakdown {
-        by: "phase_deg".into(),
-        groups: group_images(per_image, |i| binned(i.phase_deg, &PHASE_BINS_DEG)),
-    });
-    out.push(Breakdown {
-        by: "mean_slope_deg".into(),
-        groups: group_images(per_image, |i| binned(i.mean_slope_deg, &SLOPE_BINS_DEG)),
-    });
-    out.push(Breakdown {
-        by: "lit_fraction".into(),
-        groups: group_images(per_image, |i| binned(i.lit_fraction, &LIT_BINS)),
-    });
+    let geometric: [(&str, fn(&PerImage) -> f64, &[f64]); 4] = [
+        ("incidence_deg", |i| i.incidence_deg, &INCIDENCE_BINS_DEG),
+        ("phase_deg", |i| i.phase_deg, &PHASE_BINS_DEG),
+        ("mean_slope_deg", |i| i.mean_slope_deg, &SLOPE_BINS_DEG),
+        ("lit_fraction", |i| i.lit_fraction, &LIT_BINS),
+    ];
+    for (by, value, edges) in geometric {
+        out.push(Breakdown {
+            by: by.into(),
+            groups: group_images(per_image, |i| binned(value(i), edges)),
+        });
+    }
     out
 }
 

@@ -4,6 +4,7 @@
 use std::path::Path;
 
 use anyhow::{bail, Result};
+use dataset::geometry::PixelGeometry;
 use dataset::hapke::{hapke_i_over_f, HFunction, HapkeParams};
 use dataset::raster::{read_bands, read_raster, Raster};
 use dataset::schema::{Sample, CROP_PX, DEM_PX};
@@ -220,37 +221,36 @@ impl TruthMaps {
     /// I/F of a crop under `table`'s model with, at each pixel, the best geometry-blind coefficients for the true
     /// (w, b) there ([`ModelFormTable`]); NaN outside the maps.
     pub fn render_model_form(&self, sample: &Sample, table: &ModelFormTable) -> Vec<f64> {
-        let grid = sample.crop_grid();
-        sample
-            .pixel_geometry()
-            .iter()
-            .zip(&sample.sun_lit)
-            .enumerate()
-            .map(|(k, (g, &lit))| {
-                let (dx, dy) = grid.map_offset(k % CROP_PX, k / CROP_PX, CROP_PX);
-                let Some(p) = self.params_at(
-                    sample.center_x_m + dx,
-                    sample.center_y_m + dy,
-                    TrueAlbedo::Full,
-                ) else {
-                    return f64::NAN;
-                };
-                let Some(terms) = table.model.visible_terms(&g.cosines, &g.half_diff) else {
-                    return 0.0;
-                };
-                lit as f64
-                    * table
+        self.render_with(sample, TrueAlbedo::Full, |p, g| {
+            table
+                .model
+                .visible_terms(&g.cosines, &g.half_diff)
+                .map_or(0.0, |terms| {
+                    table
                         .coefficients(p.w, p.b)
                         .iter()
                         .zip(terms)
                         .map(|(c, t)| c * t)
                         .sum::<f64>()
-            })
-            .collect()
+                })
+        })
     }
 
     /// I/F of a crop under the true maps (lit fraction × Hapke); pixels outside the maps render NaN.
     pub fn render(&self, sample: &Sample, albedo: TrueAlbedo) -> Vec<f64> {
+        self.render_with(sample, albedo, |p, g| {
+            let c = &g.cosines;
+            hapke_i_over_f(p, c.cos_i, c.cos_e, c.cos_g, HFunction::Hapke2002)
+        })
+    }
+
+    /// Lit fraction × `reflect(true parameters, geometry)` at each pixel of a crop; NaN outside the maps.
+    fn render_with(
+        &self,
+        sample: &Sample,
+        albedo: TrueAlbedo,
+        reflect: impl Fn(&HapkeParams, &PixelGeometry) -> f64,
+    ) -> Vec<f64> {
         let grid = sample.crop_grid();
         sample
             .pixel_geometry()
@@ -259,12 +259,8 @@ impl TruthMaps {
             .enumerate()
             .map(|(k, (g, &lit))| {
                 let (dx, dy) = grid.map_offset(k % CROP_PX, k / CROP_PX, CROP_PX);
-                let c = &g.cosines;
                 self.params_at(sample.center_x_m + dx, sample.center_y_m + dy, albedo)
-                    .map_or(f64::NAN, |p| {
-                        lit as f64
-                            * hapke_i_over_f(&p, c.cos_i, c.cos_e, c.cos_g, HFunction::Hapke2002)
-                    })
+                    .map_or(f64::NAN, |p| lit as f64 * reflect(&p, g))
             })
             .collect()
     }
