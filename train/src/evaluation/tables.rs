@@ -104,6 +104,9 @@ impl std::fmt::Display for Bin {
     }
 }
 
+/// One number of an image's geometry, to bin by.
+type ImageValue = fn(&PerImage) -> f64;
+
 /// Incidence bins, degrees (the worlds' acquisitions span 20–80°).
 pub const INCIDENCE_BINS_DEG: [f64; 5] = [0.0, 35.0, 50.0, 65.0, 75.0];
 /// Phase-angle bins, degrees.
@@ -153,7 +156,7 @@ pub fn breakdowns(per_image: &[PerImage]) -> Vec<Breakdown> {
             }),
         });
     }
-    let geometric: [(&str, fn(&PerImage) -> f64, &[f64]); 4] = [
+    let geometric: [(&str, ImageValue, &[f64]); 4] = [
         ("incidence_deg", |i| i.incidence_deg, &INCIDENCE_BINS_DEG),
         ("phase_deg", |i| i.phase_deg, &PHASE_BINS_DEG),
         ("mean_slope_deg", |i| i.mean_slope_deg, &SLOPE_BINS_DEG),
