@@ -162,8 +162,8 @@ pub fn angle_between(a: DVec3, b: DVec3) -> f64 {
 }
 
 /// Unit normal of a plane z = a·east + b·north: the one home of "normal from two slopes" (the synthetic world's
-/// ortho renderer, inference's parameter maps, the novel-view ray caster, analytic tests). Crops take theirs from
-/// ENU points instead ([`crop_normals_enu`]), which carry the sphere's curvature exactly.
+/// ortho renderer, inference's parameter maps, the novel-view ray caster, evaluation's mean slope, analytic
+/// tests). Crops take theirs from ENU points instead ([`crop_normals_enu`]), which carry the sphere's curvature exactly.
 pub fn plane_normal(dz_deast: f64, dz_dnorth: f64) -> DVec3 {
     DVec3::new(-dz_deast, -dz_dnorth, 1.0).normalize()
 }

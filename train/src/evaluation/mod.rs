@@ -73,7 +73,7 @@ pub fn evaluate<B: TrainOps>(
     for run in runs {
         run.input.check_dataset(source)?;
     }
-    let mut accumulators: BTreeMap<&str, MetricsAccumulator> = BTreeMap::new();
+    let mut accumulators: BTreeMap<String, MetricsAccumulator> = BTreeMap::new();
     let matcher = FeatureMatcher::default();
     let mut matches: BTreeMap<&str, MatchStats> = BTreeMap::new();
     let mut per_image = Vec::new();
@@ -106,12 +106,7 @@ pub fn evaluate<B: TrainOps>(
                     matches.entry(name).or_default().add_distances(distances);
                 }
                 for (name, m) in &scored.image.metrics {
-                    let name = METHODS
-                        .iter()
-                        .map(|(n, _)| *n)
-                        .find(|n| n == name)
-                        .expect("a known method");
-                    accumulators.entry(name).or_default().add_metrics(m);
+                    accumulators.entry(name.clone()).or_default().add_metrics(m);
                 }
                 if failure.is_none() {
                     if let Err(e) = on_image(per_image.len(), sample, &scored.renderings) {
@@ -135,7 +130,7 @@ pub fn evaluate<B: TrainOps>(
     let methods: Vec<MethodResult> = METHODS
         .iter()
         .filter_map(|(name, description)| {
-            accumulators.get(name).map(|a| MethodResult {
+            accumulators.get(*name).map(|a| MethodResult {
                 name: name.to_string(),
                 description: description.to_string(),
                 aggregate: a.finish(),
@@ -179,8 +174,9 @@ pub fn evaluate<B: TrainOps>(
     })
 }
 
-/// Mean slope of the crop's delivered DEM in degrees: central differences over the crop's own cells (the apron
-/// gives their neighbours), on the map grid.
+/// Mean slope of the crop's delivered DEM in degrees: the tilt of [`dataset::geometry::plane_normal`] from central
+/// differences over the crop's own cells (the apron gives their neighbours), on the map grid (the slope's size
+/// does not depend on which way rows run).
 pub fn mean_slope_deg(sample: &Sample) -> f64 {
     let (n, gsd) = (dataset::schema::DEM_PX, sample.gsd_m);
     let h = |c: usize, r: usize| sample.dem_m[r * n + c] as f64;
@@ -189,7 +185,10 @@ pub fn mean_slope_deg(sample: &Sample) -> f64 {
         for c in 1..n - 1 {
             let dx = (h(c + 1, r) - h(c - 1, r)) / (2.0 * gsd);
             let dy = (h(c, r + 1) - h(c, r - 1)) / (2.0 * gsd);
-            sum += dx.hypot(dy).atan();
+            sum += dataset::geometry::plane_normal(dx, dy)
+                .z
+                .clamp(-1.0, 1.0)
+                .acos();
         }
     }
     (sum / ((n - 2) * (n - 2)) as f64).to_degrees()

@@ -51,8 +51,9 @@ impl ModelFormTable {
         })
     }
 
-    /// Coefficients for material (w, b): bilinear between grid nodes, clamped to the grid.
-    pub fn coefficients(&self, w: f64, b: f64) -> Vec<f64> {
+    /// Coefficients for material (w, b), one per term of the model and 0 past them (the shape of
+    /// [`BrdfModel::terms`]): bilinear between grid nodes, clamped to the grid. Per pixel, so no allocation.
+    pub fn coefficients(&self, w: f64, b: f64) -> [f64; 4] {
         let node = |x: f64, (start, step, n): (f64, f64, usize)| {
             let t = ((x - start) / step).clamp(0.0, (n - 1) as f64);
             let i = (t.floor() as usize).min(n - 2);
@@ -60,12 +61,12 @@ impl ModelFormTable {
         };
         let ((wi, wt), (bi, bt)) = (node(w, W_NODES), node(b, B_NODES));
         let at = |i: usize, j: usize| &self.coefficients[i * B_NODES.2 + j];
-        (0..self.model.param_count())
-            .map(|k| {
-                (1.0 - wt) * ((1.0 - bt) * at(wi, bi)[k] + bt * at(wi, bi + 1)[k])
-                    + wt * ((1.0 - bt) * at(wi + 1, bi)[k] + bt * at(wi + 1, bi + 1)[k])
-            })
-            .collect()
+        let mut out = [0.0; 4];
+        for (k, c) in out.iter_mut().enumerate().take(self.model.param_count()) {
+            *c = (1.0 - wt) * ((1.0 - bt) * at(wi, bi)[k] + bt * at(wi, bi + 1)[k])
+                + wt * ((1.0 - bt) * at(wi + 1, bi)[k] + bt * at(wi + 1, bi + 1)[k]);
+        }
+        out
     }
 }
 
