@@ -11,7 +11,7 @@
 //!
 //! Why H3: one scale cannot follow a material whose phase function or albedo differs from the Moon-wide one. Its
 //! ratio to the Moon-wide I/F then changes with the acquisition's geometry (fresh crater material, w ≈ 0.6 and
-//! b = 0.2: by a factor 1.4 between phase angles of 5° and 100°), and a map that cannot see the geometry must
+//! b = 0.2: by a factor 1.4 between phase angles of 5° and 100° in a sketch without roughness), and a map that cannot see the geometry must
 //! average it. H3 keeps Hapke's structure and its linearity in the parameters: single scattering under a
 //! back-scattering and a less back-scattering double-HG lobe ([`H3_LOBES_B`]; any asymmetry between them is nearly
 //! a positive mix of the two), and multiple scattering, each with the Moon-wide opposition surge, roughness and
