@@ -579,11 +579,11 @@ fn trainer_over_http_gets_the_same_first_epoch_batches_as_from_local_files() {
             std_m: 150.0,
         }),
     };
-    let from_local: Vec<_> = EpochStream::start(local, Split::Train, config, input, 0, 0)
+    let from_local: Vec<_> = EpochStream::start(local, Split::Train, config, input, None, 0, 0)
         .unwrap()
         .map(Result::unwrap)
         .collect();
-    let from_http: Vec<_> = EpochStream::start(remote, Split::Train, config, input, 0, 0)
+    let from_http: Vec<_> = EpochStream::start(remote, Split::Train, config, input, None, 0, 0)
         .unwrap()
         .map(Result::unwrap)
         .collect();

@@ -44,7 +44,76 @@ pub fn plan_epoch(
     rank: usize,
     world: usize,
 ) -> EpochPlan {
+    plan_rows(groups, None, seed, epoch, window_groups, rank, world)
+}
+
+/// Plan epoch `epoch` over `take` rows drawn with probability proportional to `weights` (one per row, in group
+/// order then row order), without replacement ([`weighted_pick`]). The drawn rows keep the order [`plan_epoch`]
+/// gives them, so streaming, windows and ranks behave as in an unweighted epoch of `take` rows.
+#[allow(clippy::too_many_arguments)]
+pub fn plan_weighted_epoch(
+    groups: &[RowGroupRef],
+    weights: &[f64],
+    take: usize,
+    seed: u64,
+    epoch: u64,
+    window_groups: usize,
+    rank: usize,
+    world: usize,
+) -> EpochPlan {
+    let keep = weighted_pick(weights, take, seed, epoch);
+    plan_rows(groups, Some(&keep), seed, epoch, window_groups, rank, world)
+}
+
+/// Which `take` of `weights.len()` rows an epoch visits when each is drawn with probability proportional to its
+/// weight, without replacement: Efraimidis–Spirakis, keep the `take` largest `ln(u) / w` with `u` uniform in
+/// (0, 1). Every row's `u` is its own counter-based draw keyed by (seed, epoch, row), so the pick does not depend
+/// on how rows are split among threads or ranks.
+pub fn weighted_pick(weights: &[f64], take: usize, seed: u64, epoch: u64) -> Vec<bool> {
+    assert!(
+        weights.iter().all(|w| w.is_finite() && *w > 0.0),
+        "row weights must be finite and positive"
+    );
+    let key = crate::rng::keyed_u64(seed, "epoch-weighted-rows", epoch);
+    let mut order: Vec<(f64, usize)> = weights
+        .iter()
+        .enumerate()
+        .map(|(i, w)| {
+            // 53 random bits, offset by half a step: u in (0, 1), never 0.
+            let u = ((crate::rng::draw_at(key, i as u64) >> 11) as f64 + 0.5) / (1u64 << 53) as f64;
+            (u.ln() / w, i)
+        })
+        .collect();
+    order.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+    let mut keep = vec![false; weights.len()];
+    for &(_, i) in order.iter().take(take) {
+        keep[i] = true;
+    }
+    keep
+}
+
+fn plan_rows(
+    groups: &[RowGroupRef],
+    keep: Option<&[bool]>,
+    seed: u64,
+    epoch: u64,
+    window_groups: usize,
+    rank: usize,
+    world: usize,
+) -> EpochPlan {
     assert!(window_groups >= 1 && world >= 1 && rank < world);
+    // Global index (group order, then row) of each group's first row: what `keep` is indexed by.
+    let first_row: Vec<usize> = groups
+        .iter()
+        .scan(0, |next, g| {
+            let first = *next;
+            *next += g.rows;
+            Some(first)
+        })
+        .collect();
+    if let Some(keep) = keep {
+        assert_eq!(keep.len(), groups.iter().map(|g| g.rows).sum::<usize>());
+    }
     let mut order: Vec<usize> = (0..groups.len()).collect();
     order.shuffle(&mut keyed_rng(seed, "epoch-row-groups", epoch));
     let windows: Vec<Vec<usize>> = order.chunks(window_groups).map(<[usize]>::to_vec).collect();
@@ -62,6 +131,9 @@ pub fn plan_epoch(
             (epoch << 24) | w as u64,
         ));
         for row in window_rows {
+            if keep.is_some_and(|keep| !keep[first_row[row.group] + row.row]) {
+                continue;
+            }
             if position % world == rank {
                 rows.push(row);
                 window_of.push(w);
@@ -177,6 +249,81 @@ mod tests {
         }
         assert!(spread_rows(&g, 0).is_empty());
         assert!(spread_rows(&[], 5).is_empty());
+    }
+
+    #[test]
+    fn weighted_pick_draws_like_successive_sampling_proportional_to_weight() {
+        // 100 rows of weight 3 among 1,000; 50 drawn per epoch. Efraimidis–Spirakis must give the same law as
+        // drawing one row at a time with probability weight / remaining weight, simulated here directly.
+        use rand::Rng;
+        let weights: Vec<f64> = (0..1000).map(|i| if i < 100 { 3.0 } else { 1.0 }).collect();
+        let (take, epochs) = (50, 2000u64);
+        let mut picked_heavy = 0usize;
+        for epoch in 0..epochs {
+            let keep = weighted_pick(&weights, take, 9, epoch);
+            assert_eq!(keep.iter().filter(|k| **k).count(), take);
+            picked_heavy += keep[..100].iter().filter(|k| **k).count();
+        }
+        let mut rng = keyed_rng(1, "test-successive", 0);
+        let mut successive_heavy = 0usize;
+        for _ in 0..epochs {
+            let mut left = weights.clone();
+            for _ in 0..take {
+                let total: f64 = left.iter().sum();
+                let mut x = rng.random::<f64>() * total;
+                let i = left
+                    .iter()
+                    .position(|w| {
+                        x -= w;
+                        x < 0.0
+                    })
+                    .unwrap_or(left.len() - 1);
+                successive_heavy += usize::from(i < 100);
+                left[i] = 0.0;
+            }
+        }
+        let (es, sequential) = (
+            picked_heavy as f64 / epochs as f64,
+            successive_heavy as f64 / epochs as f64,
+        );
+        // About 12.1 heavy rows per epoch (12.5 if drawn with replacement), each mean's standard error ≈ 0.07.
+        assert!((es - sequential).abs() < 0.4, "{es} vs {sequential}");
+        assert!((11.0..12.5).contains(&es), "{es}");
+        // Keyed: the same (seed, epoch) picks the same rows; another epoch others.
+        assert_eq!(
+            weighted_pick(&weights, take, 9, 3),
+            weighted_pick(&weights, take, 9, 3)
+        );
+        assert_ne!(
+            weighted_pick(&weights, take, 9, 3),
+            weighted_pick(&weights, take, 9, 4)
+        );
+        // Equal weights keep every row when take covers them all.
+        assert!(weighted_pick(&[1.0; 7], 7, 9, 0).iter().all(|k| *k));
+    }
+
+    #[test]
+    fn a_weighted_epoch_visits_the_picked_rows_in_the_unweighted_order_and_ranks_partition_it() {
+        let g = groups(&[256, 256, 100, 256, 7]);
+        let weights: Vec<f64> = (0..875).map(|i| 1.0 + (i % 5) as f64).collect();
+        let keep = weighted_pick(&weights, 300, 4, 2);
+        let global = |r: &RowRef| g[..r.group].iter().map(|x| x.rows).sum::<usize>() + r.row;
+        let unweighted: Vec<RowRef> = plan_epoch(&g, 4, 2, 2, 0, 1)
+            .rows
+            .into_iter()
+            .filter(|r| keep[global(r)])
+            .collect();
+        let weighted = plan_weighted_epoch(&g, &weights, 300, 4, 2, 2, 0, 1);
+        assert_eq!(weighted.rows, unweighted);
+        for (row, &w) in weighted.rows.iter().zip(&weighted.window_of) {
+            assert!(weighted.windows[w].contains(&row.group));
+        }
+        let parts: Vec<Vec<RowRef>> = (0..3)
+            .map(|r| plan_weighted_epoch(&g, &weights, 300, 4, 2, 2, r, 3).rows)
+            .collect();
+        for (i, row) in weighted.rows.iter().enumerate() {
+            assert_eq!(parts[i % 3][i / 3], *row);
+        }
     }
 
     #[test]

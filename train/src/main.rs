@@ -1,6 +1,7 @@
 //! `g2r-train`: learn a spatially varying lunar BRDF from DEM geometry (Burn). Argument parsing and wiring only;
 //! the work lives in the library.
 
+use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
@@ -117,6 +118,12 @@ struct TrainArgs {
     /// last/ema (the final average) by default.
     #[arg(long, value_name = "DECAY", value_parser = parse_ema_decay)]
     ema: Option<f64>,
+    /// Draw crops whose delivered-DEM mean slope is at least 20° this many times as often as the others (needs
+    /// --max-train-samples: each epoch draws that many crops in proportion to these weights, without
+    /// replacement). Steep crops (crater walls and rims) hold most of the error at publication scale, and a
+    /// network that sees few of them does not learn what sets their brightness. 1: every crop equally likely.
+    #[arg(long, value_name = "W", default_value_t = 1.0, value_parser = parse_steep_weight)]
+    steep_weight: f64,
 }
 
 /// A parser for a library enum chosen by name: its names are the possible values `--help` lists, parsed with its
@@ -160,6 +167,19 @@ fn parse_ema_decay(text: &str) -> Result<f64, String> {
     }
 }
 
+fn parse_steep_weight(text: &str) -> Result<f64, String> {
+    let weight: f64 = text
+        .parse()
+        .map_err(|e| format!("{text:?} is not a number: {e}"))?;
+    if weight.is_finite() && weight >= 1.0 {
+        Ok(weight)
+    } else {
+        Err(format!(
+            "{weight} is not a weight of at least 1: steep crops are drawn this many times as often (1 = uniform)"
+        ))
+    }
+}
+
 impl TrainArgs {
     fn fit_config(&self) -> FitConfig {
         FitConfig {
@@ -181,6 +201,7 @@ impl TrainArgs {
             elevation_input: self.elevation_input,
             context_input: self.context_input,
             ema_decay: self.ema,
+            steep_weight: self.steep_weight,
         }
     }
 }
@@ -426,7 +447,7 @@ fn run_fit(
     stop: Option<u64>,
 ) -> Result<train::training::FitOutcome> {
     let config = args.fit_config();
-    with_backend!(args.backend, B => fit::<B>(source, &config, out, resume, stop, &Default::default(), true))
+    with_backend!(args.backend, B => fit::<B>(source, &config, out, resume, stop, &Default::default(), std::io::stderr().is_terminal()))
 }
 
 /// Keep freed activation-sized buffers (up to 17 MB at width 16, batch 8) in glibc's heap: with the defaults, which

@@ -17,12 +17,13 @@ use crate::data::{InputNormalisation, StreamConfig, CONTEXT_CHANNELS};
 use crate::metrics::AggregateMetrics;
 use crate::model::{UNet, UNetConfig};
 
-/// The `config.json` format this build writes: version 2 since 2026-11-25. Version 1 (files without a
+/// The `config.json` format this build writes: version 3 since 2026-11-26 (version 2 lacks `steep_weight`,
+/// which loads as 1: every crop equally likely). Version 1 (files without a
 /// `version` key) added fields one at a time, each absent in older files; those files load with the values
 /// every run had before the field existed (constant learning rate, relief input only, no context window). From
 /// version 2 on every field is written and required, and a new field means a new version with its conversion
 /// in [`StoredFitConfig`].
-pub const FIT_CONFIG_VERSION: u32 = 2;
+pub const FIT_CONFIG_VERSION: u32 = 3;
 
 /// Everything that defines a run (saved as `config.json`; a resume must match it). The network's head always
 /// starts at the model's uniform least-squares fit ([`crate::model::UNet::with_uniform_head`]); version-1
@@ -49,6 +50,9 @@ pub struct FitConfig {
     /// Keep an exponential moving average of the weights with this decay ([`crate::averaging`]), validated and
     /// checkpointed beside the raw network; `None`: no average.
     pub ema_decay: Option<f64>,
+    /// How much more often an epoch draws a steep crop than another ([`crate::data::steep_row_weights`]); 1:
+    /// every crop equally likely. Above 1 it needs a cap on samples per epoch.
+    pub steep_weight: f64,
 }
 
 /// `config.json` as any version wrote it: the fields version 1 always had, and the later ones as options
@@ -69,6 +73,7 @@ struct StoredFitConfig {
     context_input: Option<bool>,
     #[serde(default, deserialize_with = "present")]
     ema_decay: Option<Option<f64>>,
+    steep_weight: Option<f64>,
 }
 
 /// A key that is in the file, whatever its value (`null` included): serde alone reads a missing `Option` field
@@ -93,7 +98,7 @@ impl TryFrom<StoredFitConfig> for FitConfig {
         let max_val_samples = stored
             .max_val_samples
             .ok_or_else(|| required("max_val_samples"))?;
-        let (lr_schedule, elevation_input, context_input, ema_decay) = match version {
+        let (lr_schedule, elevation_input, context_input, ema_decay, steep_weight) = match version {
             // Version 1: a field absent from the file did not exist when its run was written (and `ema_decay`
             // was left out when there was no average).
             1 => (
@@ -101,14 +106,21 @@ impl TryFrom<StoredFitConfig> for FitConfig {
                 stored.elevation_input.unwrap_or(false),
                 stored.context_input.unwrap_or(false),
                 stored.ema_decay.flatten(),
+                1.0,
             ),
-            FIT_CONFIG_VERSION => (
+            // Versions 2 and 3 write every field they know; version 2 runs drew every crop equally.
+            2 | FIT_CONFIG_VERSION => (
                 stored.lr_schedule.ok_or_else(|| required("lr_schedule"))?,
                 stored
                     .elevation_input
                     .ok_or_else(|| required("elevation_input"))?,
                 stored.context_input.ok_or_else(|| required("context_input"))?,
                 stored.ema_decay.ok_or_else(|| required("ema_decay"))?,
+                if version == 2 {
+                    1.0
+                } else {
+                    stored.steep_weight.ok_or_else(|| required("steep_weight"))?
+                },
             ),
             newer => {
                 return Err(format!(
@@ -129,6 +141,7 @@ impl TryFrom<StoredFitConfig> for FitConfig {
             elevation_input,
             context_input,
             ema_decay,
+            steep_weight,
         })
     }
 }
@@ -567,7 +580,7 @@ mod schedule_tests {
     }
 
     #[test]
-    fn version_2_configs_round_trip_and_require_every_field() {
+    fn version_3_configs_round_trip_and_require_every_field() {
         let config = FitConfig {
             version: FIT_CONFIG_VERSION,
             model: BrdfModel::L3,
@@ -587,16 +600,17 @@ mod schedule_tests {
             elevation_input: true,
             context_input: false,
             ema_decay: Some(0.995),
+            steep_weight: 3.0,
         };
         let json = serde_json::to_string(&config).unwrap();
-        assert!(json.contains(r#""version":2"#), "{json}");
+        assert!(json.contains(r#""version":3"#), "{json}");
         assert_eq!(serde_json::from_str::<FitConfig>(&json).unwrap(), config);
         let cut = json.replace(r#","context_input":false"#, "");
         let err = serde_json::from_str::<FitConfig>(&cut)
             .unwrap_err()
             .to_string();
         assert!(
-            err.contains("version 2") && err.contains("`context_input`"),
+            err.contains("version 3") && err.contains("`context_input`"),
             "{err}"
         );
         let cut = json.replace(r#","ema_decay":0.995"#, "");
@@ -604,12 +618,22 @@ mod schedule_tests {
             .unwrap_err()
             .to_string();
         assert!(err.contains("`ema_decay`"), "{err}");
-        let newer = json.replace(r#""version":2"#, r#""version":3"#);
+        let cut = json.replace(r#","steep_weight":3.0"#, "");
+        let err = serde_json::from_str::<FitConfig>(&cut)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("`steep_weight`"), "{err}");
+        // Version 2 wrote everything but `steep_weight`: its runs drew every crop equally.
+        let v2 = cut.replace(r#""version":3"#, r#""version":2"#);
+        let loaded = serde_json::from_str::<FitConfig>(&v2).unwrap();
+        assert_eq!(loaded.steep_weight, 1.0);
+        assert_eq!(loaded.version, FIT_CONFIG_VERSION);
+        let newer = json.replace(r#""version":3"#, r#""version":4"#);
         let err = serde_json::from_str::<FitConfig>(&newer)
             .unwrap_err()
             .to_string();
         assert!(
-            err.contains("version 3") && err.contains("update g2r-train"),
+            err.contains("version 4") && err.contains("update g2r-train"),
             "{err}"
         );
     }

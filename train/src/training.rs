@@ -19,11 +19,11 @@ use dataset::brdf::BrdfModel;
 use dataset::rng::keyed_u64;
 use indicatif::{ProgressBar, ProgressStyle};
 
-use crate::data::for_each_sample_group;
 use crate::data::{
     crop_interior_m, ContextNormalisation, ElevationNormalisation, EpochStream, HostBatch,
     InputNormalisation, SampleSource,
 };
+use crate::data::{for_each_sample_group, steep_row_weights, STEEP_SLOPE_DEG};
 use crate::kernels::{TrainBackend, TrainOps};
 use crate::metrics::{AggregateMetrics, MetricsAccumulator};
 use crate::model::{UNet, UNetConfig};
@@ -253,8 +253,35 @@ pub fn fit<B: TrainBackend>(
         "U-Net ready"
     );
 
+    // Steep-weighted epochs: every crop's weight from its slope, once per process (a pure function of the data,
+    // so a resumed run draws what an uninterrupted one would).
+    let row_weights: Option<Arc<[f64]>> = if config.steep_weight == 1.0 {
+        None
+    } else {
+        if config.stream.max_samples.is_none() {
+            bail!(
+                "--steep-weight {} needs --max-train-samples: an epoch over every crop has nothing to weight",
+                config.steep_weight
+            );
+        }
+        let started = Instant::now();
+        let weights = steep_row_weights(&*source, Split::Train, config.steep_weight)?;
+        let steep = weights.iter().filter(|&&w| w != 1.0).count();
+        tracing::info!(
+            steep_crops = steep,
+            crops = weights.len(),
+            min_slope_deg = STEEP_SLOPE_DEG,
+            weight = config.steep_weight,
+            seconds = format!("{:.1}", started.elapsed().as_secs_f64()),
+            "steep-weighted epochs"
+        );
+        Some(weights.into())
+    };
+
     // Time in optimiser steps only (not data waits, validation or checkpoints), for s/step figures.
     let mut step_time = StepTime::default();
+    // Without a terminal (a scheduler's log file) the bar is hidden: a structured line every minute instead.
+    let mut progress_log = (!show_progress).then(|| ProgressLog::new(cursor.step));
     while cursor.epoch < config.epochs {
         let epoch = cursor.epoch;
         let stream = EpochStream::start(
@@ -262,6 +289,7 @@ pub fn fit<B: TrainBackend>(
             Split::Train,
             config.stream,
             input,
+            row_weights.clone(),
             epoch as u64,
             cursor.next_batch,
         )?;
@@ -316,10 +344,17 @@ pub fn fit<B: TrainBackend>(
             cursor.epoch_loss_sum += loss_value;
             cursor.epoch_batches += 1;
             bar.inc(1);
-            bar.set_message(format!(
-                "loss {:.3e}",
-                cursor.epoch_loss_sum / cursor.epoch_batches as f64
-            ));
+            let epoch_loss = cursor.epoch_loss_sum / cursor.epoch_batches as f64;
+            bar.set_message(format!("loss {epoch_loss:.3e}"));
+            if let Some(log) = progress_log.as_mut() {
+                log.tick(
+                    epoch,
+                    cursor.step,
+                    total_steps,
+                    epoch_loss,
+                    config.stream.batch_size,
+                );
+            }
             if stop_after_steps.is_some_and(|s| cursor.step >= s) {
                 save_last(&net, &optim, average.as_ref(), &cursor, &last, &recorder)?;
                 bar.abandon_with_message(format!("stopped at step {} (resumable)", cursor.step));
@@ -377,6 +412,44 @@ pub fn fit<B: TrainBackend>(
         save_last(&net, &optim, average.as_ref(), &cursor, &last, &recorder)?;
     }
     Ok(outcome(cursor, history, trainable, step_time))
+}
+
+/// How often [`ProgressLog`] writes a line.
+const PROGRESS_LOG_EVERY: std::time::Duration = std::time::Duration::from_secs(60);
+
+/// Progress as structured log lines, for runs whose stderr is a file: step, epoch, the epoch's mean loss so far,
+/// samples/s over the last interval (wall time: data waits included, as an ETA needs) and the ETA of the run's
+/// optimiser steps (validation passes not included).
+struct ProgressLog {
+    since: Instant,
+    since_step: u64,
+}
+
+impl ProgressLog {
+    fn new(step: u64) -> Self {
+        Self {
+            since: Instant::now(),
+            since_step: step,
+        }
+    }
+
+    fn tick(&mut self, epoch: usize, step: u64, total_steps: u64, epoch_loss: f64, batch: usize) {
+        let elapsed = self.since.elapsed();
+        if elapsed < PROGRESS_LOG_EVERY && step < total_steps {
+            return;
+        }
+        let steps_per_s = (step - self.since_step) as f64 / elapsed.as_secs_f64();
+        tracing::info!(
+            epoch,
+            step,
+            total_steps,
+            loss = format!("{epoch_loss:.4e}"),
+            samples_per_s = format!("{:.2}", steps_per_s * batch as f64),
+            eta_s = ((total_steps - step) as f64 / steps_per_s).round() as u64,
+            "training"
+        );
+        *self = Self::new(step);
+    }
 }
 
 #[derive(Default)]

@@ -40,6 +40,7 @@ fn m2_config() -> FitConfig {
         elevation_input: false,
         context_input: false,
         ema_decay: None,
+        steep_weight: 1.0,
     }
 }
 

@@ -50,6 +50,7 @@ fn config(
         elevation_input: false,
         context_input: false,
         ema_decay: None,
+        steep_weight: 1.0,
     }
 }
 
@@ -182,6 +183,7 @@ fn stopping_and_resuming_gives_the_same_network_as_an_uninterrupted_run() {
         elevation_input: true,
         context_input: true,
         ema_decay: Some(0.9),
+        steep_weight: 1.0,
         ..config(BrdfModel::M2, 2, 1e-3, 12, true)
     };
     let device = Default::default();
@@ -304,4 +306,89 @@ fn an_ensemble_loads_every_member_first_and_map_averaging_refuses_mixed_models()
             .expect("no average kept")
     );
     assert!(err.contains("ema-best") && err.contains("--ema"), "{err}");
+}
+
+/// `--steep-weight`: every crop's weight comes from its delivered DEM's mean slope, and a capped epoch draws the
+/// steep crops in proportion (a 30° plane among flat crops, weight 5: about 55 % of each epoch against the 25 % a
+/// uniform draw gives), the same rows whenever the epoch is streamed again.
+#[test]
+fn steep_weighted_epochs_draw_steep_crops_in_proportion_to_their_weight() {
+    use dataset::schema::{Split, DEM_PX};
+    use train::data::{steep_row_weights, EpochStream};
+    let dir = tempfile::tempdir().unwrap();
+    let mut train_samples = synthetic_samples(40, 11);
+    let tan30 = 30f64.to_radians().tan();
+    for (i, s) in train_samples.iter_mut().enumerate() {
+        let gsd = s.gsd_m;
+        s.dem_m = (0..DEM_PX * DEM_PX)
+            .map(|k| {
+                if i % 4 == 0 {
+                    -1200.0 + ((k % DEM_PX) as f64 * gsd * tan30) as f32
+                } else {
+                    -1200.0
+                }
+            })
+            .collect();
+    }
+    let steep_ids: Vec<String> = train_samples
+        .iter()
+        .step_by(4)
+        .map(|s| s.sample_id.clone())
+        .collect();
+    train::testing::write_synthetic_dataset(dir.path(), train_samples, synthetic_samples(4, 12));
+    let source: Arc<dyn SampleSource> = Arc::new(LocalSource::open(dir.path()).unwrap());
+    let weights = steep_row_weights(&*source, Split::Train, 5.0).unwrap();
+    assert_eq!(weights.len(), 40);
+    // One row group, in file order: every fourth crop is the steep one.
+    for (i, w) in weights.iter().enumerate() {
+        assert_eq!(*w, if i % 4 == 0 { 5.0 } else { 1.0 }, "row {i}");
+    }
+    let weights: Arc<[f64]> = weights.into();
+    let stream = StreamConfig {
+        seed: 3,
+        batch_size: 4,
+        window_groups: 1,
+        augment: false,
+        max_samples: Some(10),
+    };
+    let input = InputNormalisation::relief(20.0);
+    let ids_of = |epoch: u64| -> Vec<String> {
+        EpochStream::start(
+            source.clone(),
+            Split::Train,
+            stream,
+            input,
+            Some(weights.clone()),
+            epoch,
+            0,
+        )
+        .unwrap()
+        .flat_map(|b| b.unwrap().sample_ids)
+        .collect()
+    };
+    let epochs = 40;
+    let mut steep_drawn = 0;
+    for epoch in 0..epochs {
+        let ids = ids_of(epoch);
+        assert_eq!(ids.len(), 10);
+        let mut distinct = ids.clone();
+        distinct.sort();
+        distinct.dedup();
+        assert_eq!(distinct.len(), 10, "without replacement");
+        steep_drawn += ids.iter().filter(|id| steep_ids.contains(id)).count();
+    }
+    assert_eq!(ids_of(7), ids_of(7), "keyed by (seed, epoch)");
+    // Successive sampling with weights 5 and 1 takes about 5.5 of the 10 steep crops per epoch (2.5 uniformly).
+    let share = steep_drawn as f64 / (10 * epochs) as f64;
+    assert!((0.45..0.65).contains(&share), "steep share {share}");
+    // An uncapped epoch has nothing to weight.
+    let uncapped = StreamConfig {
+        max_samples: None,
+        ..stream
+    };
+    let err = EpochStream::start(source, Split::Train, uncapped, input, Some(weights), 0, 0)
+        .err()
+        .expect("refused")
+        .to_string();
+    assert!(err.contains("--max-train-samples"), "{err}");
 }

@@ -33,7 +33,7 @@ use rayon::prelude::*;
 
 use crate::baseline::truth_and_valid;
 use crate::calibration::{calibrate, Calibration};
-use crate::data::{for_each_sample_group, SampleSource};
+use crate::data::{for_each_sample_group, mean_slope_deg, SampleSource};
 use crate::features::{FeatureMatcher, MatchStats};
 use crate::kernels::TrainOps;
 use crate::metrics::{image_metrics, MetricsAccumulator};
@@ -172,26 +172,6 @@ pub fn evaluate<B: TrainOps>(
         breakdowns: breakdowns(&per_image),
         per_image,
     })
-}
-
-/// Mean slope of the crop's delivered DEM in degrees: the tilt of [`dataset::geometry::plane_normal`] from central
-/// differences over the crop's own cells (the apron gives their neighbours), on the map grid (the slope's size
-/// does not depend on which way rows run).
-pub fn mean_slope_deg(sample: &Sample) -> f64 {
-    let (n, gsd) = (dataset::schema::DEM_PX, sample.gsd_m);
-    let h = |c: usize, r: usize| sample.dem_m[r * n + c] as f64;
-    let mut sum = 0.0;
-    for r in 1..n - 1 {
-        for c in 1..n - 1 {
-            let dx = (h(c + 1, r) - h(c - 1, r)) / (2.0 * gsd);
-            let dy = (h(c, r + 1) - h(c, r - 1)) / (2.0 * gsd);
-            sum += dataset::geometry::plane_normal(dx, dy)
-                .z
-                .clamp(-1.0, 1.0)
-                .acos();
-        }
-    }
-    (sum / ((n - 2) * (n - 2)) as f64).to_degrees()
 }
 
 /// Mean visible fraction of the sun disk over the valid pixels (0 when none is valid).
