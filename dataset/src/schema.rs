@@ -20,6 +20,17 @@ pub const DEM_PX: usize = CROP_PX + 2;
 /// Context window edge in cells ([`crate::context`]).
 pub const CONTEXT_PX: usize = 32;
 
+/// A `DEM_PX`² crop's interior heights (the `CROP_PX`² cells inside the one-pixel apron), row-major: the cells the
+/// image covers, over which the relief's mean and the train DEM statistic are taken.
+pub fn crop_interior(dem_m: &[f32]) -> impl Iterator<Item = f64> + Clone + '_ {
+    debug_assert_eq!(dem_m.len(), DEM_PX * DEM_PX);
+    (1..=CROP_PX).flat_map(move |r| {
+        dem_m[r * DEM_PX + 1..=r * DEM_PX + CROP_PX]
+            .iter()
+            .map(|&h| f64::from(h))
+    })
+}
+
 /// A coarse, wide DEM window around the crop ([`crate::context`]): what lies kilometres around it.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ContextWindow {

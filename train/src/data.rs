@@ -12,7 +12,7 @@ use anyhow::{bail, Context, Result};
 use dataset::manifest::DatasetManifest;
 use dataset::planner::{plan_epoch, plan_weighted_epoch, RowGroupRef};
 use dataset::rng::keyed_rng;
-use dataset::schema::{Sample, Split, CONTEXT_PX, CROP_PX, DEM_PX};
+use dataset::schema::{Sample, Split, CONTEXT_PX, DEM_PX};
 use rand::Rng;
 use rayon::prelude::*;
 
@@ -233,16 +233,14 @@ impl HostBatch {
 
 /// A sample's interior heights (the `128²` crop inside the one-pixel apron), row-major, metres.
 pub fn crop_interior_m(sample: &Sample) -> Vec<f64> {
-    (0..CROP_PX * CROP_PX)
-        .map(|k| sample.dem_m[(k / CROP_PX + 1) * DEM_PX + k % CROP_PX + 1] as f64)
-        .collect()
+    dataset::schema::crop_interior(&sample.dem_m).collect()
 }
 
 /// Mean slope of the crop's delivered DEM in degrees: the tilt of [`dataset::geometry::plane_normal`] from central
 /// differences over the crop's own cells (the apron gives their neighbours), on the map grid (the slope's size
 /// does not depend on which way rows run).
 pub fn mean_slope_deg(sample: &Sample) -> f64 {
-    let (n, gsd) = (dataset::schema::DEM_PX, sample.gsd_m);
+    let (n, gsd) = (DEM_PX, sample.gsd_m);
     let h = |c: usize, r: usize| sample.dem_m[r * n + c] as f64;
     let mut sum = 0.0;
     for r in 1..n - 1 {

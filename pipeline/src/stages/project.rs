@@ -12,7 +12,7 @@ use dataset::crs::{CrsError, LocalFrame};
 use dataset::horizon::{visibility_window, HeightField, VisibilityWindow, SUN_ANGULAR_RADIUS_RAD};
 use dataset::raster::Raster;
 use dataset::resample::{resample_cells, ResampleKernel};
-use dataset::schema::{ContextWindow, Sample, CROP_PX, DEM_PX};
+use dataset::schema::{crop_interior, ContextWindow, Sample, CROP_PX, DEM_PX};
 
 /// Rejection thresholds and shadow sampling, from the pipeline manifest.
 #[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
@@ -274,15 +274,6 @@ impl TrainDemStatistic {
             0.0
         }
     }
-}
-
-/// The 128 × 128 crop heights (apron excluded) in f64, row-major, from a 130 × 130 DEM crop.
-fn crop_interior(dem_m: &[f32]) -> impl Iterator<Item = f64> + Clone + '_ {
-    (1..=CROP_PX).flat_map(move |r| {
-        dem_m[r * DEM_PX + 1..=r * DEM_PX + CROP_PX]
-            .iter()
-            .map(|&h| h as f64)
-    })
 }
 
 /// Stage: project every assigned centre, ortho by ortho (sorted), crops in parallel in chunks of one row group,
