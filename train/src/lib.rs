@@ -7,10 +7,11 @@
 //! - [`prediction`] (inference-mode renderings, symmetry means, ensembles) → [`evaluation`] (against baselines,
 //!   [`baseline`], and the oracle; [`features`] matching) and [`inference`] (parameter GeoTIFFs from a DEM);
 //! - [`report`] (speed against error, [`plot`]), [`views`] (the novel-view ray caster), [`bench`];
-//! - [`testing`]: fixtures for tests and benches.
+//! - [`testing`]: fixtures for tests and benches; [`backend`]: which Burn backend a job runs on.
 
 pub mod augment;
 pub mod averaging;
+pub mod backend;
 pub mod baseline;
 pub mod bench;
 pub mod calibration;

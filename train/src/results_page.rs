@@ -94,6 +94,29 @@ pub fn render_results_page(dir: &Path) -> Result<String> {
     Ok(blocks.join("\n\n") + "\n")
 }
 
+/// Write the page for the records in `records` to `out` (atomically: a reader never sees half a page).
+pub fn write_results_page(records: &Path, out: &Path) -> Result<()> {
+    let page = render_results_page(records)?;
+    dataset::manifest::write_text_atomic(out, &page)
+        .with_context(|| format!("{}: cannot write the results page", out.display()))
+}
+
+/// Fail, naming the command that fixes it, when `out` is not exactly the page the records in `records` give.
+pub fn check_results_page(records: &Path, out: &Path) -> Result<()> {
+    let page = render_results_page(records)?;
+    let written = std::fs::read_to_string(out)
+        .with_context(|| format!("{}: cannot read the results page", out.display()))?;
+    ensure!(
+        written == page,
+        "{} differs from the records in {}: run `g2r-train results-page --records {} --out {}`",
+        out.display(),
+        records.display(),
+        records.display(),
+        out.display()
+    );
+    Ok(())
+}
+
 /// The record files of `dir` in page order: every `*.json`, sorted by name, each name starting with its place.
 fn record_paths(dir: &Path) -> Result<Vec<PathBuf>> {
     let entries = std::fs::read_dir(dir)

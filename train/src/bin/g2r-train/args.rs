@@ -1,16 +1,13 @@
-//! `g2r-train`: learn a spatially varying lunar BRDF from DEM geometry (Burn). Argument parsing and wiring only;
-//! the work lives in the library.
+//! `g2r-train`'s command line: every subcommand, its flags and their help, and the flag parsers. Parsing only;
+//! `main.rs` hands the parsed values to the library's jobs.
 
-use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 
-use anyhow::{Context, Result};
-use clap::{Args, Parser, Subcommand, ValueEnum};
+use clap::{Args, Parser, Subcommand};
 use dataset::brdf::BrdfModel;
-use train::data::{open_source, SampleSource, StreamConfig};
+use train::backend::BackendKind;
+use train::data::StreamConfig;
 use train::run::FitConfig;
-use train::training::fit;
 
 #[derive(Parser)]
 #[command(
@@ -23,40 +20,32 @@ orthoimage (MSE over valid pixels).\n\nData: a dataset directory published by `g
 shards). CPU training is slow (the paper-size U-Net costs ~6 GFLOP per sample): use --width 4 or 8 and \
 --max-train-samples for CPU budgets, the cuda backend on a GPU machine for full runs."
 )]
-struct Cli {
+pub struct Cli {
     #[command(subcommand)]
-    command: Command,
-}
-
-#[derive(Clone, Copy, Debug, ValueEnum)]
-enum BackendKind {
-    /// Burn's CPU backend (always built).
-    Flex,
-    /// NVIDIA GPU (build with `--features cuda`; needs only the driver at run time).
-    Cuda,
+    pub command: Command,
 }
 
 /// The trained network(s) a command loads: one run, or a seed ensemble.
 #[derive(Args, Debug, Clone)]
-struct RunsArgs {
+pub struct RunsArgs {
     /// Run directory written by `fit` (config.json, normalisation.json and checkpoints).
     #[arg(long)]
-    run: PathBuf,
+    pub run: PathBuf,
     /// Further run directories (repeat the flag): a seed ensemble. `eval` scores the mean of all the runs'
     /// renderings (its squared error on each image is at most the members' mean; runs may differ in model and input
     /// planes); `infer` writes the mean of their maps (runs of one BRDF model), which renders exactly as that mean.
     #[arg(long, value_name = "RUN")]
-    ensemble: Vec<PathBuf>,
+    pub ensemble: Vec<PathBuf>,
     /// Which checkpoint of each run: auto (ema-last when the run kept a weight average, else best, else last),
     /// best, last, ema-best or ema-last.
     #[arg(long, default_value = "auto", value_parser = named::<train::run::Checkpoint>(train::run::Checkpoint::NAMES))]
-    checkpoint: train::run::Checkpoint,
+    pub checkpoint: train::run::Checkpoint,
     #[arg(long, value_enum, default_value = "flex")]
-    backend: BackendKind,
+    pub backend: BackendKind,
 }
 
 impl RunsArgs {
-    fn paths(&self) -> Vec<&Path> {
+    pub fn paths(&self) -> Vec<&Path> {
         std::iter::once(self.run.as_path())
             .chain(self.ensemble.iter().map(PathBuf::as_path))
             .collect()
@@ -64,66 +53,66 @@ impl RunsArgs {
 }
 
 #[derive(Args, Debug, Clone)]
-struct TrainArgs {
+pub struct TrainArgs {
     /// BRDF model: m1..m6 (the paper's), l2..l4 (Lommel–Seeliger), h1 (per-pixel scale on Moon-wide Hapke) or h3 (Moon-wide Hapke split into two single-scattering lobes and multiple scattering); see `g2r-train models`.
     #[arg(long, default_value = "m2")]
-    model: BrdfModel,
+    pub model: BrdfModel,
     #[arg(long, default_value_t = 20)]
-    epochs: usize,
+    pub epochs: usize,
     #[arg(long, default_value_t = 64)]
-    batch: usize,
+    pub batch: usize,
     /// Adam learning rate.
     #[arg(long, default_value_t = 1e-4)]
-    lr: f64,
+    pub lr: f64,
     #[arg(long, default_value_t = 42)]
-    seed: u64,
+    pub seed: u64,
     /// U-Net width of the first stage (16 = the paper's ~2.16 M weights; 4 or 8 for CPU budgets).
     #[arg(long, default_value_t = 16)]
-    width: usize,
+    pub width: usize,
     /// Row groups shuffled together (memory ~ window x 55 MB). Shards are written ortho by ortho, so a wider
     /// window mixes more orthos into each stretch of batches (8 covers all of the demo's train row groups).
     #[arg(long, default_value_t = 8)]
-    window: usize,
+    pub window: usize,
     /// Disable rot90/flip augmentation.
     #[arg(long)]
-    no_augment: bool,
+    pub no_augment: bool,
     /// Disable dropout.
     #[arg(long)]
-    no_dropout: bool,
+    pub no_dropout: bool,
     /// Train samples per epoch (default: the whole train split).
     #[arg(long)]
-    max_train_samples: Option<usize>,
+    pub max_train_samples: Option<usize>,
     /// Validation samples per epoch, spread evenly over the val split (default: all of it).
     #[arg(long)]
-    max_val_samples: Option<usize>,
+    pub max_val_samples: Option<usize>,
     #[arg(long, value_enum, default_value = "flex")]
-    backend: BackendKind,
+    pub backend: BackendKind,
     /// Learning-rate schedule: constant, or cosine decay from --lr to 0 over the run.
     #[arg(long, default_value = "constant", value_parser = named::<train::run::LrSchedule>(train::run::LrSchedule::NAMES))]
-    lr_schedule: train::run::LrSchedule,
+    pub lr_schedule: train::run::LrSchedule,
     /// Add absolute elevation as a second input plane (normalised by the mean and std of 256 spread train
     /// crops). The paper's input is relief only (crop mean removed), which hides whether a crop lies on a crater
     /// floor, a mare plain or a highland rim; at the crop scale that explains much of the albedo. Meaningful
     /// within one region: a DEM from elsewhere on the Moon has other absolute heights.
     #[arg(long)]
-    elevation_input: bool,
+    pub elevation_input: bool,
     /// Feed each sample's context window (32 × 32 cells of the dataset's context_gsd_m, 16 km at the default
     /// 512 m: dataset schema 1.2) through a small encoder into the U-Net's bottleneck. A 640 m crop cannot tell a
     /// crater floor or wall from a plain; kilometres of surrounding terrain can.
     #[arg(long)]
-    context_input: bool,
+    pub context_input: bool,
     /// Also keep an exponential moving average of the weights with this decay (e.g. 0.995; the first steps
     /// average over about a ninth of the steps taken). It is validated beside the raw network every epoch
     /// (metrics.jsonl `ema_val`) and checkpointed as ema-best/ and last/ema; eval, infer and report load
     /// last/ema (the final average) by default.
     #[arg(long, value_name = "DECAY", value_parser = parse_ema_decay)]
-    ema: Option<f64>,
+    pub ema: Option<f64>,
     /// Draw crops whose delivered-DEM mean slope is at least 20° this many times as often as the others (needs
     /// --max-train-samples: each epoch draws that many crops in proportion to these weights, without
     /// replacement). Steep crops (crater walls and rims) hold most of the error at publication scale, and a
     /// network that sees few of them does not learn what sets their brightness. 1: every crop equally likely.
     #[arg(long, value_name = "W", default_value_t = 1.0, value_parser = parse_steep_weight)]
-    steep_weight: f64,
+    pub steep_weight: f64,
 }
 
 /// A parser for a library enum chosen by name: its names are the possible values `--help` lists, parsed with its
@@ -181,7 +170,7 @@ fn parse_steep_weight(text: &str) -> Result<f64, String> {
 }
 
 impl TrainArgs {
-    fn fit_config(&self) -> FitConfig {
+    pub fn fit_config(&self) -> FitConfig {
         FitConfig {
             version: train::run::FIT_CONFIG_VERSION,
             model: self.model,
@@ -207,7 +196,7 @@ impl TrainArgs {
 }
 
 #[derive(Subcommand)]
-enum Command {
+pub enum Command {
     /// List the BRDF models (M1-M6, L2-L4, H1, H3) with their parameter order (the band order of parameter GeoTIFFs).
     Models,
     /// Train one model; writes config.json, metrics.jsonl (one line per epoch), best/ and last/ checkpoints.
@@ -408,321 +397,4 @@ Measure on an idle machine; compare only figures from the same sitting."
         #[arg(long)]
         check: bool,
     },
-}
-
-/// The inference backend under an autodiff backend `B`.
-type Inner<B> = <B as burn::tensor::backend::AutodiffBackend>::InnerBackend;
-
-#[cfg(not(feature = "cuda"))]
-fn no_cuda() -> anyhow::Error {
-    anyhow::anyhow!(
-        "this g2r-train was built without CUDA: rebuild with `cargo build --release -p g2r-train --features cuda`"
-    )
-}
-
-/// Evaluate `$body` (a `Result`) with `$B` bound to the chosen autodiff backend: one arm per compiled backend.
-macro_rules! with_backend {
-    ($kind:expr, $B:ident => $body:expr) => {
-        match $kind {
-            BackendKind::Flex => {
-                type $B = burn::backend::Autodiff<burn::backend::Flex>;
-                $body
-            }
-            #[cfg(feature = "cuda")]
-            BackendKind::Cuda => {
-                type $B = burn::backend::Autodiff<burn::backend::Cuda>;
-                $body
-            }
-            #[cfg(not(feature = "cuda"))]
-            BackendKind::Cuda => Err(no_cuda()),
-        }
-    };
-}
-
-fn run_fit(
-    source: Arc<dyn SampleSource>,
-    args: &TrainArgs,
-    out: &std::path::Path,
-    resume: bool,
-    stop: Option<u64>,
-) -> Result<train::training::FitOutcome> {
-    let config = args.fit_config();
-    with_backend!(args.backend, B => fit::<B>(source, &config, out, resume, stop, &Default::default(), std::io::stderr().is_terminal()))
-}
-
-/// Keep freed activation-sized buffers (up to 17 MB at width 16, batch 8) in glibc's heap: with the defaults, which
-/// buffers came back as fresh mappings (page faults, zeroing, TLB shootdowns) shifted with unrelated changes to
-/// the step and moved it by 10 % (`docs/performance.md`). With these values the width-16 bench step was 455–467 ms
-/// against 516–525 ms with the defaults, in one sitting.
-fn tune_allocator() {
-    dataset::malloc::tune(dataset::malloc::MallocSettings {
-        mmap_threshold: 32 << 20,
-        trim_threshold: 256 << 20,
-        arena_max: None,
-    });
-}
-
-fn main() {
-    tune_allocator();
-    dataset::init_logging();
-    if let Err(e) = run(Cli::parse()) {
-        eprintln!("error: {}", format!("{e:#}").replace('\n', " "));
-        std::process::exit(1);
-    }
-}
-
-fn run(cli: Cli) -> Result<()> {
-    match cli.command {
-        Command::Eval {
-            runs,
-            data,
-            split,
-            world,
-            out,
-            max_samples,
-            batch,
-            calibration_samples,
-            panels,
-            symmetry_mean,
-        } => {
-            let source = open_source(&data)?;
-            let out = out.unwrap_or_else(|| runs.run.join(format!("eval-{split}")));
-            let paths = runs.paths();
-            let job = train::evaluation::EvalJob {
-                runs: &paths,
-                checkpoint: runs.checkpoint,
-                source: source.as_ref(),
-                world: world.as_deref(),
-                out: &out,
-                options: train::evaluation::EvalOptions {
-                    split,
-                    max_samples,
-                    batch_size: batch.max(1),
-                    calibration_samples,
-                    panels,
-                    symmetry_mean,
-                },
-            };
-            let report = with_backend!(runs.backend, B => {
-                train::evaluation::run_job::<Inner<B>>(&job, &Default::default())
-            })?;
-            print!("{}", train::evaluation::markdown(&report));
-            println!(
-                "\nwrote {}/metrics.json, metrics.md and panels/",
-                out.display()
-            );
-        }
-        Command::Infer {
-            runs,
-            dem,
-            out,
-            overlap,
-            batch,
-            dem_std_m,
-        } => {
-            let progress = indicatif::ProgressBar::new(0).with_style(
-                indicatif::ProgressStyle::with_template(
-                    "infer {bar:40} {pos}/{len} batches {elapsed} {msg}",
-                )
-                .expect("valid template"),
-            );
-            let raster = dataset::raster::read_raster(&dem)?;
-            let paths = runs.paths();
-            let job = train::inference::InferJob {
-                runs: &paths,
-                checkpoint: runs.checkpoint,
-                dem: &raster,
-                dem_path: &dem,
-                overlap,
-                batch_size: batch,
-                dem_std_m,
-            };
-            let maps = with_backend!(runs.backend, B => {
-                train::inference::run_job::<Inner<B>>(&job, &Default::default(), |member, done, total| {
-                    progress.set_message(member.display().to_string());
-                    progress.set_length(total as u64);
-                    progress.set_position(done as u64);
-                })
-            })?;
-            progress.finish_and_clear();
-            train::inference::write_params_geotiff(&maps, &raster, overlap, &out)?;
-            println!(
-                "{}: {} x {} px, {} bands ({}), {} crops at overlap {overlap}",
-                out.display(),
-                maps.width,
-                maps.height,
-                maps.bands.len(),
-                maps.model.name(),
-                maps.crops
-            );
-        }
-        Command::Report {
-            data,
-            out,
-            split,
-            max_samples,
-            calibration_samples,
-            run,
-            checkpoint,
-            dem,
-            overlaps,
-            ortho,
-            resampling_crops,
-            backend,
-        } => {
-            let source = open_source(&data)?;
-            let job = train::report::ReportJob {
-                source: source.as_ref(),
-                split,
-                max_samples,
-                calibration_samples,
-                run: run.as_deref().map(|run| (run, checkpoint)),
-                dem: dem.as_deref(),
-                overlaps: &overlaps,
-                ortho: ortho.as_deref(),
-                resampling_crops,
-            };
-            let report = with_backend!(backend, B => {
-                train::report::run_job::<Inner<B>>(&job, &Default::default())
-            })?;
-            train::report::write(&report, &out)?;
-            print!("{}", train::report::markdown(&report));
-        }
-        Command::Render {
-            dem,
-            params,
-            trajectory,
-            sun,
-            out,
-            width,
-            height,
-            fov,
-            rays,
-            no_shadows,
-            psf_sigma,
-            seed,
-        } => {
-            train::views::run(&train::views::RenderJob {
-                dem: &dem,
-                params: params.as_deref(),
-                trajectory: &trajectory,
-                sun_body: sun,
-                out: &out,
-                options: train::views::raycast::ViewOptions {
-                    width,
-                    height,
-                    fov_deg: fov,
-                    rays_per_pixel: rays,
-                    shadows: !no_shadows,
-                    psf_sigma_px: psf_sigma,
-                    seed,
-                },
-            })?;
-        }
-        Command::Models => {
-            for model in BrdfModel::ALL {
-                println!(
-                    "{}: {} params: {}",
-                    model.name(),
-                    model.param_count(),
-                    model.term_names().join(", ")
-                );
-            }
-        }
-        Command::Fit {
-            data,
-            out,
-            resume,
-            stop_after_steps,
-            train,
-        } => {
-            let source = open_source(&data)?;
-            let outcome = run_fit(source, &train, &out, resume, stop_after_steps)?;
-            println!(
-                "{}: {} steps, {} trainable parameters, {:.3} s/step; metrics in {}",
-                out.display(),
-                outcome.cursor.step,
-                outcome.trainable_params,
-                outcome.seconds_per_step,
-                out.join("metrics.jsonl").display()
-            );
-            if let Some(last) = outcome.history.last() {
-                println!(
-                    "last epoch: val per-pixel MSE {:.4e}, PSNR {:.2} dB, SSIM {}",
-                    last.val_pixel_mse,
-                    last.val_psnr_db,
-                    train::metrics::ssim_text(last.val_ssim)
-                );
-            }
-        }
-        Command::CompareModels { data, out, train } => {
-            let source = open_source(&data)?;
-            let backend = format!("{:?}", train.backend);
-            let config = train.fit_config();
-            let markdown = with_backend!(train.backend, B => {
-                train::training::compare_models::<B>(source, &config, &backend, &out)
-            })?;
-            print!("{markdown}");
-        }
-        Command::Bench {
-            batch,
-            width,
-            model,
-            iters,
-            backend,
-            torch,
-            rounds,
-        } => {
-            let name = format!("{backend:?}").to_lowercase();
-            let torch_device = if matches!(backend, BackendKind::Flex) {
-                "cpu"
-            } else {
-                "cuda"
-            };
-            let json = match torch {
-                Some(python) => {
-                    anyhow::ensure!(
-                        model == BrdfModel::M2,
-                        "--torch compares the M2 step only: drop --model or use --model m2"
-                    );
-                    let comparison = with_backend!(backend, B => train::bench::compare_with_torch::<B>(
-                        &python, &name, torch_device, batch, width, iters, rounds, &Default::default()
-                    ))?;
-                    serde_json::to_string_pretty(&comparison)?
-                }
-                None => {
-                    let report: train::bench::BenchReport = with_backend!(backend, B => Ok::<_, anyhow::Error>(
-                        train::bench::bench::<B>(&name, model, batch, width, iters, &Default::default())
-                    ))?;
-                    serde_json::to_string_pretty(&report)?
-                }
-            };
-            println!("{json}");
-        }
-        Command::ResultsPage {
-            records,
-            out,
-            check,
-        } => {
-            let page = train::results_page::render_results_page(&records)?;
-            if check {
-                let written = std::fs::read_to_string(&out)
-                    .with_context(|| format!("{}: cannot read the results page", out.display()))?;
-                anyhow::ensure!(
-                    written == page,
-                    "{} differs from the records in {}: run `g2r-train results-page --records {} --out {}`",
-                    out.display(),
-                    records.display(),
-                    records.display(),
-                    out.display()
-                );
-                println!("{} is what {} give", out.display(), records.display());
-            } else {
-                dataset::manifest::write_text_atomic(&out, &page)
-                    .with_context(|| format!("{}: cannot write the results page", out.display()))?;
-                println!("wrote {}", out.display());
-            }
-        }
-    }
-    Ok(())
 }

@@ -1,0 +1,289 @@
+//! `g2r-train`: learn a spatially varying lunar BRDF from DEM geometry (Burn). Parsing ([`args`]) and wiring
+//! only; the work lives in the library.
+
+mod args;
+
+use std::io::IsTerminal;
+use std::sync::Arc;
+
+use anyhow::Result;
+use clap::Parser;
+use dataset::brdf::BrdfModel;
+use train::backend::Inner;
+use train::data::{open_source, SampleSource};
+use train::training::fit;
+use train::with_backend;
+
+use args::{Cli, Command, TrainArgs};
+
+fn run_fit(
+    source: Arc<dyn SampleSource>,
+    args: &TrainArgs,
+    out: &std::path::Path,
+    resume: bool,
+    stop: Option<u64>,
+) -> Result<train::training::FitOutcome> {
+    let config = args.fit_config();
+    with_backend!(args.backend, B => fit::<B>(source, &config, out, resume, stop, &Default::default(), std::io::stderr().is_terminal()))
+}
+
+/// Keep freed activation-sized buffers (up to 17 MB at width 16, batch 8) in glibc's heap: with the defaults, which
+/// buffers came back as fresh mappings (page faults, zeroing, TLB shootdowns) shifted with unrelated changes to
+/// the step and moved it by 10 % (`docs/performance.md`). With these values the width-16 bench step was 455–467 ms
+/// against 516–525 ms with the defaults, in one sitting.
+fn tune_allocator() {
+    dataset::malloc::tune(dataset::malloc::MallocSettings {
+        mmap_threshold: 32 << 20,
+        trim_threshold: 256 << 20,
+        arena_max: None,
+    });
+}
+
+fn main() {
+    tune_allocator();
+    dataset::init_logging();
+    if let Err(e) = run(Cli::parse()) {
+        eprintln!("error: {}", format!("{e:#}").replace('\n', " "));
+        std::process::exit(1);
+    }
+}
+
+fn run(cli: Cli) -> Result<()> {
+    match cli.command {
+        Command::Eval {
+            runs,
+            data,
+            split,
+            world,
+            out,
+            max_samples,
+            batch,
+            calibration_samples,
+            panels,
+            symmetry_mean,
+        } => {
+            let source = open_source(&data)?;
+            let out = out.unwrap_or_else(|| runs.run.join(format!("eval-{split}")));
+            let paths = runs.paths();
+            let job = train::evaluation::EvalJob {
+                runs: &paths,
+                checkpoint: runs.checkpoint,
+                source: source.as_ref(),
+                world: world.as_deref(),
+                out: &out,
+                options: train::evaluation::EvalOptions {
+                    split,
+                    max_samples,
+                    batch_size: batch.max(1),
+                    calibration_samples,
+                    panels,
+                    symmetry_mean,
+                },
+            };
+            let report = with_backend!(runs.backend, B => {
+                train::evaluation::run_job::<Inner<B>>(&job, &Default::default())
+            })?;
+            print!("{}", train::evaluation::markdown(&report));
+            println!(
+                "\nwrote {}/metrics.json, metrics.md and panels/",
+                out.display()
+            );
+        }
+        Command::Infer {
+            runs,
+            dem,
+            out,
+            overlap,
+            batch,
+            dem_std_m,
+        } => {
+            let progress = indicatif::ProgressBar::new(0).with_style(
+                indicatif::ProgressStyle::with_template(
+                    "infer {bar:40} {pos}/{len} batches {elapsed} {msg}",
+                )
+                .expect("valid template"),
+            );
+            let raster = dataset::raster::read_raster(&dem)?;
+            let paths = runs.paths();
+            let job = train::inference::InferJob {
+                runs: &paths,
+                checkpoint: runs.checkpoint,
+                dem: &raster,
+                dem_path: &dem,
+                overlap,
+                batch_size: batch,
+                dem_std_m,
+            };
+            let maps = with_backend!(runs.backend, B => {
+                train::inference::run_job::<Inner<B>>(&job, &Default::default(), |member, done, total| {
+                    progress.set_message(member.display().to_string());
+                    progress.set_length(total as u64);
+                    progress.set_position(done as u64);
+                })
+            })?;
+            progress.finish_and_clear();
+            train::inference::write_params_geotiff(&maps, &raster, overlap, &out)?;
+            println!(
+                "{}: {} x {} px, {} bands ({}), {} crops at overlap {overlap}",
+                out.display(),
+                maps.width,
+                maps.height,
+                maps.bands.len(),
+                maps.model.name(),
+                maps.crops
+            );
+        }
+        Command::Report {
+            data,
+            out,
+            split,
+            max_samples,
+            calibration_samples,
+            run,
+            checkpoint,
+            dem,
+            overlaps,
+            ortho,
+            resampling_crops,
+            backend,
+        } => {
+            let source = open_source(&data)?;
+            let job = train::report::ReportJob {
+                source: source.as_ref(),
+                split,
+                max_samples,
+                calibration_samples,
+                run: run.as_deref().map(|run| (run, checkpoint)),
+                dem: dem.as_deref(),
+                overlaps: &overlaps,
+                ortho: ortho.as_deref(),
+                resampling_crops,
+            };
+            let report = with_backend!(backend, B => {
+                train::report::run_job::<Inner<B>>(&job, &Default::default())
+            })?;
+            train::report::write(&report, &out)?;
+            print!("{}", train::report::markdown(&report));
+        }
+        Command::Render {
+            dem,
+            params,
+            trajectory,
+            sun,
+            out,
+            width,
+            height,
+            fov,
+            rays,
+            no_shadows,
+            psf_sigma,
+            seed,
+        } => {
+            train::views::run(&train::views::RenderJob {
+                dem: &dem,
+                params: params.as_deref(),
+                trajectory: &trajectory,
+                sun_body: sun,
+                out: &out,
+                options: train::views::raycast::ViewOptions {
+                    width,
+                    height,
+                    fov_deg: fov,
+                    rays_per_pixel: rays,
+                    shadows: !no_shadows,
+                    psf_sigma_px: psf_sigma,
+                    seed,
+                },
+            })?;
+        }
+        Command::Models => {
+            for model in BrdfModel::ALL {
+                println!(
+                    "{}: {} params: {}",
+                    model.name(),
+                    model.param_count(),
+                    model.term_names().join(", ")
+                );
+            }
+        }
+        Command::Fit {
+            data,
+            out,
+            resume,
+            stop_after_steps,
+            train,
+        } => {
+            let source = open_source(&data)?;
+            let outcome = run_fit(source, &train, &out, resume, stop_after_steps)?;
+            println!(
+                "{}: {} steps, {} trainable parameters, {:.3} s/step; metrics in {}",
+                out.display(),
+                outcome.cursor.step,
+                outcome.trainable_params,
+                outcome.seconds_per_step,
+                out.join("metrics.jsonl").display()
+            );
+            if let Some(last) = outcome.history.last() {
+                println!(
+                    "last epoch: val per-pixel MSE {:.4e}, PSNR {:.2} dB, SSIM {}",
+                    last.val_pixel_mse,
+                    last.val_psnr_db,
+                    train::metrics::ssim_text(last.val_ssim)
+                );
+            }
+        }
+        Command::CompareModels { data, out, train } => {
+            let source = open_source(&data)?;
+            let backend = format!("{:?}", train.backend);
+            let config = train.fit_config();
+            let markdown = with_backend!(train.backend, B => {
+                train::training::compare_models::<B>(source, &config, &backend, &out)
+            })?;
+            print!("{markdown}");
+        }
+        Command::Bench {
+            batch,
+            width,
+            model,
+            iters,
+            backend,
+            torch,
+            rounds,
+        } => {
+            let (name, torch_device) = (backend.name(), backend.torch_device());
+            let json = match torch {
+                Some(python) => {
+                    anyhow::ensure!(
+                        model == BrdfModel::M2,
+                        "--torch compares the M2 step only: drop --model or use --model m2"
+                    );
+                    let comparison = with_backend!(backend, B => train::bench::compare_with_torch::<B>(
+                        &python, name, torch_device, batch, width, iters, rounds, &Default::default()
+                    ))?;
+                    serde_json::to_string_pretty(&comparison)?
+                }
+                None => {
+                    let report: train::bench::BenchReport = with_backend!(backend, B => Ok::<_, anyhow::Error>(
+                        train::bench::bench::<B>(name, model, batch, width, iters, &Default::default())
+                    ))?;
+                    serde_json::to_string_pretty(&report)?
+                }
+            };
+            println!("{json}");
+        }
+        Command::ResultsPage {
+            records,
+            out,
+            check,
+        } => {
+            if check {
+                train::results_page::check_results_page(&records, &out)?;
+                println!("{} is what {} give", out.display(), records.display());
+            } else {
+                train::results_page::write_results_page(&records, &out)?;
+                println!("wrote {}", out.display());
+            }
+        }
+    }
+    Ok(())
+}
