@@ -577,6 +577,7 @@ fn trainer_over_http_gets_the_same_first_epoch_batches_as_from_local_files() {
         context: Some(ContextNormalisation {
             gsd_m: 512.0,
             std_m: 150.0,
+            absolute: false,
         }),
     };
     let from_local: Vec<_> = EpochStream::start(local, Split::Train, config, input, None, 0, 0)

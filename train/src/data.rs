@@ -174,8 +174,10 @@ pub struct HostBatch {
     pub net_input: Vec<f64>,
     /// Input planes per sample (`C`).
     pub input_channels: usize,
-    /// Context input `N × 2 × 32²` ([`InputNormalisation::push_context`]); empty when the run has none.
+    /// Context input `N × C' × 32²` ([`InputNormalisation::push_context`]); empty when the run has none.
     pub context_input: Vec<f64>,
+    /// Context planes per sample (`C'`; 0 without a context input).
+    pub context_channels: usize,
     /// `N × 130²` heights relative to each crop's ENU origin (with apron), metres.
     pub relative_heights_m: Vec<f64>,
     pub image: Vec<f64>,
@@ -201,6 +203,7 @@ impl HostBatch {
     pub fn from_samples(samples: &[Sample], input: &InputNormalisation) -> Self {
         let mut b = HostBatch {
             input_channels: input.channels(),
+            context_channels: input.context_channels(),
             ..HostBatch::default()
         };
         for s in samples {
@@ -310,9 +313,16 @@ pub struct InputNormalisation {
 pub struct ContextNormalisation {
     pub gsd_m: f64,
     pub std_m: f64,
+    /// Also feed the window's absolute heights, normalised as the elevation plane is (`--context-absolute`).
+    /// Relative heights show where the crop lies in the terrain; absolute ones show how high that terrain
+    /// stands, which on a crater wall is what tells the unit under it (docs/crater-diagnosis.md). Runs written
+    /// before it existed have none.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub absolute: bool,
 }
 
-/// Planes of the context input: relative height, then a mask (1 where the cell has DEM).
+/// Planes of the relative context input: relative height, then a mask (1 where the cell has DEM). An absolute
+/// context adds its plane between the two.
 pub const CONTEXT_CHANNELS: usize = 2;
 
 impl ContextNormalisation {
@@ -348,7 +358,11 @@ impl ContextNormalisation {
         if std_m <= 0.0 {
             bail!("every context window is flat at its crop's height: the context input would divide by zero");
         }
-        Ok(Self { gsd_m, std_m })
+        Ok(Self {
+            gsd_m,
+            std_m,
+            absolute: false,
+        })
     }
 }
 
@@ -422,11 +436,8 @@ impl InputNormalisation {
 
     /// Context planes per sample (0 without a context input).
     pub fn context_channels(&self) -> usize {
-        if self.context.is_some() {
-            CONTEXT_CHANNELS
-        } else {
-            0
-        }
+        self.context
+            .map_or(0, |c| CONTEXT_CHANNELS + usize::from(c.absolute))
     }
 
     /// Append one crop's planes (`CROP_PX²` heights, row-major, metres) channel after channel. A non-finite height
@@ -446,7 +457,8 @@ impl InputNormalisation {
     }
 
     /// Append one crop's context planes (`CONTEXT_PX²` each): the window's heights minus the crop's mean height
-    /// (`heights_m`, as in [`Self::push_planes`]) over the context std, 0 where a cell has no DEM; then the mask.
+    /// (`heights_m`, as in [`Self::push_planes`]) over the context std, 0 where a cell has no DEM; with an
+    /// absolute context, the window's heights normalised as the elevation plane, 0 where no DEM; then the mask.
     /// Panics when the run has no context input.
     pub fn push_context(&self, heights_m: &[f64], context_m: &[f32], out: &mut Vec<f64>) {
         let c = self
@@ -465,6 +477,18 @@ impl InputNormalisation {
                 0.0
             }
         }));
+        if c.absolute {
+            let e = self
+                .elevation
+                .expect("an absolute context is normalised as the elevation plane (checked when a run starts)");
+            out.extend(context_m.iter().map(|&z| {
+                if z.is_finite() {
+                    (z as f64 - e.mean_m) / e.std_m
+                } else {
+                    0.0
+                }
+            }));
+        }
         out.extend(context_m.iter().map(|z| f64::from(u8::from(z.is_finite()))));
     }
 }
@@ -698,6 +722,7 @@ mod tests {
             context: Some(ContextNormalisation {
                 gsd_m: 512.0,
                 std_m: 4.0,
+                absolute: false,
             }),
             ..InputNormalisation::relief(2.0)
         };
@@ -714,6 +739,52 @@ mod tests {
         assert_eq!(out[n..].iter().sum::<f64>(), 3.0);
         assert_eq!((input.channels(), input.context_channels()), (1, 2));
         assert_eq!(InputNormalisation::relief(2.0).context_channels(), 0);
+        // Written without the absolute flag, as runs before it were (their normalisation.json stays the same).
+        let json = serde_json::to_string(&input.context).unwrap();
+        assert_eq!(json, r#"{"gsd_m":512.0,"std_m":4.0}"#);
+        assert_eq!(
+            serde_json::from_str::<Option<ContextNormalisation>>(&json).unwrap(),
+            input.context
+        );
+    }
+
+    #[test]
+    fn an_absolute_context_adds_the_window_normalised_as_the_elevation_plane() {
+        let input = InputNormalisation {
+            elevation: Some(ElevationNormalisation {
+                mean_m: -1200.0,
+                std_m: 5.0,
+            }),
+            context: Some(ContextNormalisation {
+                gsd_m: 512.0,
+                std_m: 4.0,
+                absolute: true,
+            }),
+            ..InputNormalisation::relief(2.0)
+        };
+        let mut context = vec![f32::NAN; CONTEXT_PX * CONTEXT_PX];
+        context[..3].copy_from_slice(&[-1190.0, -1210.0, -1202.0]);
+        let mut out = Vec::new();
+        input.push_context(&[-1200.0, f64::NAN, -1204.0], &context, &mut out);
+        let n = CONTEXT_PX * CONTEXT_PX;
+        assert_eq!(out.len(), 3 * n);
+        assert_eq!(input.context_channels(), 3);
+        // Relative plane as without the flag; then (z + 1200) / 5; then the mask.
+        assert_eq!(out[..3], [3.0, -2.0, 0.0]);
+        assert_eq!(out[n..n + 4], [2.0, -2.0, -0.4, 0.0]);
+        assert!(
+            out[n + 3..2 * n].iter().all(|&v| v == 0.0),
+            "holes are fed as 0"
+        );
+        assert_eq!(out[2 * n..2 * n + 4], [1.0, 1.0, 1.0, 0.0]);
+        // The same terrain raised by 50 m: the relative plane is unchanged, the absolute one moves by 50 / 5.
+        let raised: Vec<f32> = context.iter().map(|z| z + 50.0).collect();
+        let mut moved = Vec::new();
+        input.push_context(&[-1150.0, f64::NAN, -1154.0], &raised, &mut moved);
+        assert_eq!(moved[..n], out[..n]);
+        assert_eq!(moved[n..n + 3], [12.0, 8.0, 9.6]);
+        let json = serde_json::to_string(&input.context).unwrap();
+        assert!(json.contains(r#""absolute":true"#), "{json}");
     }
 
     #[test]

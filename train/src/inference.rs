@@ -15,7 +15,7 @@ use dataset::brdf::{inverse_leaky_relu, leaky_relu, BrdfModel, LEAKY_SLOPE};
 use dataset::raster::{BandOut, BandValues, Raster, RasterLayout};
 use dataset::schema::{CONTEXT_PX, CROP_PX};
 
-use crate::data::{InputNormalisation, CONTEXT_CHANNELS};
+use crate::data::InputNormalisation;
 use crate::kernels::TrainOps;
 use crate::model::UNet;
 use crate::run::{load_ensemble, Checkpoint};
@@ -187,7 +187,12 @@ pub fn infer_params<B: TrainOps>(
             Tensor::<B, 4>::from_data(
                 TensorData::new(
                     context_input,
-                    [batch.len(), CONTEXT_CHANNELS, CONTEXT_PX, CONTEXT_PX],
+                    [
+                        batch.len(),
+                        options.input.context_channels(),
+                        CONTEXT_PX,
+                        CONTEXT_PX,
+                    ],
                 ),
                 device,
             )

@@ -5,7 +5,7 @@ use burn::prelude::*;
 use dataset::brdf::BrdfModel;
 
 use crate::augment::Dihedral;
-use crate::data::{HostBatch, InputNormalisation, CONTEXT_CHANNELS};
+use crate::data::{HostBatch, InputNormalisation};
 use crate::kernels::TrainOps;
 use crate::model::UNet;
 use crate::renderer_layer::{render, SceneTerms};
@@ -30,7 +30,7 @@ pub(crate) fn net_outputs<B: TrainOps>(
         Tensor::<B, 4>::from_data(
             TensorData::new(
                 batch.context_input.clone(),
-                [batch.len(), CONTEXT_CHANNELS, CONTEXT_PX, CONTEXT_PX],
+                [batch.len(), batch.context_channels, CONTEXT_PX, CONTEXT_PX],
             ),
             device,
         )

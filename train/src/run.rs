@@ -17,13 +17,13 @@ use crate::data::{InputNormalisation, StreamConfig, CONTEXT_CHANNELS};
 use crate::metrics::AggregateMetrics;
 use crate::model::{UNet, UNetConfig};
 
-/// The `config.json` format this build writes: version 3 since 2026-11-26 (version 2 lacks `steep_weight`,
-/// which loads as 1: every crop equally likely). Version 1 (files without a
+/// The `config.json` format this build writes: version 4 since 2026-11-27 (version 3 lacks `context_absolute`,
+/// which loads as false; version 2 also lacks `steep_weight`, which loads as 1: every crop equally likely). Version 1 (files without a
 /// `version` key) added fields one at a time, each absent in older files; those files load with the values
 /// every run had before the field existed (constant learning rate, relief input only, no context window). From
 /// version 2 on every field is written and required, and a new field means a new version with its conversion
 /// in [`StoredFitConfig`].
-pub const FIT_CONFIG_VERSION: u32 = 3;
+pub const FIT_CONFIG_VERSION: u32 = 4;
 
 /// Everything that defines a run (saved as `config.json`; a resume must match it). The network's head always
 /// starts at the model's uniform least-squares fit ([`crate::model::UNet::with_uniform_head`]); version-1
@@ -47,6 +47,9 @@ pub struct FitConfig {
     pub elevation_input: bool,
     /// Feed each sample's wide context window through a context encoder ([`InputNormalisation`]).
     pub context_input: bool,
+    /// Feed the context window's absolute heights too ([`crate::data::ContextNormalisation::absolute`]); needs
+    /// `context_input` and `elevation_input`.
+    pub context_absolute: bool,
     /// Keep an exponential moving average of the weights with this decay ([`crate::averaging`]), validated and
     /// checkpointed beside the raw network; `None`: no average.
     pub ema_decay: Option<f64>,
@@ -71,6 +74,7 @@ struct StoredFitConfig {
     lr_schedule: Option<LrSchedule>,
     elevation_input: Option<bool>,
     context_input: Option<bool>,
+    context_absolute: Option<bool>,
     #[serde(default, deserialize_with = "present")]
     ema_decay: Option<Option<f64>>,
     steep_weight: Option<f64>,
@@ -98,7 +102,7 @@ impl TryFrom<StoredFitConfig> for FitConfig {
         let max_val_samples = stored
             .max_val_samples
             .ok_or_else(|| required("max_val_samples"))?;
-        let (lr_schedule, elevation_input, context_input, ema_decay, steep_weight) = match version {
+        let (lr_schedule, elevation_input, context_input, ema_decay, steep_weight, context_absolute) = match version {
             // Version 1: a field absent from the file did not exist when its run was written (and `ema_decay`
             // was left out when there was no average).
             1 => (
@@ -107,9 +111,11 @@ impl TryFrom<StoredFitConfig> for FitConfig {
                 stored.context_input.unwrap_or(false),
                 stored.ema_decay.flatten(),
                 1.0,
+                false,
             ),
-            // Versions 2 and 3 write every field they know; version 2 runs drew every crop equally.
-            2 | FIT_CONFIG_VERSION => (
+            // Versions 2 on write every field they know; version 2 runs drew every crop equally, and runs before
+            // version 4 fed relative context heights only.
+            2..=FIT_CONFIG_VERSION => (
                 stored.lr_schedule.ok_or_else(|| required("lr_schedule"))?,
                 stored
                     .elevation_input
@@ -120,6 +126,13 @@ impl TryFrom<StoredFitConfig> for FitConfig {
                     1.0
                 } else {
                     stored.steep_weight.ok_or_else(|| required("steep_weight"))?
+                },
+                if version < 4 {
+                    false
+                } else {
+                    stored
+                        .context_absolute
+                        .ok_or_else(|| required("context_absolute"))?
                 },
             ),
             newer => {
@@ -140,6 +153,7 @@ impl TryFrom<StoredFitConfig> for FitConfig {
             lr_schedule,
             elevation_input,
             context_input,
+            context_absolute,
             ema_decay,
             steep_weight,
         })
@@ -152,7 +166,7 @@ impl FitConfig {
         UNetConfig::new(self.model.param_count())
             .with_in_channels(1 + usize::from(self.elevation_input))
             .with_context_channels(if self.context_input {
-                CONTEXT_CHANNELS
+                CONTEXT_CHANNELS + usize::from(self.context_absolute)
             } else {
                 0
             })
@@ -580,7 +594,7 @@ mod schedule_tests {
     }
 
     #[test]
-    fn version_3_configs_round_trip_and_require_every_field() {
+    fn version_4_configs_round_trip_and_require_every_field() {
         let config = FitConfig {
             version: FIT_CONFIG_VERSION,
             model: BrdfModel::L3,
@@ -598,19 +612,20 @@ mod schedule_tests {
             max_val_samples: Some(16),
             lr_schedule: LrSchedule::Cosine,
             elevation_input: true,
-            context_input: false,
+            context_input: true,
+            context_absolute: true,
             ema_decay: Some(0.995),
             steep_weight: 3.0,
         };
         let json = serde_json::to_string(&config).unwrap();
-        assert!(json.contains(r#""version":3"#), "{json}");
+        assert!(json.contains(r#""version":4"#), "{json}");
         assert_eq!(serde_json::from_str::<FitConfig>(&json).unwrap(), config);
-        let cut = json.replace(r#","context_input":false"#, "");
+        let cut = json.replace(r#","context_input":true"#, "");
         let err = serde_json::from_str::<FitConfig>(&cut)
             .unwrap_err()
             .to_string();
         assert!(
-            err.contains("version 3") && err.contains("`context_input`"),
+            err.contains("version 4") && err.contains("`context_input`"),
             "{err}"
         );
         let cut = json.replace(r#","ema_decay":0.995"#, "");
@@ -618,7 +633,17 @@ mod schedule_tests {
             .unwrap_err()
             .to_string();
         assert!(err.contains("`ema_decay`"), "{err}");
-        let cut = json.replace(r#","steep_weight":3.0"#, "");
+        let cut = json.replace(r#","context_absolute":true"#, "");
+        let err = serde_json::from_str::<FitConfig>(&cut)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("`context_absolute`"), "{err}");
+        // Version 3 wrote everything but `context_absolute`: its runs fed relative context heights only.
+        let v3 = cut.replace(r#""version":4"#, r#""version":3"#);
+        let loaded = serde_json::from_str::<FitConfig>(&v3).unwrap();
+        assert!(loaded.context_input && !loaded.context_absolute);
+        assert_eq!(loaded.steep_weight, 3.0);
+        let cut = v3.replace(r#","steep_weight":3.0"#, "");
         let err = serde_json::from_str::<FitConfig>(&cut)
             .unwrap_err()
             .to_string();
@@ -627,13 +652,14 @@ mod schedule_tests {
         let v2 = cut.replace(r#""version":3"#, r#""version":2"#);
         let loaded = serde_json::from_str::<FitConfig>(&v2).unwrap();
         assert_eq!(loaded.steep_weight, 1.0);
+        assert!(!loaded.context_absolute);
         assert_eq!(loaded.version, FIT_CONFIG_VERSION);
-        let newer = json.replace(r#""version":3"#, r#""version":4"#);
+        let newer = json.replace(r#""version":4"#, r#""version":5"#);
         let err = serde_json::from_str::<FitConfig>(&newer)
             .unwrap_err()
             .to_string();
         assert!(
-            err.contains("version 4") && err.contains("update g2r-train"),
+            err.contains("version 5") && err.contains("update g2r-train"),
             "{err}"
         );
     }

@@ -66,7 +66,14 @@ pub fn input_normalisation(
         );
     }
     if config.context_input {
-        input.context = Some(ContextNormalisation::of_samples(&samples).with_context(on_train)?);
+        let context = ContextNormalisation::of_samples(&samples).with_context(on_train)?;
+        if config.context_absolute && !config.elevation_input {
+            bail!("an absolute context is normalised as the elevation plane: the run needs --elevation-input");
+        }
+        input.context = Some(ContextNormalisation {
+            absolute: config.context_absolute,
+            ..context
+        });
     }
     Ok(input)
 }

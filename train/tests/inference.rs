@@ -305,6 +305,7 @@ fn context_input_makes_parameters_depend_on_terrain_beyond_the_crop() {
         context: Some(ContextNormalisation {
             gsd_m: 60.0,
             std_m: 25.0,
+            absolute: false,
         }),
     };
     let with_context = random_net_with(1, CONTEXT_CHANNELS);
@@ -349,6 +350,7 @@ fn symmetry_mean_is_an_equivariant_ensemble_of_the_eight_views() {
         context: Some(ContextNormalisation {
             gsd_m: 512.0,
             std_m: 150.0,
+            absolute: false,
         }),
     };
     let net = random_net_with(1, CONTEXT_CHANNELS);

@@ -51,6 +51,7 @@ fn config(
         context_input: false,
         ema_decay: None,
         steep_weight: 1.0,
+        context_absolute: false,
     }
 }
 
@@ -184,6 +185,7 @@ fn stopping_and_resuming_gives_the_same_network_as_an_uninterrupted_run() {
         context_input: true,
         ema_decay: Some(0.9),
         steep_weight: 1.0,
+        context_absolute: false,
         ..config(BrdfModel::M2, 2, 1e-3, 12, true)
     };
     let device = Default::default();

@@ -101,6 +101,11 @@ pub struct TrainArgs {
     /// crater floor or wall from a plain; kilometres of surrounding terrain can.
     #[arg(long)]
     pub context_input: bool,
+    /// Feed the context window's absolute heights too (normalised as --elevation-input's plane, beside the
+    /// heights relative to the crop): how high the terrain around stands, not only its shape. On a crater wall
+    /// the crater's own profile hides the unit under it; the rim and plains around show it by their level.
+    #[arg(long, requires_all = ["context_input", "elevation_input"])]
+    pub context_absolute: bool,
     /// Also keep an exponential moving average of the weights with this decay (e.g. 0.995; the first steps
     /// average over about a ninth of the steps taken). It is validated beside the raw network every epoch
     /// (metrics.jsonl `ema_val`) and checkpointed as ema-best/ and last/ema; eval, infer and report load
@@ -189,6 +194,7 @@ impl TrainArgs {
             lr_schedule: self.lr_schedule,
             elevation_input: self.elevation_input,
             context_input: self.context_input,
+            context_absolute: self.context_absolute,
             ema_decay: self.ema,
             steep_weight: self.steep_weight,
         }
