@@ -8,6 +8,9 @@ pub enum BackendKind {
     Flex,
     /// NVIDIA GPU (build with `--features cuda`; needs only the driver at run time).
     Cuda,
+    /// Any GPU wgpu reaches: Vulkan, Metal or DX12 (build with `--features wgpu`). The same CubeCL operations as
+    /// CUDA; on Mesa's software Vulkan (lavapipe) a CPU runs them, slowly: a check of the GPU path, not a speed.
+    Wgpu,
 }
 
 impl BackendKind {
@@ -16,6 +19,7 @@ impl BackendKind {
         match self {
             Self::Flex => "flex",
             Self::Cuda => "cuda",
+            Self::Wgpu => "wgpu",
         }
     }
 
@@ -24,14 +28,17 @@ impl BackendKind {
         match self {
             Self::Flex => "cpu",
             Self::Cuda => "cuda",
+            // PyTorch has no wgpu device: on an NVIDIA card compare with `--backend cuda`; elsewhere the CPU.
+            Self::Wgpu => "cpu",
         }
     }
 }
 
-/// What asking for CUDA from a build without it says.
-pub fn no_cuda() -> anyhow::Error {
+/// What asking for a backend this build left out (CUDA or wgpu) says.
+pub fn not_built(kind: BackendKind) -> anyhow::Error {
+    let name = kind.name();
     anyhow::anyhow!(
-        "this g2r-train was built without CUDA: rebuild with `cargo build --release -p g2r-train --features cuda`"
+        "this g2r-train was built without {name}: rebuild with `cargo build --release -p g2r-train --features {name}`"
     )
 }
 
@@ -39,7 +46,7 @@ pub fn no_cuda() -> anyhow::Error {
 pub type Inner<B> = <B as burn::tensor::backend::AutodiffBackend>::InnerBackend;
 
 /// Evaluate `$body` (a `Result`) with `$B` bound to the chosen autodiff backend (a [`BackendKind`]): one arm per
-/// compiled backend; CUDA in a build without the `cuda` feature is an error ([`no_cuda`]).
+/// compiled backend; CUDA or wgpu in a build without its feature is an error ([`not_built`]).
 #[macro_export]
 macro_rules! with_backend {
     ($kind:expr, $B:ident => $body:expr) => {
@@ -54,7 +61,18 @@ macro_rules! with_backend {
                 $body
             }
             #[cfg(not(feature = "cuda"))]
-            $crate::backend::BackendKind::Cuda => Err($crate::backend::no_cuda()),
+            $crate::backend::BackendKind::Cuda => Err($crate::backend::not_built(
+                $crate::backend::BackendKind::Cuda,
+            )),
+            #[cfg(feature = "wgpu")]
+            $crate::backend::BackendKind::Wgpu => {
+                type $B = burn::backend::Autodiff<burn::backend::Wgpu>;
+                $body
+            }
+            #[cfg(not(feature = "wgpu"))]
+            $crate::backend::BackendKind::Wgpu => Err($crate::backend::not_built(
+                $crate::backend::BackendKind::Wgpu,
+            )),
         }
     };
 }

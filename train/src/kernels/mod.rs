@@ -446,6 +446,9 @@ impl TrainOps for burn::backend::Flex {
 #[cfg(feature = "cuda")]
 impl TrainOps for burn::backend::Cuda {}
 
+#[cfg(feature = "wgpu")]
+impl TrainOps for burn::backend::Wgpu {}
+
 /// A backend the trainer can fit on: autodiff with [`TrainOps`] on both the autodiff and the inner backend.
 pub trait TrainBackend: AutodiffBackend<InnerBackend: TrainOps> + TrainOps {}
 
