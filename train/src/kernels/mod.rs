@@ -8,7 +8,8 @@
 //! strided copies rather than arithmetic (`docs/performance.md` has the profile). Here:
 //! - [`mod@autodiff`] implements the trait for `Autodiff<B>`: forward on the inner backend, one graph node per
 //!   operation, and a backward pass that calls the inner backend's gradient kernels;
-//! - [`cpu`] implements it for Flex with contiguous f32 kernels (im2col + gemm, one pass per channel);
+//! - [`flex`] implements it for Flex with contiguous f32 kernels, one file per operation (im2col + gemm, one pass
+//!   per channel);
 //! - every other backend (CUDA) takes the trait's defaults: stock Burn operations, the same math.
 //!
 //! The model calls [`conv2d`] and [`batch_norm_leaky_relu`] on Burn's own `Conv2d` and `BatchNorm` modules, so
@@ -16,7 +17,7 @@
 //! operations and Burn's autodiff (values, gradients, running statistics).
 
 mod autodiff;
-mod cpu;
+mod flex;
 pub mod profile;
 pub mod reference;
 
@@ -27,7 +28,6 @@ use burn::prelude::*;
 use burn::tensor::backend::AutodiffBackend;
 use burn::tensor::ops::{ConvOptions, FloatTensor, IntTensor};
 use burn::tensor::TensorPrimitive;
-use profile::{timed, Kernel};
 
 /// Output of the fused training-mode BatchNorm + LeakyReLU: the activation and the batch statistics that update
 /// the running ones (`var` biased, as Burn's BatchNorm uses it for both normalisation and running variance).
@@ -263,183 +263,6 @@ pub trait TrainOps: Backend {
             epsilon,
             slope,
         )
-    }
-}
-
-impl TrainOps for burn::backend::Flex {
-    fn train_conv2d(
-        x: FloatTensor<Self>,
-        weight: FloatTensor<Self>,
-        bias: Option<FloatTensor<Self>>,
-        options: ConvOptions<2>,
-    ) -> FloatTensor<Self> {
-        timed(Kernel::ConvForward, || {
-            cpu::conv2d(x, weight, bias, options)
-        })
-    }
-
-    fn train_conv2d_x_grad(
-        x: FloatTensor<Self>,
-        weight: FloatTensor<Self>,
-        output_grad: FloatTensor<Self>,
-        options: ConvOptions<2>,
-    ) -> FloatTensor<Self> {
-        timed(Kernel::ConvInputGrad, || {
-            cpu::conv2d_x_grad(x, weight, output_grad, options)
-        })
-    }
-
-    fn train_conv2d_weight_grad(
-        x: FloatTensor<Self>,
-        weight: FloatTensor<Self>,
-        output_grad: FloatTensor<Self>,
-        options: ConvOptions<2>,
-    ) -> FloatTensor<Self> {
-        timed(Kernel::ConvWeightGrad, || {
-            cpu::conv2d_weight_grad(x, weight, output_grad, options)
-        })
-    }
-
-    fn train_upsample_conv2d(
-        x: FloatTensor<Self>,
-        weight: FloatTensor<Self>,
-        bias: Option<FloatTensor<Self>>,
-    ) -> FloatTensor<Self> {
-        timed(Kernel::UpConvForward, || {
-            cpu::upsample_conv2d(x, weight, bias)
-        })
-    }
-
-    fn train_upsample_conv2d_x_grad(
-        x: FloatTensor<Self>,
-        weight: FloatTensor<Self>,
-        output_grad: FloatTensor<Self>,
-    ) -> FloatTensor<Self> {
-        timed(Kernel::UpConvInputGrad, || {
-            cpu::upsample_conv2d_x_grad(x, weight, output_grad)
-        })
-    }
-
-    fn train_upsample_conv2d_weight_grad(
-        x: FloatTensor<Self>,
-        weight: FloatTensor<Self>,
-        output_grad: FloatTensor<Self>,
-    ) -> FloatTensor<Self> {
-        timed(Kernel::UpConvWeightGrad, || {
-            cpu::upsample_conv2d_weight_grad(x, weight, output_grad)
-        })
-    }
-
-    fn train_conv2d_bias_grad(output_grad: FloatTensor<Self>) -> FloatTensor<Self> {
-        timed(Kernel::ConvBiasGrad, || cpu::channel_sums(output_grad))
-    }
-
-    fn dropout(x: FloatTensor<Self>, prob: f64) -> DropoutOutput<Self> {
-        timed(Kernel::DropoutForward, || cpu::dropout(x, prob))
-    }
-
-    fn dropout_backward(
-        output_grad: FloatTensor<Self>,
-        mask: FloatTensor<Self>,
-        prob: f64,
-    ) -> FloatTensor<Self> {
-        timed(Kernel::DropoutBackward, || {
-            cpu::dropout_backward(output_grad, mask, prob)
-        })
-    }
-
-    fn max_pool2x2(x: FloatTensor<Self>) -> MaxPoolOutput<Self> {
-        timed(Kernel::PoolForward, || cpu::max_pool2x2(x))
-    }
-
-    fn max_pool2x2_backward(
-        x: FloatTensor<Self>,
-        output_grad: FloatTensor<Self>,
-        argmax: IntTensor<Self>,
-    ) -> FloatTensor<Self> {
-        timed(Kernel::PoolBackward, || {
-            cpu::max_pool2x2_backward(x, output_grad, argmax)
-        })
-    }
-
-    fn render_masked_mse(
-        raw: FloatTensor<Self>,
-        terms: FloatTensor<Self>,
-        image: FloatTensor<Self>,
-        valid: FloatTensor<Self>,
-        slope: f64,
-    ) -> RenderLoss<Self> {
-        timed(Kernel::RenderLoss, || {
-            cpu::render_masked_mse(raw, terms, image, valid, slope)
-        })
-    }
-
-    fn render_masked_mse_backward(
-        raw: FloatTensor<Self>,
-        terms: FloatTensor<Self>,
-        residual: FloatTensor<Self>,
-        loss_grad: FloatTensor<Self>,
-        slope: f64,
-    ) -> FloatTensor<Self> {
-        timed(Kernel::RenderLossBackward, || {
-            cpu::render_masked_mse_backward(raw, terms, residual, loss_grad, slope)
-        })
-    }
-
-    fn train_join_channels(
-        a: FloatTensor<Self>,
-        b: FloatTensor<Self>,
-        slope: f64,
-    ) -> FloatTensor<Self> {
-        timed(Kernel::JoinChannels, || cpu::join_channels(a, b, slope))
-    }
-
-    fn train_join_channels_backward(
-        a: FloatTensor<Self>,
-        grad: FloatTensor<Self>,
-        slope: f64,
-    ) -> (FloatTensor<Self>, FloatTensor<Self>) {
-        timed(Kernel::JoinChannelsBackward, || {
-            cpu::join_channels_backward(a, grad, slope)
-        })
-    }
-
-    fn batch_norm_leaky_relu(
-        x: FloatTensor<Self>,
-        gamma: FloatTensor<Self>,
-        beta: FloatTensor<Self>,
-        epsilon: f64,
-        slope: f64,
-    ) -> NormOutput<Self> {
-        timed(Kernel::NormForward, || {
-            cpu::batch_norm_leaky_relu(x, gamma, beta, epsilon, slope)
-        })
-    }
-
-    fn batch_norm_leaky_relu_backward(
-        x: FloatTensor<Self>,
-        gamma: FloatTensor<Self>,
-        beta: FloatTensor<Self>,
-        mean: FloatTensor<Self>,
-        var: FloatTensor<Self>,
-        output: FloatTensor<Self>,
-        output_grad: FloatTensor<Self>,
-        epsilon: f64,
-        slope: f64,
-    ) -> NormGrads<Self> {
-        timed(Kernel::NormBackward, || {
-            cpu::batch_norm_leaky_relu_backward(
-                x,
-                gamma,
-                beta,
-                mean,
-                var,
-                output,
-                output_grad,
-                epsilon,
-                slope,
-            )
-        })
     }
 }
 

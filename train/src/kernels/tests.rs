@@ -222,7 +222,7 @@ fn dropout_masks_scale_and_reproduce() {
         let g = weights[i] * mask[i] / keep as f32;
         assert!((dx[i] - g).abs() <= 1e-6 * g.abs().max(1.0), "gradient {i}");
     }
-    let seeded = |seed| super::cpu::dropout_mask(&x, prob, seed).1;
+    let seeded = |seed| super::flex::dropout::dropout_mask(&x, prob, seed).1;
     assert_eq!(seeded(5), seeded(5), "same seed, same mask");
     assert_ne!(seeded(5), seeded(6), "another seed, another mask");
 }
@@ -325,7 +325,7 @@ fn kernels_give_the_same_bits_on_any_thread_count() {
                 )),
                 t(Flex::train_join_channels(x.clone(), dy.clone(), 0.01)),
                 t(Flex::train_join_channels_backward(x.clone(), dy.clone(), 0.01).0),
-                super::cpu::dropout_mask(&values(tensor::<Flex, 4>(x.clone())), 0.3, 9).1,
+                super::flex::dropout::dropout_mask(&values(tensor::<Flex, 4>(x.clone())), 0.3, 9).1,
             ]
         })
     };
@@ -386,7 +386,7 @@ fn upsample_conv2d_matches_interpolate_then_conv() {
     assert_close("reference dW", values(tensor::<Flex, 4>(dw)), stock.2, 1e-5);
 }
 
-/// Planes large enough that the kernels work in several row blocks (`cpu::ConvShape::block_rows`: 3 blocks for
+/// Planes large enough that the kernels work in several row blocks (`flex::conv::ConvShape::block_rows`: 3 blocks for
 /// the 3×3 convolution's 288 taps × 64 columns, forward, weight gradient and the input gradient's adjoint
 /// convolution alike; 2 for the up convolution's 128 phase taps and its adjoints'): output and every gradient
 /// against the stock operations and autodiff, so a block boundary that dropped or repeated a row fails.
