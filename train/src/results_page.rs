@@ -16,7 +16,8 @@
 //!       "cells": ["demo world (current)", "58 s, 377 MiB (release build)"],
 //!       "command": "`target/release/g2r-pipeline synth --preset demo --seed 42 --out out/demo-world --force`",
 //!       "measured": null,
-//!       "documented": "`76163e8`, 2026-11-22"
+//!       "documented": "`76163e8`, 2026-11-22",
+//!       "figures": {"wall_s": 58.0, "peak_rss_mib": 377.0}
 //!     }
 //!   ],
 //!   "notes": "Markdown after the table (may be empty)"
@@ -29,6 +30,8 @@
 //!   where that was not recorded.
 //! - `documented`: the commit (and its date) at which the figures first appeared in the repository's docs, an upper
 //!   bound on when they were measured; shown only where `measured` is null.
+//! - `figures`: the row's figures as named numbers (e.g. `learned_over_paper_hapke_sse`, `val_pixel_mse`), for
+//!   tools and plots that read the records; optional, and not shown on the page, whose cells quote them.
 //!
 //! The table gets a `command` column when any of its rows has a command and a `measured` column when any has a
 //! date; a value a row lacks reads "not recorded". A section without rows has no table. Blocks (headings,
@@ -76,6 +79,9 @@ struct Row {
     measured: Option<String>,
     #[serde(default)]
     documented: Option<String>,
+    /// Named numbers for tools (the page shows the cells); names are checked, values are JSON numbers.
+    #[serde(default)]
+    figures: std::collections::BTreeMap<String, f64>,
 }
 
 /// The Markdown page for the records in `dir` (the module docs give their form and order). Errors name the record
@@ -160,6 +166,15 @@ fn render_section(section: &Section) -> Result<Vec<String>> {
         !title.is_empty() && !title.contains('\n'),
         "the title must be one non-empty line"
     );
+    for name in section.rows.iter().flat_map(|row| row.figures.keys()) {
+        ensure!(
+            !name.is_empty()
+                && name
+                    .chars()
+                    .all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '_'),
+            "figure name {name:?} is not snake_case (tools read these names as identifiers)"
+        );
+    }
     let mut blocks = vec![format!("## {title}")];
     push_text(&mut blocks, &section.intro);
     if !section.rows.is_empty() {
@@ -258,7 +273,7 @@ mod tests {
                 "intro": "Three rows.",
                 "columns": ["what", "figure"],
                 "rows": [
-                    {"cells": ["world", "58 s"], "command": "`synth | tee log`", "measured": "2026-11-24"},
+                    {"cells": ["world", "58 s"], "command": "`synth | tee log`", "measured": "2026-11-24", "figures": {"wall_s": 58.0}},
                     {"cells": ["dataset", "6.1 s"], "documented": "b1fdb28, 2026-11-22"},
                     {"cells": ["server", "181 req/s"]}
                 ],
@@ -345,6 +360,16 @@ Caveat: one machine.
                 "30-two-lines.json",
                 r#"{"title": "T", "columns": ["a"], "rows": [{"cells": ["one\ntwo"]}]}"#,
                 "one line",
+            ),
+            (
+                "30-figure-name.json",
+                r#"{"title": "T", "columns": ["a"], "rows": [{"cells": ["x"], "figures": {"Val MSE": 1e-4}}]}"#,
+                "snake_case",
+            ),
+            (
+                "30-figure-text.json",
+                r#"{"title": "T", "columns": ["a"], "rows": [{"cells": ["x"], "figures": {"val_mse": "1e-4"}}]}"#,
+                "30-figure-text.json",
             ),
             ("unnumbered.json", r#"{"title": "T"}"#, "digits and a dash"),
         ] {
