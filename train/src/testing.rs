@@ -8,6 +8,38 @@ use rand::Rng;
 
 use crate::data::{HostBatch, InputNormalisation};
 
+/// A DEM GeoTIFF-ready raster for inference tests: `width × height` cells of 5 m in the Tycho region's
+/// equirectangular CRS, a gently undulating plain at `base_height_m` with one parabolic bowl in its middle (radius
+/// a quarter of the shorter side, depth a fifth of the radius).
+pub fn bowl_dem(width: usize, height: usize, base_height_m: f64) -> dataset::raster::Raster {
+    use dataset::crs::LunarCrs;
+    use dataset::raster::{GeoTransform, Raster};
+    let gsd = 5.0;
+    let mut r = Raster::new(
+        width,
+        height,
+        GeoTransform::north_up(-(width as f64) * gsd / 2.0, -1_309_000.0, gsd),
+        LunarCrs::equirectangular(-43.31, -11.36),
+        0.0,
+    );
+    let (cx, cy) = (width as f64 * gsd / 2.0, height as f64 * gsd / 2.0);
+    let radius = width.min(height) as f64 * gsd / 4.0;
+    for row in 0..height {
+        for col in 0..width {
+            let (x, y) = (col as f64 * gsd, row as f64 * gsd);
+            let d = (x - cx).hypot(y - cy) / radius;
+            let bowl = if d < 1.0 {
+                -0.2 * radius * (1.0 - d * d)
+            } else {
+                0.0
+            };
+            r.data[row * width + col] =
+                (base_height_m + 12.0 * (x / 210.0).sin() * (y / 160.0).cos() + bowl) as f32;
+        }
+    }
+    r
+}
+
 /// Synthetic samples for benches and tests: smooth random terrain, a sun at 60° incidence from a random azimuth,
 /// a camera 50 km up and up to 3 km off-nadir, every 11th pixel invalid, every 13th half lit. The image is
 /// rendered by the scalar reference with a smooth "true" M2 parameter field, so a network can fit it exactly.

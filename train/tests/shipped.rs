@@ -6,35 +6,11 @@ use std::path::PathBuf;
 
 use burn::backend::Flex;
 use dataset::brdf::BrdfModel;
-use dataset::crs::LunarCrs;
-use dataset::raster::{GeoTransform, Raster};
 use train::inference::{infer_params, InferOptions, DEFAULT_OVERLAP};
 use train::run::{load_trained, Checkpoint};
 
 fn shipped() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("shipped/tycho-full-h1")
-}
-
-/// 2 × 1.6 km of bowl-cratered plain at 5 m/px, in the Tycho region's CRS, at the region's heights.
-fn dem() -> Raster {
-    let (width, height) = (400, 320);
-    let mut r = Raster::new(
-        width,
-        height,
-        GeoTransform::north_up(-1000.0, -1_309_000.0, 5.0),
-        LunarCrs::equirectangular(-43.31, -11.36),
-        0.0,
-    );
-    for row in 0..height {
-        for c in 0..width {
-            let (x, y) = (c as f64 * 5.0, row as f64 * 5.0);
-            let d = ((x - 1000.0).powi(2) + (y - 800.0).powi(2)).sqrt() / 400.0;
-            let bowl = if d < 1.0 { -80.0 * (1.0 - d * d) } else { 0.0 };
-            r.data[row * width + c] =
-                (-1400.0 + 12.0 * (x / 210.0).sin() * (y / 160.0).cos() + bowl) as f32;
-        }
-    }
-    r
 }
 
 #[test]
@@ -48,7 +24,8 @@ fn the_shipped_model_loads_and_infers_scales_near_its_uniform_start() {
         batch_size: 4,
         input: trained.input,
     };
-    let dem = dem();
+    // 2 × 1.6 km of plain at the region's heights with a 400 m bowl.
+    let dem = train::testing::bowl_dem(400, 320, -1400.0);
     let maps = infer_params(
         &trained.net,
         trained.config.model,

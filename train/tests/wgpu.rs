@@ -199,7 +199,7 @@ fn fit_eval_and_infer_on_wgpu_agree_with_flex() {
     );
     let worst_eval = relative(eval_flex, eval_wgpu);
 
-    // infer on a DEM GeoTIFF (one written by the synthetic dataset's own heights is enough: 200 × 150 cells).
+    // infer on a DEM GeoTIFF.
     let dem = tmp.path().join("dem.tif");
     write_test_dem(&dem);
     let infer = |backend: &str, out: &Path| {
@@ -263,31 +263,13 @@ fn fit_eval_and_infer_on_wgpu_agree_with_flex() {
     assert!(worst_map < 1e-4, "parameter maps differ by {worst_map:e}");
 }
 
-/// A 200 × 150 DEM at 5 m with craters and a nodata hole, on the lunar CRS the trainer expects.
+/// A 1 × 0.75 km bowl-cratered DEM with a nodata hole (which `infer` must carry through as nodata).
 fn write_test_dem(out: &Path) {
-    use dataset::crs::LunarCrs;
-    use dataset::raster::{write_raster, GeoTransform, Raster};
-    let (width, height) = (200, 150);
-    let mut r = Raster::new(
-        width,
-        height,
-        GeoTransform::north_up(-500.0, -1_309_000.0, 5.0),
-        LunarCrs::equirectangular(-43.31, -11.36),
-        0.0,
-    );
-    for row in 0..height {
-        for col in 0..width {
-            let (x, y) = (col as f64 * 5.0, row as f64 * 5.0);
-            let d = ((x - 400.0).powi(2) + (y - 300.0).powi(2)).sqrt() / 180.0;
-            let bowl = if d < 1.0 { -30.0 * (1.0 - d * d) } else { 0.0 };
-            r.data[row * width + col] =
-                (-1200.0 + 12.0 * (x / 130.0).sin() * (y / 90.0).cos() + bowl) as f32;
-        }
-    }
+    let mut r = train::testing::bowl_dem(200, 150, -1200.0);
     for row in 60..64 {
         for col in 20..25 {
-            r.data[row * width + col] = f32::NAN;
+            r.data[row * r.width + col] = f32::NAN;
         }
     }
-    write_raster(out, &r, &[]).unwrap();
+    dataset::raster::write_raster(out, &r, &[]).unwrap();
 }
