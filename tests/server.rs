@@ -17,6 +17,7 @@ use train::data::{
     ContextNormalisation, ElevationNormalisation, EpochStream, HttpSource, InputNormalisation,
     LocalSource, SampleSource, StreamConfig,
 };
+use train::replicas::Replica;
 
 const TILE_M: f64 = 2560.0;
 /// (split, rows per shard): train spans two shards and three row groups.
@@ -580,14 +581,32 @@ fn trainer_over_http_gets_the_same_first_epoch_batches_as_from_local_files() {
             absolute: false,
         }),
     };
-    let from_local: Vec<_> = EpochStream::start(local, Split::Train, config, input, None, 0, 0)
-        .unwrap()
-        .map(Result::unwrap)
-        .collect();
-    let from_http: Vec<_> = EpochStream::start(remote, Split::Train, config, input, None, 0, 0)
-        .unwrap()
-        .map(Result::unwrap)
-        .collect();
+    let from_local: Vec<_> = EpochStream::start(
+        local,
+        Split::Train,
+        config,
+        input,
+        None,
+        0,
+        0,
+        Replica::SOLE,
+    )
+    .unwrap()
+    .map(Result::unwrap)
+    .collect();
+    let from_http: Vec<_> = EpochStream::start(
+        remote,
+        Split::Train,
+        config,
+        input,
+        None,
+        0,
+        0,
+        Replica::SOLE,
+    )
+    .unwrap()
+    .map(Result::unwrap)
+    .collect();
     assert_eq!(from_local.len(), 340usize.div_ceil(8));
     assert!(from_local
         .iter()

@@ -76,3 +76,31 @@ macro_rules! with_backend {
         }
     };
 }
+
+/// The device replica `index` of a data-parallel fit (`fit --replicas`) runs on.
+pub trait ReplicaDevice: burn::tensor::backend::Backend {
+    fn replica_device(index: usize) -> Self::Device;
+}
+
+/// The CPU: replicas are threads sharing its cores.
+impl ReplicaDevice for burn::backend::Autodiff<burn::backend::Flex> {
+    fn replica_device(_index: usize) -> Self::Device {
+        Default::default()
+    }
+}
+
+/// GPU `index` (CUDA ordinal).
+#[cfg(feature = "cuda")]
+impl ReplicaDevice for burn::backend::Autodiff<burn::backend::Cuda> {
+    fn replica_device(index: usize) -> Self::Device {
+        burn::backend::cuda::CudaDevice { index }
+    }
+}
+
+/// wgpu's default adapter for every replica: adapters are not numbered alike on every platform.
+#[cfg(feature = "wgpu")]
+impl ReplicaDevice for burn::backend::Autodiff<burn::backend::Wgpu> {
+    fn replica_device(_index: usize) -> Self::Device {
+        Default::default()
+    }
+}

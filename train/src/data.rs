@@ -17,6 +17,7 @@ use rand::Rng;
 use rayon::prelude::*;
 
 use crate::augment::Dihedral;
+use crate::replicas::Replica;
 
 /// Where samples come from. Implementations must return identical rows for identical references, so the same
 /// (seed, epoch) gives the same batches from any source.
@@ -512,7 +513,9 @@ pub fn augmentation_for(seed: u64, epoch: u64, position: usize) -> Dihedral {
     Dihedral::from_index(index)
 }
 
-/// Batches of one epoch from `start_batch` on, produced by a background thread (bounded queue of 2).
+/// Batches of one epoch from `start_batch` on, produced by a background thread (bounded queue of 2). A replica
+/// of a data-parallel fit gets its stride of the epoch's rows; every replica gets as many as the others (the
+/// epoch's rows cut to a multiple of the replica count), so all take the same steps.
 pub struct EpochStream {
     receiver: Receiver<Result<HostBatch>>,
     worker: Option<JoinHandle<()>>,
@@ -520,6 +523,8 @@ pub struct EpochStream {
 }
 
 impl EpochStream {
+    // What to read (source, split, stream, input, weights) and where in the run (epoch, batch, replica).
+    #[allow(clippy::too_many_arguments)]
     pub fn start(
         source: Arc<dyn SampleSource>,
         split: Split,
@@ -528,7 +533,9 @@ impl EpochStream {
         row_weights: Option<Arc<[f64]>>,
         epoch: u64,
         start_batch: usize,
+        replica: Replica,
     ) -> Result<Self> {
+        let Replica { rank, world } = replica;
         let groups = source.row_groups(split)?;
         if groups.is_empty() {
             bail!(
@@ -545,17 +552,27 @@ impl EpochStream {
                 config.seed,
                 epoch,
                 config.window_groups,
-                0,
-                1,
+                rank,
+                world,
             ),
             (Some(_), None) => bail!(
                 "row weights need a cap on samples per epoch (--max-train-samples): every row is visited otherwise"
             ),
-            (None, _) => plan_epoch(&groups, config.seed, epoch, config.window_groups, 0, 1),
+            (None, _) => plan_epoch(
+                &groups,
+                config.seed,
+                epoch,
+                config.window_groups,
+                rank,
+                world,
+            ),
         };
-        let total = config
-            .max_samples
-            .map_or(plan.rows.len(), |m| m.min(plan.rows.len()));
+        let epoch_rows = match (&row_weights, config.max_samples) {
+            (Some(weights), Some(max)) => max.min(weights.len()),
+            _ => groups.iter().map(|g| g.rows).sum(),
+        };
+        // This replica's share of the epoch's (capped) rows: the same for every replica.
+        let total = config.max_samples.map_or(epoch_rows, |m| m.min(epoch_rows)) / world;
         let batches = total.div_ceil(config.batch_size);
         let (sender, receiver) = sync_channel(2);
         let worker = std::thread::spawn(move || {
@@ -584,8 +601,10 @@ impl EpochStream {
                         cached_window = window;
                     }
                     let sample = &cache[&row.group][row.row];
+                    // Keyed by the row's place in the whole epoch, so a replica turns its rows as one process would.
+                    let epoch_position = position * world + rank;
                     samples.push(if config.augment {
-                        augmentation_for(config.seed, epoch, position).apply(sample)
+                        augmentation_for(config.seed, epoch, epoch_position).apply(sample)
                     } else {
                         sample.clone()
                     });

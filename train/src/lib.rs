@@ -25,6 +25,7 @@ pub mod model;
 pub mod plot;
 pub mod prediction;
 pub mod renderer_layer;
+pub mod replicas;
 pub mod report;
 pub mod results_page;
 pub mod run;

@@ -38,6 +38,12 @@ pub struct UNetConfig {
     pub base_width: usize,
     #[config(default = true)]
     pub dropout: bool,
+    /// Channels of a per-pixel hidden layer (1×1 conv → LeakyReLU) between the joined decoder and context
+    /// features and the head, or 0 for the paper's linear head. A linear head adds what the crop's own terrain
+    /// says to what the context says; a hidden layer lets one gate the other (on a crater wall the same
+    /// elevation means another unit than on the plains: docs/crater-diagnosis.md).
+    #[config(default = 0)]
+    pub head_hidden: usize,
 }
 
 #[derive(Module, Debug)]
@@ -132,6 +138,7 @@ pub struct UNet<B: Backend> {
     bottleneck: ConvBlock<B>,
     up_convs: Vec<Conv2d<B>>,
     up_blocks: Vec<ConvBlock<B>>,
+    head_hidden: Option<Conv2d<B>>,
     head: Conv2d<B>,
     pool: MaxPool2d,
 }
@@ -164,16 +171,24 @@ impl UNetConfig {
             up_blocks.push(ConvBlock::new(2 * c, c, p(depth), device));
             c_up = c;
         }
+        let joined = w + self.context_features();
+        let head_hidden = (self.head_hidden > 0)
+            .then(|| Conv2dConfig::new([joined, self.head_hidden], [1, 1]).init(device));
+        let head_in = if self.head_hidden > 0 {
+            self.head_hidden
+        } else {
+            joined
+        };
         UNet {
             down,
             context,
             bottleneck,
             up_convs,
             up_blocks,
+            head_hidden,
             // Burn's default initialisation, like every other layer: `fit` then starts the head at the uniform fit
             // (`UNet::with_uniform_head`), and a checkpoint replaces it when a trained run is loaded.
-            head: Conv2dConfig::new([w + self.context_features(), self.out_channels], [1, 1])
-                .init(device),
+            head: Conv2dConfig::new([head_in, self.out_channels], [1, 1]).init(device),
             pool: MaxPool2dConfig::new([2, 2]).init(),
         }
     }
@@ -267,6 +282,10 @@ impl<B: Backend> UNet<B> {
             let up = upsample_conv2d(conv, x);
             x = block.forward(join_channels(up, skip, ACTIVATION_SLOPE));
         }
-        conv2d(&self.head, join(x))
+        let x = match &self.head_hidden {
+            Some(hidden) => leaky_relu(conv2d(hidden, join(x)), ACTIVATION_SLOPE),
+            None => join(x),
+        };
+        conv2d(&self.head, x)
     }
 }

@@ -21,13 +21,14 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::data::{
     crop_interior_m, ContextNormalisation, ElevationNormalisation, EpochStream, HostBatch,
-    InputNormalisation, SampleSource,
+    InputNormalisation, SampleSource, StreamConfig,
 };
 use crate::data::{for_each_sample_group, steep_row_weights, STEEP_SLOPE_DEG};
 use crate::kernels::{TrainBackend, TrainOps};
 use crate::metrics::{AggregateMetrics, MetricsAccumulator};
 use crate::model::{UNet, UNetConfig};
 use crate::renderer_layer::{render_loss, SceneTerms};
+use crate::replicas::Replica;
 use dataset::schema::{Split, CROP_PX};
 
 use crate::prediction::{net_outputs, predict_images};
@@ -158,6 +159,45 @@ pub fn fit<B: TrainBackend>(
     device: &B::Device,
     show_progress: bool,
 ) -> Result<FitOutcome> {
+    fit_replicated::<B>(
+        source,
+        config,
+        out,
+        resume,
+        stop_after_steps,
+        std::slice::from_ref(device),
+        show_progress,
+    )
+}
+
+/// [`fit`] data-parallel: one replica per device, each with `config.stream.batch_size` crops a step
+/// ([`crate::replicas`]). One device is an ordinary fit, with no collective call.
+pub fn fit_replicated<B: TrainBackend>(
+    source: Arc<dyn SampleSource>,
+    config: &FitConfig,
+    out: &Path,
+    resume: bool,
+    stop_after_steps: Option<u64>,
+    devices: &[B::Device],
+    show_progress: bool,
+) -> Result<FitOutcome> {
+    let Some(device) = devices.first() else {
+        bail!("a fit needs at least one device");
+    };
+    if !config.stream.batch_size.is_multiple_of(devices.len()) {
+        bail!(
+            "--batch {} does not split into {} replicas: choose a batch that the replica count divides",
+            config.stream.batch_size,
+            devices.len()
+        );
+    }
+    if devices.len() > 1 && config.dropout {
+        bail!(
+            "dropout masks come from the backend's one random generator, which {} replicas would draw from in \
+             racing order: train replicas with --no-dropout",
+            devices.len()
+        );
+    }
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let config_path = out.join("config.json");
     let last = out.join("last");
@@ -165,7 +205,7 @@ pub fn fit<B: TrainBackend>(
     let recorder = Rec::new();
     let seed = config.stream.seed;
 
-    let (mut net, mut optim, mut cursor, mut history, input, mut average) = if resume {
+    let (net, optim, cursor, history, input, average) = if resume {
         let saved: FitConfig = read_json(&config_path)?;
         if saved.model != config.model {
             bail!(
@@ -285,20 +325,162 @@ pub fn fit<B: TrainBackend>(
         Some(weights.into())
     };
 
+    let run = RunContext {
+        source,
+        config: config.clone(),
+        out: out.to_path_buf(),
+        input,
+        row_weights,
+        stop_after_steps,
+        show_progress,
+        trainable,
+    };
+    let state = ReplicaState {
+        net,
+        optim,
+        cursor,
+        history,
+        average,
+    };
+    if devices.len() == 1 {
+        return train_replica::<B>(&run, state, Replica::SOLE, device);
+    }
+    train_replicas::<B>(run, state, devices)
+}
+
+/// What every replica of a fit shares.
+struct RunContext {
+    source: Arc<dyn SampleSource>,
+    config: FitConfig,
+    out: std::path::PathBuf,
+    input: InputNormalisation,
+    row_weights: Option<Arc<[f64]>>,
+    stop_after_steps: Option<u64>,
+    show_progress: bool,
+    trainable: usize,
+}
+
+/// What each replica starts from: the same network, optimiser state and cursor on every one.
+#[derive(Clone)]
+struct ReplicaState<B: TrainBackend> {
+    net: UNet<B>,
+    optim: burn::optim::adaptor::OptimizerAdaptor<burn::optim::Adam, UNet<B>, B>,
+    cursor: Cursor,
+    history: Vec<EpochMetrics>,
+    average: Option<UNet<B::InnerBackend>>,
+}
+
+/// Run one thread per device and return replica 0's outcome, or the first error any replica ends with. A
+/// replica that fails leaves the others waiting in an all-reduce that cannot complete (burn-collective has no
+/// time-out or cancel); they end with the process, which the error ends.
+fn train_replicas<B: TrainBackend>(
+    run: RunContext,
+    state: ReplicaState<B>,
+    devices: &[B::Device],
+) -> Result<FitOutcome> {
+    let world = devices.len();
+    tracing::info!(
+        replicas = world,
+        crops_per_replica = run.config.stream.batch_size / world,
+        "data-parallel fit"
+    );
+    crate::replicas::reset::<B::InnerBackend>();
+    let run = Arc::new(run);
+    let (report, outcomes) = std::sync::mpsc::channel();
+    let net_config = run.config.net_config();
+    for (rank, device) in devices.iter().enumerate() {
+        let replica = Replica { rank, world };
+        // Copies through records, not clones: a clone shares its BatchNorm running statistics with the original
+        // (Burn averages them over threads, in whatever order the threads update), which would make them depend
+        // on timing. Records keep the parameter ids the all-reduce pairs gradients by.
+        let state = ReplicaState {
+            net: net_config
+                .init::<B>(device)
+                .load_record(state.net.clone().into_record()),
+            optim: state.optim.clone(),
+            cursor: state.cursor.clone(),
+            history: state.history.clone(),
+            average: state.average.as_ref().map(|a| {
+                net_config
+                    .init::<B::InnerBackend>(device)
+                    .load_record(a.clone().into_record())
+            }),
+        };
+        let (run, device, report) = (run.clone(), device.clone(), report.clone());
+        std::thread::Builder::new()
+            .name(format!("replica-{rank}"))
+            .spawn(move || {
+                let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                    train_replica::<B>(&run, state, replica, &device)
+                }))
+                .unwrap_or_else(|_| Err(anyhow::anyhow!("replica {rank} panicked")));
+                let _ = report.send((rank, outcome));
+            })
+            .context("starting a replica thread")?;
+    }
+    drop(report);
+    let mut lead = None;
+    for _ in 0..world {
+        let (rank, outcome) = outcomes.recv().context("a replica thread vanished")?;
+        let outcome = outcome.with_context(|| format!("replica {rank} of {world}"))?;
+        if rank == 0 {
+            lead = Some(outcome);
+        }
+    }
+    Ok(lead.expect("replica 0 reported"))
+}
+
+/// One replica's epochs (the whole fit when it is the only one).
+fn train_replica<B: TrainBackend>(
+    run: &RunContext,
+    state: ReplicaState<B>,
+    replica: Replica,
+    device: &B::Device,
+) -> Result<FitOutcome> {
+    let RunContext {
+        source,
+        config,
+        out,
+        input,
+        row_weights,
+        stop_after_steps,
+        show_progress,
+        trainable,
+    } = run;
+    let (out, input, stop_after_steps, trainable) =
+        (out.as_path(), *input, *stop_after_steps, *trainable);
+    let show_progress = *show_progress && replica.leads();
+    let ReplicaState {
+        mut net,
+        mut optim,
+        mut cursor,
+        mut history,
+        mut average,
+    } = state;
+    let recorder = Rec::new();
+    let seed = config.stream.seed;
+    let last = out.join("last");
+    replica.join::<B::InnerBackend>(device)?;
     // Time in optimiser steps only (not data waits, validation or checkpoints), for s/step figures.
     let mut step_time = StepTime::default();
     // Without a terminal (a scheduler's log file) the bar is hidden: a structured line every minute instead.
-    let mut progress_log = (!show_progress).then(|| ProgressLog::new(cursor.step));
+    let mut progress_log =
+        (!show_progress && replica.leads()).then(|| ProgressLog::new(cursor.step));
     while cursor.epoch < config.epochs {
         let epoch = cursor.epoch;
         let stream = EpochStream::start(
             source.clone(),
             Split::Train,
-            config.stream,
+            // Each replica takes its share of every step's crops.
+            StreamConfig {
+                batch_size: config.stream.batch_size / replica.world,
+                ..config.stream
+            },
             input,
             row_weights.clone(),
             epoch as u64,
             cursor.next_batch,
+            replica,
         )?;
         let stream_batches = stream.batches;
         let bar = if show_progress {
@@ -325,13 +507,18 @@ pub fn fit<B: TrainBackend>(
                 .convert::<f64>()
                 .to_vec::<f64>()
                 .expect("f64")[0];
+            // Every replica checks (and the lead logs) the mean over the replicas, so all stop together.
+            let loss_value = replica.mean_scalar::<B::InnerBackend>(loss_value, device)?;
             if !loss_value.is_finite() {
                 bail!(
                     "non-finite training loss at step {} (epoch {epoch}); lower --lr",
                     cursor.step
                 );
             }
-            let grads = GradientsParams::from_grads(loss.backward(), &net);
+            let grads = replica.mean_gradients::<B::InnerBackend>(GradientsParams::from_grads(
+                loss.backward(),
+                &net,
+            ))?;
             // Every epoch has the same batch count, so the run's length is known from the first stream.
             let total_steps = (config.epochs * stream_batches) as u64;
             let rate = config
@@ -363,12 +550,25 @@ pub fn fit<B: TrainBackend>(
                 );
             }
             if stop_after_steps.is_some_and(|s| cursor.step >= s) {
-                save_last(&net, &optim, average.as_ref(), &cursor, &last, &recorder)?;
+                let (net, average) = mean_running_stats(replica, net, average)?;
+                if replica.leads() {
+                    save_last(&net, &optim, average.as_ref(), &cursor, &last, &recorder)?;
+                }
                 bar.abandon_with_message(format!("stopped at step {} (resumable)", cursor.step));
+                replica.leave::<B::InnerBackend>()?;
                 return Ok(outcome(cursor, history, trainable, step_time));
             }
         }
         bar.finish();
+        // Every replica's BatchNorm statistics averaged before validation; the lead alone validates and writes.
+        (net, average) = mean_running_stats(replica, net, average)?;
+        if !replica.leads() {
+            cursor.epoch += 1;
+            cursor.next_batch = 0;
+            cursor.epoch_loss_sum = 0.0;
+            cursor.epoch_batches = 0;
+            continue;
+        }
         let validate_net = |network: &UNet<B::InnerBackend>| {
             validate(
                 network,
@@ -418,7 +618,28 @@ pub fn fit<B: TrainBackend>(
         cursor.epoch_batches = 0;
         save_last(&net, &optim, average.as_ref(), &cursor, &last, &recorder)?;
     }
+    replica.leave::<B::InnerBackend>()?;
     Ok(outcome(cursor, history, trainable, step_time))
+}
+
+/// The network's and the weight average's BatchNorm statistics averaged over the replicas (unchanged alone).
+#[allow(clippy::type_complexity)]
+fn mean_running_stats<B: TrainBackend>(
+    replica: Replica,
+    net: UNet<B>,
+    average: Option<UNet<B::InnerBackend>>,
+) -> Result<(UNet<B>, Option<UNet<B::InnerBackend>>)> {
+    if replica.world == 1 {
+        return Ok((net, average));
+    }
+    // Taking a record folds the last update into the statistics (Burn holds it apart until then).
+    let _ = net.clone().into_record();
+    let _ = average.clone().map(Module::into_record);
+    let net = replica.mean_running_stats::<B, _>(net)?;
+    let average = average
+        .map(|a| replica.mean_running_stats_inner::<B::InnerBackend, _>(a))
+        .transpose()?;
+    Ok((net, average))
 }
 
 /// How often [`ProgressLog`] writes a line.

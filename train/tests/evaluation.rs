@@ -41,6 +41,7 @@ fn m2_config() -> FitConfig {
         context_input: false,
         ema_decay: None,
         steep_weight: 1.0,
+        head_hidden: 0,
         context_absolute: false,
     }
 }

@@ -15,6 +15,7 @@ use train::data::{HostBatch, InputNormalisation, LocalSource, SampleSource, Stre
 use train::model::UNetConfig;
 use train::prediction::predict_images;
 use train::renderer_layer::reference_render;
+use train::replicas::Replica;
 use train::run::FitConfig;
 use train::testing::synthetic_samples;
 use train::training::fit;
@@ -51,6 +52,7 @@ fn config(
         context_input: false,
         ema_decay: None,
         steep_weight: 1.0,
+        head_hidden: 0,
         context_absolute: false,
     }
 }
@@ -63,7 +65,13 @@ fn a_head_bias_renders_the_uniform_model_before_any_step() {
     let batch =
         HostBatch::from_samples(&synthetic_samples(2, 11), &InputNormalisation::relief(20.0));
     let npx = CROP_PX * CROP_PX;
-    for model in [BrdfModel::M2, BrdfModel::L3, BrdfModel::H1] {
+    // H1 also with a hidden layer before the head: a zero head ignores it, whatever it computes.
+    for (model, head_hidden) in [
+        (BrdfModel::M2, 0),
+        (BrdfModel::L3, 0),
+        (BrdfModel::H1, 0),
+        (BrdfModel::H1, 6),
+    ] {
         let coefficients: Vec<f64> = (0..model.param_count())
             .map(|k| 0.9 - 0.45 * k as f64)
             .collect();
@@ -73,6 +81,7 @@ fn a_head_bias_renders_the_uniform_model_before_any_step() {
             .collect();
         let net = UNetConfig::new(model.param_count())
             .with_base_width(4)
+            .with_head_hidden(head_hidden)
             .init::<Flex>(&device)
             .with_uniform_head(&raw, &device);
         let got = predict_images(&net, model, &batch, &device);
@@ -178,13 +187,15 @@ fn stopping_and_resuming_gives_the_same_network_as_an_uninterrupted_run() {
     );
     let source: Arc<dyn SampleSource> = Arc::new(LocalSource::open(tmp.path()).unwrap());
     // Cosine schedule: the resumed half must continue the decay from the saved step, not restart it. With the
-    // elevation plane and the context input, the resumed half must feed the network what the first half did.
+    // elevation plane and the context input, the resumed half must feed the network what the first half did; the
+    // hidden layer before the head must be checkpointed with the rest.
     let cfg = FitConfig {
         lr_schedule: train::run::LrSchedule::Cosine,
         elevation_input: true,
         context_input: true,
         ema_decay: Some(0.9),
         steep_weight: 1.0,
+        head_hidden: 6,
         context_absolute: false,
         ..config(BrdfModel::M2, 2, 1e-3, 12, true)
     };
@@ -363,6 +374,7 @@ fn steep_weighted_epochs_draw_steep_crops_in_proportion_to_their_weight() {
             Some(weights.clone()),
             epoch,
             0,
+            Replica::SOLE,
         )
         .unwrap()
         .flat_map(|b| b.unwrap().sample_ids)
@@ -388,9 +400,18 @@ fn steep_weighted_epochs_draw_steep_crops_in_proportion_to_their_weight() {
         max_samples: None,
         ..stream
     };
-    let err = EpochStream::start(source, Split::Train, uncapped, input, Some(weights), 0, 0)
-        .err()
-        .expect("refused")
-        .to_string();
+    let err = EpochStream::start(
+        source,
+        Split::Train,
+        uncapped,
+        input,
+        Some(weights),
+        0,
+        0,
+        Replica::SOLE,
+    )
+    .err()
+    .expect("refused")
+    .to_string();
     assert!(err.contains("--max-train-samples"), "{err}");
 }

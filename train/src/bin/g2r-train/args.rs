@@ -118,6 +118,18 @@ pub struct TrainArgs {
     /// network that sees few of them does not learn what sets their brightness. 1: every crop equally likely.
     #[arg(long, value_name = "W", default_value_t = 1.0, value_parser = parse_steep_weight)]
     pub steep_weight: f64,
+    /// Put a per-pixel hidden layer of this many channels (1×1 conv → LeakyReLU) between the joined decoder and
+    /// context features and the head; 0: the paper's linear head. A linear head can only add what the crop's
+    /// terrain says to what the context says; a hidden layer lets one change the meaning of the other (on a
+    /// crater wall the same elevation means another unit than on the plains).
+    #[arg(long, value_name = "CHANNELS", default_value_t = 0)]
+    pub head_hidden: usize,
+    /// Train data-parallel with this many replicas in this process, each taking its share of --batch (which
+    /// N must divide), their gradients averaged after every backward pass (burn-collective): on cuda, GPUs
+    /// 0..N-1; on flex, threads sharing the CPU. The steps are those of one replica, except that each replica
+    /// normalises its BatchNorm layers over its own crops. Needs --no-dropout. --resume may change N.
+    #[arg(long, value_name = "N", default_value_t = 1, value_parser = parse_replicas)]
+    pub replicas: usize,
 }
 
 /// A parser for a library enum chosen by name: its names are the possible values `--help` lists, parsed with its
@@ -161,6 +173,13 @@ fn parse_ema_decay(text: &str) -> Result<f64, String> {
     }
 }
 
+fn parse_replicas(text: &str) -> Result<usize, String> {
+    match text.parse::<usize>() {
+        Ok(n) if n >= 1 => Ok(n),
+        _ => Err(format!("{text:?} is not a replica count of at least 1")),
+    }
+}
+
 fn parse_steep_weight(text: &str) -> Result<f64, String> {
     let weight: f64 = text
         .parse()
@@ -197,6 +216,7 @@ impl TrainArgs {
             context_absolute: self.context_absolute,
             ema_decay: self.ema,
             steep_weight: self.steep_weight,
+            head_hidden: self.head_hidden,
         }
     }
 }

@@ -10,8 +10,9 @@ use anyhow::Result;
 use clap::Parser;
 use dataset::brdf::BrdfModel;
 use train::backend::Inner;
+use train::backend::ReplicaDevice;
 use train::data::{open_source, SampleSource};
-use train::training::fit;
+use train::training::fit_replicated;
 use train::with_backend;
 
 use args::{Cli, Command, TrainArgs};
@@ -24,7 +25,11 @@ fn run_fit(
     stop: Option<u64>,
 ) -> Result<train::training::FitOutcome> {
     let config = args.fit_config();
-    with_backend!(args.backend, B => fit::<B>(source, &config, out, resume, stop, &Default::default(), std::io::stderr().is_terminal()))
+    train::replicas::refuse_launcher_world(|name| std::env::var(name).ok())?;
+    with_backend!(args.backend, B => {
+        let devices: Vec<_> = (0..args.replicas).map(<B as ReplicaDevice>::replica_device).collect();
+        fit_replicated::<B>(source, &config, out, resume, stop, &devices, std::io::stderr().is_terminal())
+    })
 }
 
 /// Keep freed activation-sized buffers (up to 17 MB at width 16, batch 8) in glibc's heap: with the defaults, which

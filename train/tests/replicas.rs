@@ -1,0 +1,349 @@
+//! Data-parallel fits (`fit --replicas`, [`train::replicas`]) on a tiny published dataset.
+//!
+//! The expectation is computed by hand, without threads or burn-collective: each replica's crops (its stride of
+//! the one-replica batch), a loss and gradients per replica on its own copy of the network, the gradients
+//! averaged, one Adam step applied to every copy, and at the checkpoint the copies' BatchNorm running statistics
+//! averaged. A mean of two f32 values is exact up to one rounding whichever order adds them, so the bound is
+//! f32 rounding through four steps (1e-6 of each tensor's scale; measured: see the test's output).
+//!
+//! Against one replica taking the whole batch the steps differ by design: each replica normalises its BatchNorm
+//! layers over its own crops (2 of them here, against 4), and Adam's first steps move every weight by about the
+//! learning rate whatever the gradient's size, so a small change in a gradient near zero flips a whole step. The
+//! test prints how far the two trajectories part rather than bounding it.
+
+use std::path::Path;
+use std::sync::Arc;
+
+use burn::backend::{Autodiff, Flex};
+use burn::module::{AutodiffModule, Module, ModuleVisitor, Param, ParamId};
+use burn::optim::{AdamConfig, GradientsParams, Optimizer};
+use burn::prelude::*;
+use burn::record::{FullPrecisionSettings, NamedMpkFileRecorder, Recorder};
+use dataset::brdf::BrdfModel;
+use dataset::schema::Split;
+use train::data::{EpochStream, HostBatch, LocalSource, SampleSource, StreamConfig};
+use train::model::UNet;
+use train::replicas::Replica;
+use train::run::FitConfig;
+use train::testing::synthetic_samples;
+use train::training::{fit, fit_replicated, input_normalisation, train_loss};
+
+type Ad = Autodiff<Flex>;
+type Rec = NamedMpkFileRecorder<FullPrecisionSettings>;
+
+const STEPS: u64 = 4;
+
+fn config() -> FitConfig {
+    FitConfig {
+        version: train::run::FIT_CONFIG_VERSION,
+        model: BrdfModel::M2,
+        epochs: 1,
+        learning_rate: 1e-3,
+        base_width: 4,
+        dropout: false,
+        stream: StreamConfig {
+            seed: 5,
+            batch_size: 4,
+            window_groups: 2,
+            augment: true,
+            max_samples: Some(4 * STEPS as usize),
+        },
+        max_val_samples: Some(4),
+        lr_schedule: train::run::LrSchedule::Constant,
+        elevation_input: false,
+        context_input: false,
+        ema_decay: Some(0.9),
+        steep_weight: 1.0,
+        head_hidden: 0,
+        context_absolute: false,
+    }
+}
+
+/// Every float tensor of a network, by field path, in the order the module lists them.
+#[derive(Default)]
+struct Tensors {
+    path: Vec<String>,
+    found: Vec<(String, ParamId, Vec<f64>)>,
+}
+
+impl<B: Backend> ModuleVisitor<B> for Tensors {
+    fn enter_module(&mut self, name: &str, _container_type: &str) {
+        self.path.push(name.to_string());
+    }
+    fn exit_module(&mut self, _name: &str, _container_type: &str) {
+        self.path.pop();
+    }
+    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<B, D>>) {
+        let values = param
+            .val()
+            .into_data()
+            .convert::<f64>()
+            .to_vec::<f64>()
+            .unwrap();
+        self.found.push((self.path.join("."), param.id, values));
+    }
+}
+
+fn tensors<B: Backend>(net: &UNet<B>) -> Vec<(String, ParamId, Vec<f64>)> {
+    let mut visitor = Tensors::default();
+    net.visit(&mut visitor);
+    visitor.found
+}
+
+fn is_running_stat(path: &str) -> bool {
+    path.ends_with("running_mean") || path.ends_with("running_var")
+}
+
+/// The mean of two replicas' gradients, parameter by parameter.
+struct MeanOf<'a> {
+    grads: [&'a GradientsParams; 2],
+    mean: GradientsParams,
+}
+
+impl ModuleVisitor<Ad> for MeanOf<'_> {
+    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<Ad, D>>) {
+        let a = self.grads[0].get::<Flex, D>(param.id);
+        let b = self.grads[1].get::<Flex, D>(param.id);
+        match (a, b) {
+            (Some(a), Some(b)) => self.mean.register::<Flex, D>(param.id, (a + b) / 2.0),
+            (None, None) => {}
+            _ => panic!("one replica has a gradient the other lacks"),
+        }
+    }
+}
+
+fn load(run: &Path, cfg: &FitConfig) -> UNet<Flex> {
+    let device = Default::default();
+    cfg.net_config()
+        .init::<Flex>(&device)
+        .load_file(run.join("last/model"), &Rec::new(), &device)
+        .unwrap()
+}
+
+fn worst_relative(a: &[f64], b: &[f64]) -> f64 {
+    let scale = a.iter().fold(1e-12f64, |m, v| m.max(v.abs()));
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f64::max)
+        / scale
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for entry in std::fs::read_dir(from).unwrap() {
+        let entry = entry.unwrap();
+        let target = to.join(entry.file_name());
+        if entry.file_type().unwrap().is_dir() {
+            copy_dir(&entry.path(), &target);
+        } else {
+            std::fs::copy(entry.path(), target).unwrap();
+        }
+    }
+}
+
+#[test]
+fn two_replicas_take_the_steps_of_their_averaged_gradients_and_repeat_bit_for_bit() {
+    let tmp = tempfile::tempdir().unwrap();
+    train::testing::write_synthetic_dataset(
+        tmp.path(),
+        synthetic_samples(300, 5),
+        synthetic_samples(4, 6),
+    );
+    let source: Arc<dyn SampleSource> = Arc::new(LocalSource::open(tmp.path()).unwrap());
+    let cfg = config();
+    let device = Default::default();
+    // One replica takes the first step; its checkpoint is the common start (and a resume may change N).
+    let start = tmp.path().join("start");
+    fit::<Ad>(source.clone(), &cfg, &start, false, Some(1), &device, false).unwrap();
+    let two = [device, device];
+    let mut replicated = Vec::new();
+    for name in ["two-a", "two-b"] {
+        let run = tmp.path().join(name);
+        copy_dir(&start, &run);
+        let outcome =
+            fit_replicated::<Ad>(source.clone(), &cfg, &run, true, Some(STEPS), &two, false)
+                .unwrap();
+        assert_eq!(outcome.cursor.step, STEPS);
+        replicated.push(tensors(&load(&run, &cfg)));
+    }
+    // Thread timing must not show: the second run's every tensor equals the first's, bit for bit.
+    assert_eq!(
+        replicated[0], replicated[1],
+        "replicated fits differ between runs"
+    );
+
+    // By hand: two copies of the start, each fed its stride of the one-replica batch.
+    let recorder = Rec::new();
+    let start_net = cfg
+        .net_config()
+        .init::<Ad>(&device)
+        .load_file(start.join("last/model"), &recorder, &device)
+        .unwrap();
+    let copy = |net: &UNet<Ad>| {
+        cfg.net_config()
+            .init::<Ad>(&device)
+            .load_record(net.clone().into_record())
+    };
+    let mut nets = [copy(&start_net), copy(&start_net)];
+    let optim_record = || recorder.load(start.join("last/optim"), &device).unwrap();
+    let mut optims = [
+        AdamConfig::new()
+            .with_epsilon(1e-8)
+            .init::<Ad, UNet<Ad>>()
+            .load_record(optim_record()),
+        AdamConfig::new()
+            .with_epsilon(1e-8)
+            .init::<Ad, UNet<Ad>>()
+            .load_record(optim_record()),
+    ];
+    let input = input_normalisation(source.as_ref(), &cfg).unwrap();
+    let stream = |batch_size: usize, replica: Replica| -> Vec<HostBatch> {
+        EpochStream::start(
+            source.clone(),
+            Split::Train,
+            StreamConfig {
+                batch_size,
+                ..cfg.stream
+            },
+            input,
+            None,
+            0,
+            1,
+            replica,
+        )
+        .unwrap()
+        .map(Result::unwrap)
+        .collect()
+    };
+    let whole = stream(4, Replica::SOLE);
+    let halves = [
+        stream(2, Replica { rank: 0, world: 2 }),
+        stream(2, Replica { rank: 1, world: 2 }),
+    ];
+    assert_eq!(whole.len(), STEPS as usize - 1);
+    for (step, batch) in whole.iter().enumerate() {
+        // Replica r takes crops r, r + 2 of the one-replica batch, turned as that batch turns them.
+        for (rank, half) in halves.iter().enumerate() {
+            let crop = batch.image.len() / 4;
+            let picked = &half[step];
+            assert_eq!(
+                picked.sample_ids,
+                vec![
+                    batch.sample_ids[rank].clone(),
+                    batch.sample_ids[rank + 2].clone()
+                ]
+            );
+            assert_eq!(
+                picked.image[..crop],
+                batch.image[rank * crop..(rank + 1) * crop]
+            );
+        }
+        let grads: Vec<GradientsParams> = (0..2)
+            .map(|rank| {
+                let loss = train_loss(&nets[rank], cfg.model, &halves[rank][step], &device);
+                GradientsParams::from_grads(loss.backward(), &nets[rank])
+            })
+            .collect();
+        for rank in 0..2 {
+            let mut mean = MeanOf {
+                grads: [&grads[0], &grads[1]],
+                mean: GradientsParams::new(),
+            };
+            nets[rank].visit(&mut mean);
+            let net = nets[rank].clone();
+            nets[rank] = optims[rank].step(cfg.learning_rate, net, mean.mean);
+        }
+    }
+    let by_hand: Vec<Vec<(String, ParamId, Vec<f64>)>> = nets
+        .iter()
+        .map(|n| {
+            let _ = n.clone().into_record(); // fold the last BatchNorm update in
+            tensors(&n.valid())
+        })
+        .collect();
+    let got = &replicated[0];
+    assert_eq!(got.len(), by_hand[0].len());
+    let mut worst: f64 = 0.0;
+    for (i, (path, id, values)) in got.iter().enumerate() {
+        assert_eq!((path, id), (&by_hand[0][i].0, &by_hand[0][i].1));
+        let want: Vec<f64> = if is_running_stat(path) {
+            by_hand[0][i]
+                .2
+                .iter()
+                .zip(&by_hand[1][i].2)
+                .map(|(a, b)| (a + b) / 2.0)
+                .collect()
+        } else {
+            // Both copies took the same steps.
+            assert_eq!(by_hand[0][i].2, by_hand[1][i].2, "{path}");
+            by_hand[0][i].2.clone()
+        };
+        let diff = worst_relative(&want, values);
+        assert!(diff <= 1e-6, "{path}: {diff:e}");
+        worst = worst.max(diff);
+    }
+    println!("replicated against by hand, worst relative difference over every tensor: {worst:e}");
+
+    // One replica with the whole batch, for the record: BatchNorm over 4 crops instead of 2 moves the steps.
+    let one = tmp.path().join("one");
+    copy_dir(&start, &one);
+    fit::<Ad>(
+        source.clone(),
+        &cfg,
+        &one,
+        true,
+        Some(STEPS),
+        &device,
+        false,
+    )
+    .unwrap();
+    let single = tensors(&load(&one, &cfg));
+    let begin = tensors(&load(&start, &cfg));
+    // How far the two trajectories part: the weights' change from the start, one replica against two.
+    let (mut apart, mut moved) = (0.0f64, 0.0f64);
+    for ((s, t), b) in single.iter().zip(got).zip(&begin) {
+        if is_running_stat(&s.0) {
+            continue;
+        }
+        for ((x, y), z) in s.2.iter().zip(&t.2).zip(&b.2) {
+            apart += (x - y).powi(2);
+            moved += (x - z).powi(2);
+        }
+    }
+    assert!(moved > 0.0);
+    println!(
+        "one replica of batch 4 against two of 2: weight change differs by {:.3e} of its norm",
+        (apart / moved).sqrt()
+    );
+}
+
+#[test]
+fn a_batch_the_replicas_do_not_divide_and_dropout_are_refused_before_anything_is_written() {
+    let tmp = tempfile::tempdir().unwrap();
+    train::testing::write_synthetic_dataset(
+        tmp.path(),
+        synthetic_samples(20, 5),
+        synthetic_samples(4, 6),
+    );
+    let source: Arc<dyn SampleSource> = Arc::new(LocalSource::open(tmp.path()).unwrap());
+    let device = Default::default();
+    let three = [device, device, device];
+    let run = tmp.path().join("run");
+    let err = fit_replicated::<Ad>(source.clone(), &config(), &run, false, None, &three, false)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("--batch 4 does not split into 3 replicas"),
+        "{err}"
+    );
+    let dropout = FitConfig {
+        dropout: true,
+        ..config()
+    };
+    let err = fit_replicated::<Ad>(source, &dropout, &run, false, None, &three[..2], false)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("--no-dropout"), "{err}");
+    assert!(!run.exists(), "a refused fit wrote {}", run.display());
+}
