@@ -44,6 +44,23 @@ pub struct UNetConfig {
     /// elevation means another unit than on the plains: docs/crater-diagnosis.md).
     #[config(default = 0)]
     pub head_hidden: usize,
+    /// A per-crop level branch: a small MLP from the crop's mean absolute elevation (input plane 1) and the
+    /// context features to one offset per output channel, added at every pixel. The convolutional path sees
+    /// the elevation through normalised per-pixel features; this branch takes the crop's level as one number
+    /// beside what the context says of its surroundings, where a two-input rule (which unit lies under a crater
+    /// wall at this height and this place on the crater) is a few units of an MLP.
+    #[config(default = false)]
+    pub crop_level: bool,
+}
+
+/// Hidden units of the crop-level branch ([`UNetConfig::crop_level`]).
+const CROP_LEVEL_HIDDEN: usize = 32;
+
+/// The crop-level branch: `[N, 1 + context features]` → `[N, P]`.
+#[derive(Module, Debug)]
+pub struct CropLevel<B: Backend> {
+    hidden: Linear<B>,
+    out: Linear<B>,
 }
 
 #[derive(Module, Debug)]
@@ -140,6 +157,7 @@ pub struct UNet<B: Backend> {
     up_blocks: Vec<ConvBlock<B>>,
     head_hidden: Option<Conv2d<B>>,
     head: Conv2d<B>,
+    level: Option<CropLevel<B>>,
     pool: MaxPool2d,
 }
 
@@ -179,6 +197,14 @@ impl UNetConfig {
         } else {
             joined
         };
+        assert!(
+            !self.crop_level || self.in_channels >= 2,
+            "the crop-level branch reads the absolute elevation plane (input plane 1)"
+        );
+        let level = self.crop_level.then(|| CropLevel {
+            hidden: LinearConfig::new(1 + self.context_features(), CROP_LEVEL_HIDDEN).init(device),
+            out: LinearConfig::new(CROP_LEVEL_HIDDEN, self.out_channels).init(device),
+        });
         UNet {
             down,
             context,
@@ -189,6 +215,7 @@ impl UNetConfig {
             // Burn's default initialisation, like every other layer: `fit` then starts the head at the uniform fit
             // (`UNet::with_uniform_head`), and a checkpoint replaces it when a trained run is loaded.
             head: Conv2dConfig::new([head_in, self.out_channels], [1, 1]).init(device),
+            level,
             pool: MaxPool2dConfig::new([2, 2]).init(),
         }
     }
@@ -230,6 +257,15 @@ impl<B: Backend> UNet<B> {
         let tensor =
             Tensor::<B, 1>::from_data(TensorData::new(bias.to_vec(), [bias.len()]), device);
         self.head.bias = Some(burn::module::Param::from_tensor(tensor));
+        // A zero level branch adds nothing: the start stays the uniform fit.
+        if let Some(level) = self.level.as_mut() {
+            let dims = level.out.weight.dims();
+            level.out.weight = burn::module::Param::from_tensor(Tensor::zeros(dims, device));
+            level.out.bias = Some(burn::module::Param::from_tensor(Tensor::zeros(
+                [dims[1]],
+                device,
+            )));
+        }
         self
     }
 
@@ -240,6 +276,15 @@ impl<B: Backend> UNet<B> {
         B: TrainOps,
     {
         let mut skips = Vec::new();
+        // The crop's mean absolute elevation, `[N, 1]`, for the level branch.
+        let crop_elevation = self.level.as_ref().map(|_| {
+            let [n, _, _, _] = x.dims();
+            x.clone()
+                .narrow(1, 1, 1)
+                .mean_dim(3)
+                .mean_dim(2)
+                .reshape([n, 1])
+        });
         let mut x = x;
         for block in &self.down {
             let y = block.forward(x);
@@ -286,6 +331,20 @@ impl<B: Backend> UNet<B> {
             Some(hidden) => leaky_relu(conv2d(hidden, join(x)), ACTIVATION_SLOPE),
             None => join(x),
         };
-        conv2d(&self.head, x)
+        let out = conv2d(&self.head, x);
+        match (&self.level, crop_elevation) {
+            (Some(level), Some(elevation)) => {
+                let inputs = match &features {
+                    Some(f) => Tensor::cat(vec![elevation, f.clone()], 1),
+                    None => elevation,
+                };
+                let offset = level
+                    .out
+                    .forward(leaky_relu(level.hidden.forward(inputs), ACTIVATION_SLOPE));
+                let [n, p, h, w] = out.dims();
+                out + offset.reshape([n, p, 1, 1]).expand([n, p, h, w])
+            }
+            _ => out,
+        }
     }
 }

@@ -42,6 +42,7 @@ fn m2_config() -> FitConfig {
         ema_decay: None,
         steep_weight: 1.0,
         head_hidden: 0,
+        crop_level: false,
         context_absolute: false,
     }
 }

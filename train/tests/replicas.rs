@@ -55,6 +55,7 @@ fn config() -> FitConfig {
         ema_decay: Some(0.9),
         steep_weight: 1.0,
         head_hidden: 0,
+        crop_level: false,
         context_absolute: false,
     }
 }
@@ -346,4 +347,77 @@ fn a_batch_the_replicas_do_not_divide_and_dropout_are_refused_before_anything_is
         .to_string();
     assert!(err.contains("--no-dropout"), "{err}");
     assert!(!run.exists(), "a refused fit wrote {}", run.display());
+}
+
+/// A published dataset whose train shards stop reading once `broken_after` exists (a run's first checkpoint).
+struct BreaksAfter {
+    inner: LocalSource,
+    broken_after: std::path::PathBuf,
+}
+
+impl SampleSource for BreaksAfter {
+    fn describe(&self) -> String {
+        self.inner.describe()
+    }
+    fn manifest(&self) -> &dataset::manifest::DatasetManifest {
+        self.inner.manifest()
+    }
+    fn row_groups(&self, split: Split) -> anyhow::Result<Vec<dataset::planner::RowGroupRef>> {
+        self.inner.row_groups(split)
+    }
+    fn read_row_group(
+        &self,
+        group: &dataset::planner::RowGroupRef,
+    ) -> anyhow::Result<Vec<dataset::schema::Sample>> {
+        if group.shard.contains("train") && self.broken_after.exists() {
+            anyhow::bail!("{}: disk gone (injected)", group.shard);
+        }
+        self.inner.read_row_group(group)
+    }
+}
+
+/// A replica that fails mid-run ends the fit with an error naming it; the checkpoint before stays whole, and
+/// `--resume` from it ends with the network of a run that never failed, bit for bit.
+#[test]
+fn a_failing_replica_ends_the_fit_with_its_error_and_a_resume_ends_as_an_unbroken_run() {
+    let tmp = tempfile::tempdir().unwrap();
+    train::testing::write_synthetic_dataset(
+        tmp.path(),
+        synthetic_samples(300, 5),
+        synthetic_samples(4, 6),
+    );
+    let local: Arc<dyn SampleSource> = Arc::new(LocalSource::open(tmp.path()).unwrap());
+    let cfg = FitConfig {
+        epochs: 2,
+        ..config()
+    };
+    let device = Default::default();
+    let two = [device, device];
+    let unbroken = tmp.path().join("unbroken");
+    fit_replicated::<Ad>(local.clone(), &cfg, &unbroken, false, None, &two, false).unwrap();
+
+    let run = tmp.path().join("run");
+    let breaking: Arc<dyn SampleSource> = Arc::new(BreaksAfter {
+        inner: LocalSource::open(tmp.path()).unwrap(),
+        broken_after: run.join("last"),
+    });
+    let err = fit_replicated::<Ad>(breaking, &cfg, &run, false, None, &two, false).unwrap_err();
+    let text = format!("{err:#}");
+    assert!(
+        text.contains("replica") && text.contains("of 2") && text.contains("disk gone"),
+        "{text}"
+    );
+    let cursor: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("last/cursor.json")).unwrap())
+            .unwrap();
+    assert_eq!(
+        cursor["epoch"], 1,
+        "the checkpoint of epoch 0 is the last one"
+    );
+    fit_replicated::<Ad>(local, &cfg, &run, true, None, &two, false).unwrap();
+    assert_eq!(tensors(&load(&run, &cfg)), tensors(&load(&unbroken, &cfg)));
+    assert_eq!(
+        std::fs::read_to_string(run.join("metrics.jsonl")).unwrap(),
+        std::fs::read_to_string(unbroken.join("metrics.jsonl")).unwrap()
+    );
 }

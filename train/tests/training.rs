@@ -53,6 +53,7 @@ fn config(
         ema_decay: None,
         steep_weight: 1.0,
         head_hidden: 0,
+        crop_level: false,
         context_absolute: false,
     }
 }
@@ -62,16 +63,29 @@ fn config(
 #[test]
 fn a_head_bias_renders_the_uniform_model_before_any_step() {
     let device = Default::default();
-    let batch =
+    let relief =
         HostBatch::from_samples(&synthetic_samples(2, 11), &InputNormalisation::relief(20.0));
+    let with_elevation = HostBatch::from_samples(
+        &synthetic_samples(2, 11),
+        &InputNormalisation {
+            elevation: Some(train::data::ElevationNormalisation {
+                mean_m: 10.0,
+                std_m: 30.0,
+            }),
+            ..InputNormalisation::relief(20.0)
+        },
+    );
     let npx = CROP_PX * CROP_PX;
-    // H1 also with a hidden layer before the head: a zero head ignores it, whatever it computes.
-    for (model, head_hidden) in [
-        (BrdfModel::M2, 0),
-        (BrdfModel::L3, 0),
-        (BrdfModel::H1, 0),
-        (BrdfModel::H1, 6),
+    // H1 also with a hidden layer before the head and with the crop-level branch: a zero head ignores the one,
+    // a zeroed branch adds nothing, whatever they compute.
+    for (model, head_hidden, crop_level) in [
+        (BrdfModel::M2, 0, false),
+        (BrdfModel::L3, 0, false),
+        (BrdfModel::H1, 0, false),
+        (BrdfModel::H1, 6, false),
+        (BrdfModel::H1, 6, true),
     ] {
+        let batch = if crop_level { &with_elevation } else { &relief };
         let coefficients: Vec<f64> = (0..model.param_count())
             .map(|k| 0.9 - 0.45 * k as f64)
             .collect();
@@ -82,13 +96,15 @@ fn a_head_bias_renders_the_uniform_model_before_any_step() {
         let net = UNetConfig::new(model.param_count())
             .with_base_width(4)
             .with_head_hidden(head_hidden)
+            .with_crop_level(crop_level)
+            .with_in_channels(batch.input_channels)
             .init::<Flex>(&device)
             .with_uniform_head(&raw, &device);
-        let got = predict_images(&net, model, &batch, &device);
+        let got = predict_images(&net, model, batch, &device);
         let planar: Vec<f64> = (0..batch.len())
             .flat_map(|_| raw.iter().flat_map(|&r| std::iter::repeat_n(r, npx)))
             .collect();
-        let want = reference_render(model, &batch, &planar);
+        let want = reference_render(model, batch, &planar);
         let scale = want.iter().fold(0.0f64, |m, v| m.max(v.abs()));
         assert!(scale > 0.0);
         let worst = got
@@ -196,6 +212,7 @@ fn stopping_and_resuming_gives_the_same_network_as_an_uninterrupted_run() {
         ema_decay: Some(0.9),
         steep_weight: 1.0,
         head_hidden: 6,
+        crop_level: true,
         context_absolute: false,
         ..config(BrdfModel::M2, 2, 1e-3, 12, true)
     };

@@ -124,6 +124,12 @@ pub struct TrainArgs {
     /// crater wall the same elevation means another unit than on the plains).
     #[arg(long, value_name = "CHANNELS", default_value_t = 0)]
     pub head_hidden: usize,
+    /// Add a per-crop level branch: a small MLP from the crop's mean absolute elevation and the context
+    /// features to one offset per BRDF parameter, added at every pixel. The convolutions see the elevation as
+    /// normalised per-pixel features; this branch takes the crop's level as one number beside what the context
+    /// says of its surroundings (which unit lies under a crater wall depends on both). Needs --elevation-input.
+    #[arg(long, requires = "elevation_input")]
+    pub crop_level: bool,
     /// Train data-parallel with this many replicas in this process, each taking its share of --batch (which
     /// N must divide), their gradients averaged after every backward pass (burn-collective): on cuda, GPUs
     /// 0..N-1; on flex, threads sharing the CPU. The steps are those of one replica, except that each replica
@@ -217,6 +223,7 @@ impl TrainArgs {
             ema_decay: self.ema,
             steep_weight: self.steep_weight,
             head_hidden: self.head_hidden,
+            crop_level: self.crop_level,
         }
     }
 }
