@@ -382,6 +382,12 @@ fn train_replicas<B: TrainBackend>(
     devices: &[B::Device],
 ) -> Result<FitOutcome> {
     let world = devices.len();
+    if COLLECTIVE_LEFT_BROKEN.load(std::sync::atomic::Ordering::SeqCst) {
+        bail!(
+            "an earlier data-parallel fit in this process failed and left replicas waiting in burn-collective: \
+             start a new process (g2r-train does) to resume it"
+        );
+    }
     tracing::info!(
         replicas = world,
         crops_per_replica = run.config.stream.batch_size / world,
@@ -425,13 +431,22 @@ fn train_replicas<B: TrainBackend>(
     let mut lead = None;
     for _ in 0..world {
         let (rank, outcome) = outcomes.recv().context("a replica thread vanished")?;
-        let outcome = outcome.with_context(|| format!("replica {rank} of {world}"))?;
-        if rank == 0 {
-            lead = Some(outcome);
+        match outcome {
+            Ok(outcome) if rank == 0 => lead = Some(outcome),
+            Ok(_) => {}
+            Err(e) => {
+                COLLECTIVE_LEFT_BROKEN.store(true, std::sync::atomic::Ordering::SeqCst);
+                return Err(e.context(format!("replica {rank} of {world}")));
+            }
         }
     }
     Ok(lead.expect("replica 0 reported"))
 }
+
+/// Set when a data-parallel fit ended with a failed replica: the others may still wait in an all-reduce whose
+/// messages would reach the next fit's collective, so this process starts no other.
+static COLLECTIVE_LEFT_BROKEN: std::sync::atomic::AtomicBool =
+    std::sync::atomic::AtomicBool::new(false);
 
 /// One replica's epochs (the whole fit when it is the only one).
 fn train_replica<B: TrainBackend>(

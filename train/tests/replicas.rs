@@ -14,12 +14,11 @@
 use std::path::Path;
 use std::sync::Arc;
 
-use burn::backend::{Autodiff, Flex};
+use burn::backend::Flex;
 use burn::module::{AutodiffModule, Module, ModuleVisitor, Param, ParamId};
 use burn::optim::{AdamConfig, GradientsParams, Optimizer};
 use burn::prelude::*;
-use burn::record::{FullPrecisionSettings, NamedMpkFileRecorder, Recorder};
-use dataset::brdf::BrdfModel;
+use burn::record::Recorder;
 use dataset::schema::Split;
 use train::data::{EpochStream, HostBatch, LocalSource, SampleSource, StreamConfig};
 use train::model::UNet;
@@ -28,72 +27,13 @@ use train::run::FitConfig;
 use train::testing::synthetic_samples;
 use train::training::{fit, fit_replicated, input_normalisation, train_loss};
 
-type Ad = Autodiff<Flex>;
-type Rec = NamedMpkFileRecorder<FullPrecisionSettings>;
+mod support;
 
-const STEPS: u64 = 4;
+use support::{config, is_running_stat, load, tensors, worst_relative, Ad, Rec, STEPS};
 
-fn config() -> FitConfig {
-    FitConfig {
-        version: train::run::FIT_CONFIG_VERSION,
-        model: BrdfModel::M2,
-        epochs: 1,
-        learning_rate: 1e-3,
-        base_width: 4,
-        dropout: false,
-        stream: StreamConfig {
-            seed: 5,
-            batch_size: 4,
-            window_groups: 2,
-            augment: true,
-            max_samples: Some(4 * STEPS as usize),
-        },
-        max_val_samples: Some(4),
-        lr_schedule: train::run::LrSchedule::Constant,
-        elevation_input: false,
-        context_input: false,
-        ema_decay: Some(0.9),
-        steep_weight: 1.0,
-        head_hidden: 0,
-        crop_level: false,
-        context_absolute: false,
-    }
-}
-
-/// Every float tensor of a network, by field path, in the order the module lists them.
-#[derive(Default)]
-struct Tensors {
-    path: Vec<String>,
-    found: Vec<(String, ParamId, Vec<f64>)>,
-}
-
-impl<B: Backend> ModuleVisitor<B> for Tensors {
-    fn enter_module(&mut self, name: &str, _container_type: &str) {
-        self.path.push(name.to_string());
-    }
-    fn exit_module(&mut self, _name: &str, _container_type: &str) {
-        self.path.pop();
-    }
-    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<B, D>>) {
-        let values = param
-            .val()
-            .into_data()
-            .convert::<f64>()
-            .to_vec::<f64>()
-            .unwrap();
-        self.found.push((self.path.join("."), param.id, values));
-    }
-}
-
-fn tensors<B: Backend>(net: &UNet<B>) -> Vec<(String, ParamId, Vec<f64>)> {
-    let mut visitor = Tensors::default();
-    net.visit(&mut visitor);
-    visitor.found
-}
-
-fn is_running_stat(path: &str) -> bool {
-    path.ends_with("running_mean") || path.ends_with("running_var")
-}
+/// burn-collective keeps one collective per backend type in the process, and Flex's RNG is process-global:
+/// tests that train replicas must not interleave.
+static SERIAL: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
 /// The mean of two replicas' gradients, parameter by parameter.
 struct MeanOf<'a> {
@@ -113,23 +53,6 @@ impl ModuleVisitor<Ad> for MeanOf<'_> {
     }
 }
 
-fn load(run: &Path, cfg: &FitConfig) -> UNet<Flex> {
-    let device = Default::default();
-    cfg.net_config()
-        .init::<Flex>(&device)
-        .load_file(run.join("last/model"), &Rec::new(), &device)
-        .unwrap()
-}
-
-fn worst_relative(a: &[f64], b: &[f64]) -> f64 {
-    let scale = a.iter().fold(1e-12f64, |m, v| m.max(v.abs()));
-    a.iter()
-        .zip(b)
-        .map(|(x, y)| (x - y).abs())
-        .fold(0.0, f64::max)
-        / scale
-}
-
 fn copy_dir(from: &Path, to: &Path) {
     std::fs::create_dir_all(to).unwrap();
     for entry in std::fs::read_dir(from).unwrap() {
@@ -145,6 +68,7 @@ fn copy_dir(from: &Path, to: &Path) {
 
 #[test]
 fn two_replicas_take_the_steps_of_their_averaged_gradients_and_repeat_bit_for_bit() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let tmp = tempfile::tempdir().unwrap();
     train::testing::write_synthetic_dataset(
         tmp.path(),
@@ -347,77 +271,4 @@ fn a_batch_the_replicas_do_not_divide_and_dropout_are_refused_before_anything_is
         .to_string();
     assert!(err.contains("--no-dropout"), "{err}");
     assert!(!run.exists(), "a refused fit wrote {}", run.display());
-}
-
-/// A published dataset whose train shards stop reading once `broken_after` exists (a run's first checkpoint).
-struct BreaksAfter {
-    inner: LocalSource,
-    broken_after: std::path::PathBuf,
-}
-
-impl SampleSource for BreaksAfter {
-    fn describe(&self) -> String {
-        self.inner.describe()
-    }
-    fn manifest(&self) -> &dataset::manifest::DatasetManifest {
-        self.inner.manifest()
-    }
-    fn row_groups(&self, split: Split) -> anyhow::Result<Vec<dataset::planner::RowGroupRef>> {
-        self.inner.row_groups(split)
-    }
-    fn read_row_group(
-        &self,
-        group: &dataset::planner::RowGroupRef,
-    ) -> anyhow::Result<Vec<dataset::schema::Sample>> {
-        if group.shard.contains("train") && self.broken_after.exists() {
-            anyhow::bail!("{}: disk gone (injected)", group.shard);
-        }
-        self.inner.read_row_group(group)
-    }
-}
-
-/// A replica that fails mid-run ends the fit with an error naming it; the checkpoint before stays whole, and
-/// `--resume` from it ends with the network of a run that never failed, bit for bit.
-#[test]
-fn a_failing_replica_ends_the_fit_with_its_error_and_a_resume_ends_as_an_unbroken_run() {
-    let tmp = tempfile::tempdir().unwrap();
-    train::testing::write_synthetic_dataset(
-        tmp.path(),
-        synthetic_samples(300, 5),
-        synthetic_samples(4, 6),
-    );
-    let local: Arc<dyn SampleSource> = Arc::new(LocalSource::open(tmp.path()).unwrap());
-    let cfg = FitConfig {
-        epochs: 2,
-        ..config()
-    };
-    let device = Default::default();
-    let two = [device, device];
-    let unbroken = tmp.path().join("unbroken");
-    fit_replicated::<Ad>(local.clone(), &cfg, &unbroken, false, None, &two, false).unwrap();
-
-    let run = tmp.path().join("run");
-    let breaking: Arc<dyn SampleSource> = Arc::new(BreaksAfter {
-        inner: LocalSource::open(tmp.path()).unwrap(),
-        broken_after: run.join("last"),
-    });
-    let err = fit_replicated::<Ad>(breaking, &cfg, &run, false, None, &two, false).unwrap_err();
-    let text = format!("{err:#}");
-    assert!(
-        text.contains("replica") && text.contains("of 2") && text.contains("disk gone"),
-        "{text}"
-    );
-    let cursor: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(run.join("last/cursor.json")).unwrap())
-            .unwrap();
-    assert_eq!(
-        cursor["epoch"], 1,
-        "the checkpoint of epoch 0 is the last one"
-    );
-    fit_replicated::<Ad>(local, &cfg, &run, true, None, &two, false).unwrap();
-    assert_eq!(tensors(&load(&run, &cfg)), tensors(&load(&unbroken, &cfg)));
-    assert_eq!(
-        std::fs::read_to_string(run.join("metrics.jsonl")).unwrap(),
-        std::fs::read_to_string(unbroken.join("metrics.jsonl")).unwrap()
-    );
 }
