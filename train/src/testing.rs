@@ -189,6 +189,35 @@ pub fn write_synthetic_dataset(dir: &std::path::Path, train: Vec<Sample>, val: V
         .expect("writing a synthetic dataset");
 }
 
+/// [`write_synthetic_dataset`] of `train_rows` and `val_rows` [`synthetic_samples`] (seeds 5 and 6) into `dir`,
+/// opened as a sample source.
+pub fn synthetic_source(
+    dir: &std::path::Path,
+    train_rows: usize,
+    val_rows: usize,
+) -> std::sync::Arc<dyn crate::data::SampleSource> {
+    write_synthetic_dataset(
+        dir,
+        synthetic_samples(train_rows, 5),
+        synthetic_samples(val_rows, 6),
+    );
+    std::sync::Arc::new(crate::data::LocalSource::open(dir).expect("opening a synthetic dataset"))
+}
+
+/// Copy a directory tree (a run directory, to resume one checkpoint two ways).
+pub fn copy_dir(from: &std::path::Path, to: &std::path::Path) {
+    std::fs::create_dir_all(to).expect("creating a copy");
+    for entry in std::fs::read_dir(from).expect("reading a directory to copy") {
+        let entry = entry.expect("listing a directory to copy");
+        let target = to.join(entry.file_name());
+        if entry.file_type().expect("file type").is_dir() {
+            copy_dir(&entry.path(), &target);
+        } else {
+            std::fs::copy(entry.path(), target).expect("copying a file");
+        }
+    }
+}
+
 /// A host batch of [`synthetic_samples`] (DEM std 20 m).
 pub fn synthetic_batch(n: usize, seed: u64) -> HostBatch {
     HostBatch::from_samples(

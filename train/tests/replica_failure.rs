@@ -7,7 +7,6 @@ use std::sync::Arc;
 use dataset::schema::Split;
 use train::data::{LocalSource, SampleSource};
 use train::run::FitConfig;
-use train::testing::synthetic_samples;
 use train::training::fit_replicated;
 
 mod support;
@@ -48,12 +47,7 @@ impl SampleSource for BreaksAfter {
 #[test]
 fn a_failing_replica_ends_the_fit_with_its_error_and_a_resume_ends_as_an_unbroken_run() {
     let tmp = tempfile::tempdir().unwrap();
-    train::testing::write_synthetic_dataset(
-        tmp.path(),
-        synthetic_samples(300, 5),
-        synthetic_samples(4, 6),
-    );
-    let local: Arc<dyn SampleSource> = Arc::new(LocalSource::open(tmp.path()).unwrap());
+    let local = train::testing::synthetic_source(tmp.path(), 300, 4);
     let cfg = FitConfig {
         epochs: 2,
         ..config()

@@ -11,20 +11,16 @@
 //! learning rate whatever the gradient's size, so a small change in a gradient near zero flips a whole step. The
 //! test prints how far the two trajectories part rather than bounding it.
 
-use std::path::Path;
-use std::sync::Arc;
-
 use burn::backend::Flex;
 use burn::module::{AutodiffModule, Module, ModuleVisitor, Param, ParamId};
 use burn::optim::{AdamConfig, GradientsParams, Optimizer};
 use burn::prelude::*;
 use burn::record::Recorder;
 use dataset::schema::Split;
-use train::data::{EpochStream, HostBatch, LocalSource, SampleSource, StreamConfig};
+use train::data::{EpochStream, HostBatch, StreamConfig};
 use train::model::UNet;
 use train::replicas::Replica;
 use train::run::FitConfig;
-use train::testing::synthetic_samples;
 use train::training::{fit, fit_replicated, input_normalisation, train_loss};
 
 mod support;
@@ -53,29 +49,11 @@ impl ModuleVisitor<Ad> for MeanOf<'_> {
     }
 }
 
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for entry in std::fs::read_dir(from).unwrap() {
-        let entry = entry.unwrap();
-        let target = to.join(entry.file_name());
-        if entry.file_type().unwrap().is_dir() {
-            copy_dir(&entry.path(), &target);
-        } else {
-            std::fs::copy(entry.path(), target).unwrap();
-        }
-    }
-}
-
 #[test]
 fn two_replicas_take_the_steps_of_their_averaged_gradients_and_repeat_bit_for_bit() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let tmp = tempfile::tempdir().unwrap();
-    train::testing::write_synthetic_dataset(
-        tmp.path(),
-        synthetic_samples(300, 5),
-        synthetic_samples(4, 6),
-    );
-    let source: Arc<dyn SampleSource> = Arc::new(LocalSource::open(tmp.path()).unwrap());
+    let source = train::testing::synthetic_source(tmp.path(), 300, 4);
     let cfg = config();
     let device = Default::default();
     // One replica takes the first step; its checkpoint is the common start (and a resume may change N).
@@ -85,7 +63,7 @@ fn two_replicas_take_the_steps_of_their_averaged_gradients_and_repeat_bit_for_bi
     let mut replicated = Vec::new();
     for name in ["two-a", "two-b"] {
         let run = tmp.path().join(name);
-        copy_dir(&start, &run);
+        train::testing::copy_dir(&start, &run);
         let outcome =
             fit_replicated::<Ad>(source.clone(), &cfg, &run, true, Some(STEPS), &two, false)
                 .unwrap();
@@ -212,7 +190,7 @@ fn two_replicas_take_the_steps_of_their_averaged_gradients_and_repeat_bit_for_bi
 
     // One replica with the whole batch, for the record: BatchNorm over 4 crops instead of 2 moves the steps.
     let one = tmp.path().join("one");
-    copy_dir(&start, &one);
+    train::testing::copy_dir(&start, &one);
     fit::<Ad>(
         source.clone(),
         &cfg,
@@ -246,12 +224,7 @@ fn two_replicas_take_the_steps_of_their_averaged_gradients_and_repeat_bit_for_bi
 #[test]
 fn a_batch_the_replicas_do_not_divide_and_dropout_are_refused_before_anything_is_written() {
     let tmp = tempfile::tempdir().unwrap();
-    train::testing::write_synthetic_dataset(
-        tmp.path(),
-        synthetic_samples(20, 5),
-        synthetic_samples(4, 6),
-    );
-    let source: Arc<dyn SampleSource> = Arc::new(LocalSource::open(tmp.path()).unwrap());
+    let source = train::testing::synthetic_source(tmp.path(), 20, 4);
     let device = Default::default();
     let three = [device, device, device];
     let run = tmp.path().join("run");

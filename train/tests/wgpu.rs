@@ -54,19 +54,6 @@ fn metrics(run: &Path) -> Vec<Value> {
         .collect()
 }
 
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for entry in std::fs::read_dir(from).unwrap() {
-        let entry = entry.unwrap();
-        let target = to.join(entry.file_name());
-        if entry.file_type().unwrap().is_dir() {
-            copy_dir(&entry.path(), &target);
-        } else {
-            std::fs::copy(entry.path(), target).unwrap();
-        }
-    }
-}
-
 /// The learned row's pixel MSE in an eval's metrics.json.
 fn learned_pixel_mse(eval: &Path) -> f64 {
     let report: Value =
@@ -130,8 +117,8 @@ fn fit_eval_and_infer_on_wgpu_agree_with_flex() {
     let start = tmp.path().join("start");
     fit("flex", &start, &["--stop-after-steps", "2"]);
     let (on_flex, on_wgpu) = (tmp.path().join("flex"), tmp.path().join("wgpu"));
-    copy_dir(&start, &on_flex);
-    copy_dir(&start, &on_wgpu);
+    train::testing::copy_dir(&start, &on_flex);
+    train::testing::copy_dir(&start, &on_wgpu);
     fit("flex", &on_flex, &["--resume"]);
     fit("wgpu", &on_wgpu, &["--resume"]);
     let (flex_metrics, wgpu_metrics) = (metrics(&on_flex), metrics(&on_wgpu));
