@@ -275,6 +275,14 @@ pub struct Cursor {
 }
 
 impl Cursor {
+    /// Move to the first batch of the next epoch.
+    pub(crate) fn next_epoch(&mut self) {
+        self.epoch += 1;
+        self.next_batch = 0;
+        self.epoch_loss_sum = 0.0;
+        self.epoch_batches = 0;
+    }
+
     pub(crate) fn start() -> Self {
         Self {
             epoch: 0,

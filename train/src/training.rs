@@ -581,10 +581,7 @@ fn train_replica<B: TrainBackend>(
         // Every replica's BatchNorm statistics averaged before validation; the lead alone validates and writes.
         (net, average) = mean_running_stats(replica, net, average)?;
         if !replica.leads() {
-            cursor.epoch += 1;
-            cursor.next_batch = 0;
-            cursor.epoch_loss_sum = 0.0;
-            cursor.epoch_batches = 0;
+            cursor.next_epoch();
             continue;
         }
         let validate_net = |network: &UNet<B::InnerBackend>| {
@@ -630,10 +627,7 @@ fn train_replica<B: TrainBackend>(
                 save_model(avg, &Checkpoint::EmaBest.path(out), &recorder)?;
             }
         }
-        cursor.epoch += 1;
-        cursor.next_batch = 0;
-        cursor.epoch_loss_sum = 0.0;
-        cursor.epoch_batches = 0;
+        cursor.next_epoch();
         save_last(&net, &optim, average.as_ref(), &cursor, &last, &recorder)?;
     }
     replica.leave::<B::InnerBackend>()?;
