@@ -93,7 +93,8 @@ fn pipeline_is_reproducible_incremental_and_readable() {
         );
     }
     let verify =
-        dataset::manifest::DatasetManifest::load(&dir.join("out/dataset/manifest.json")).unwrap();
+        dataset::contract::manifest::DatasetManifest::load(&dir.join("out/dataset/manifest.json"))
+            .unwrap();
     assert!(verify.verify(&dir.join("out/dataset")).is_empty());
 
     // Re-publishing gives the same manifest bytes (its lock hash covers only the upstream stages).

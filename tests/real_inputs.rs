@@ -4,10 +4,10 @@
 
 use std::path::{Path, PathBuf};
 
-use dataset::acquisition::AcquisitionMetadata;
-use dataset::geometry::angle_between;
-use dataset::schema::Sample;
-use dataset::shard::ShardFile;
+use dataset::contract::acquisition::AcquisitionMetadata;
+use dataset::contract::schema::Sample;
+use dataset::contract::shard::ShardFile;
+use dataset::science::geometry::angle_between;
 use glam::{DQuat, DVec3};
 use pipeline::import::{import, Source};
 
@@ -389,7 +389,8 @@ fn copy_metadata(ortho_dir: &Path, id: &str, image_file: &str) {
     let world = world();
     let mut meta = AcquisitionMetadata::load(&world.join(format!("ortho/{id}.json"))).unwrap();
     meta.image_file = image_file.to_string();
-    dataset::manifest::write_json_atomic(&ortho_dir.join(format!("{id}.json")), &meta).unwrap();
+    dataset::contract::manifest::write_json_atomic(&ortho_dir.join(format!("{id}.json")), &meta)
+        .unwrap();
 }
 
 /// Same crops, same pixels; returns the largest camera-position (m) and emission-angle (°) differences.

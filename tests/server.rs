@@ -10,9 +10,9 @@ use std::process::Command;
 use std::sync::{Arc, OnceLock};
 
 use dataset::client::HttpClient;
-use dataset::planner::plan_epoch;
-use dataset::schema::{Sample, Split, CROP_PX, SCHEMA_VERSION};
-use dataset::shard::read_shard;
+use dataset::contract::planner::plan_epoch;
+use dataset::contract::schema::{Sample, Split, CROP_PX, SCHEMA_VERSION};
+use dataset::contract::shard::read_shard;
 use train::data::{
     ContextNormalisation, ElevationNormalisation, EpochStream, HttpSource, InputNormalisation,
     LocalSource, SampleSource, StreamConfig,
@@ -116,7 +116,7 @@ fn fixture_once() -> &'static Fixture {
         std::thread::spawn(move || {
             let runtime = tokio::runtime::Runtime::new().unwrap();
             runtime
-                .block_on(dataset::server::serve(
+                .block_on(dataset_server::serve(
                     &serve_dir,
                     "127.0.0.1:0".parse().unwrap(),
                     true,
@@ -161,11 +161,11 @@ fn every_endpoint_answers_with_its_documented_shape() {
     assert_eq!(info["schema_version"], SCHEMA_VERSION);
     assert_eq!(
         info["schema"].as_array().unwrap().len(),
-        dataset::schema::sample_schema().fields().len()
+        dataset::contract::schema::sample_schema().fields().len()
     );
     assert_eq!(
         info["manifest_blake3"].as_str().unwrap(),
-        dataset::manifest::hash_file(&f.dir.join("manifest.json")).unwrap()
+        dataset::contract::manifest::hash_file(&f.dir.join("manifest.json")).unwrap()
     );
     assert!(info["card"]
         .as_str()
@@ -286,10 +286,10 @@ fn every_endpoint_answers_with_its_documented_shape() {
         .unwrap();
     assert_eq!(
         ipc.header("content-type"),
-        Some(dataset::server::ARROW_STREAM)
+        Some(dataset::client::ARROW_STREAM)
     );
     assert_eq!(
-        dataset::shard::samples_from_ipc_stream(&ipc.body).unwrap(),
+        dataset::contract::shard::samples_from_ipc_stream(&ipc.body).unwrap(),
         f.samples["train"][256..300]
     );
 
@@ -318,11 +318,11 @@ fn epoch_stream_serves_rows_in_the_planners_order() {
             .client()
             .get_ok(
                 &format!("/v1/stream?split=train&seed=5&epoch=3&rank={rank}&world={world}&window={window}"),
-                &[("Accept", dataset::server::ARROW_STREAM)],
+                &[("Accept", dataset::client::ARROW_STREAM)],
             )
             .unwrap()
             .body;
-        let streamed = dataset::shard::samples_from_ipc_stream(&body).unwrap();
+        let streamed = dataset::contract::shard::samples_from_ipc_stream(&body).unwrap();
         assert_eq!(streamed.len(), expected.len());
         assert!(
             streamed.iter().zip(&expected).all(|(a, b)| a == *b),
@@ -498,7 +498,7 @@ fn hostile_and_malformed_requests_get_4xx_and_nothing_outside_the_directory() {
         ),
         ("/v1/nothing", 404, "no such endpoint"),
     ] {
-        let headers = [("Accept", dataset::server::ARROW_STREAM)];
+        let headers = [("Accept", dataset::client::ARROW_STREAM)];
         let r = c.get(query, &headers).unwrap();
         assert_eq!(r.status, status, "{query}: {}", r.text());
         let body: serde_json::Value = serde_json::from_slice(&r.body).unwrap();
@@ -526,9 +526,9 @@ fn rss_bytes() -> u64 {
 fn thirty_two_concurrent_clients_get_no_errors_in_bounded_memory() {
     let (f, _serial) = fixture();
     // Warm-up round so one-time allocations (runtime threads, footers) are not counted as growth.
-    dataset::loadtest::run(&f.url(), 32, 320, 1).unwrap();
+    dataset_server::loadtest::run(&f.url(), 32, 320, 1).unwrap();
     let before = rss_bytes();
-    let report = dataset::loadtest::run(&f.url(), 32, 3200, 2).unwrap();
+    let report = dataset_server::loadtest::run(&f.url(), 32, 3200, 2).unwrap();
     let grown = rss_bytes().saturating_sub(before);
     eprintln!(
         "load: {} requests from {} clients in {:.2} s: {:.0} req/s, {:.0} rows/s, {:.1} MB/s, p50 {:.1} ms, p99 {:.1} ms; RSS +{} MiB",
@@ -715,7 +715,7 @@ fn serve_in_background(dir: PathBuf) -> String {
     std::thread::spawn(move || {
         tokio::runtime::Runtime::new()
             .unwrap()
-            .block_on(dataset::server::serve(
+            .block_on(dataset_server::serve(
                 &dir,
                 "127.0.0.1:0".parse().unwrap(),
                 true,
@@ -748,16 +748,18 @@ fn a_split_without_rows_answers_empty_not_an_error() {
     let stream = c
         .get_ok(
             "/v1/stream?split=test&seed=1&epoch=0",
-            &[("Accept", dataset::server::ARROW_STREAM)],
+            &[("Accept", dataset::client::ARROW_STREAM)],
         )
         .unwrap();
-    assert!(dataset::shard::samples_from_ipc_stream(&stream.body)
-        .unwrap()
-        .is_empty());
+    assert!(
+        dataset::contract::shard::samples_from_ipc_stream(&stream.body)
+            .unwrap()
+            .is_empty()
+    );
     let too_wide = c
         .get(
             "/v1/stream?split=train&seed=1&epoch=0&window=9",
-            &[("Accept", dataset::server::ARROW_STREAM)],
+            &[("Accept", dataset::client::ARROW_STREAM)],
         )
         .unwrap();
     assert_eq!(too_wide.status, 400);
@@ -793,10 +795,10 @@ fn a_schema_1_1_dataset_serves_and_streams_its_rows_without_context() {
         .unwrap()
         .get_ok(
             "/v1/stream?split=train&seed=1&epoch=0",
-            &[("Accept", dataset::server::ARROW_STREAM)],
+            &[("Accept", dataset::client::ARROW_STREAM)],
         )
         .unwrap();
-    let mut streamed = dataset::shard::samples_from_ipc_stream(&stream.body).unwrap();
+    let mut streamed = dataset::contract::shard::samples_from_ipc_stream(&stream.body).unwrap();
     streamed.sort_by(|a, b| a.sample_id.cmp(&b.sample_id));
     let mut expected = without_context;
     expected.sort_by(|a, b| a.sample_id.cmp(&b.sample_id));
@@ -813,7 +815,7 @@ fn a_schema_1_1_dataset_serves_and_streams_its_rows_without_context() {
         .collect();
     assert_eq!(
         columns.len(),
-        dataset::schema::sample_schema().fields().len() - 2
+        dataset::contract::schema::sample_schema().fields().len() - 2
     );
     assert!(columns.contains(&"dem") && !columns.iter().any(|c| c.starts_with("context_")));
     let page: serde_json::Value = client

@@ -2,8 +2,8 @@
 
 use std::process::Command;
 
-use dataset::schema::{ContextWindow, Sample, Split, CONTEXT_PX, CROP_PX, DEM_PX};
-use dataset::shard::ShardWriter;
+use dataset::contract::schema::{ContextWindow, Sample, Split, CONTEXT_PX, CROP_PX, DEM_PX};
+use dataset::contract::shard::ShardWriter;
 
 fn sample(i: usize) -> Sample {
     let n = CROP_PX * CROP_PX;
@@ -52,7 +52,9 @@ fn sample(i: usize) -> Sample {
 #[test]
 fn shard_reads_back_with_pyarrow_without_custom_code() {
     let dir = tempfile::tempdir().unwrap();
-    let path = dir.path().join(dataset::shard::shard_name("train", 0, 1));
+    let path = dir
+        .path()
+        .join(dataset::contract::shard::shard_name("train", 0, 1));
     let mut writer = ShardWriter::create(&path).unwrap();
     writer
         .write(&(0..300).map(sample).collect::<Vec<_>>())

@@ -4,9 +4,9 @@
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
-use dataset::acquisition::AcquisitionMetadata;
-use dataset::crs::{LocalFrame, LunarCrs, MOON_RADIUS_M};
-use dataset::raster::read_raster;
+use dataset::contract::acquisition::AcquisitionMetadata;
+use dataset::science::crs::{LocalFrame, LunarCrs, MOON_RADIUS_M};
+use dataset::science::raster::read_raster;
 use gdal::Dataset;
 use glam::DVec3;
 use serde_json::Value;
@@ -244,7 +244,7 @@ fn brightness_correlates_with_but_is_not_determined_by_dem_features() {
             .pixel_center(image.width as f64 / 2.0, image.height as f64 / 2.0);
         let frame = LocalFrame::new(&crs, cx, cy, 0.0).unwrap();
         let sun = frame.sun_dir_enu(meta.sun_body());
-        let camera = frame.body_point_to_enu(dataset::geometry::spacecraft_position_at(
+        let camera = frame.body_point_to_enu(dataset::science::geometry::spacecraft_position_at(
             meta.spacecraft_start_body_m.into(),
             meta.spacecraft_stop_body_m.into(),
             0.5,

@@ -1,33 +1,21 @@
-//! `dataset`: the data contract shared by the pipeline and the trainer.
+//! `dataset`: what the pipeline and the trainer share, in two layers, the second built on the first.
 //!
-//! Read in data-flow order: [`crs`] (lunar CRS, local ENU frames) → [`raster`] (GeoTIFF IO, pixel-centre
-//! convention) → [`geometry`] (normals, cosines, half/difference angles) → [`horizon`] (cast shadows, visibility)
-//! → [`brdf`] and [`hapke`] (photometry reference in f64) → [`schema`] → [`shard`] → [`manifest`].
+//! - [`science`], the lunar science core: CRS and local frames → rasters → surface geometry → shadows →
+//!   reflectance (BRDF models, Hapke) in f64. It knows nothing of datasets.
+//! - [`contract`], the data contract on that core: acquisition metadata and the synthetic world's layout → seeded
+//!   draw streams → terrain context → the sample schema → Parquet shards → manifests → publication → the epoch
+//!   planner that reads them back.
+//!
+//! Beside them: the HTTP [`client`] of a served dataset (the server itself is the `g2r-dataset-server` crate),
+//! the binaries' allocator settings and logging, and test fixtures.
 
-pub mod acquisition;
-pub mod brdf;
-#[cfg(feature = "client")]
+pub mod science;
+
+pub mod contract;
+
 pub mod client;
-pub mod context;
-pub mod crs;
-pub mod geometry;
-pub mod hapke;
-pub mod horizon;
-#[cfg(feature = "client")]
-pub mod loadtest;
 pub mod malloc;
-pub mod manifest;
-pub mod planner;
-pub mod publication;
-pub mod raster;
-pub mod resample;
-pub mod rng;
-pub mod schema;
-#[cfg(feature = "server")]
-pub mod server;
-pub mod shard;
 pub mod testing;
-pub mod world;
 
 /// Initialise structured logging for the binaries (`RUST_LOG` overrides the default `info`), and route GDAL's own
 /// messages into it: by default GDAL prints `ERROR 4: …` lines to stderr next to our one-line errors, which

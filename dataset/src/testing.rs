@@ -4,9 +4,11 @@
 use std::collections::BTreeMap;
 use std::path::Path;
 
-use crate::manifest::{write_json_atomic, DatasetManifest};
-use crate::schema::{ContextWindow, Sample, Split, CONTEXT_PX, CROP_PX, DEM_PX, SCHEMA_VERSION};
-use crate::shard::{shard_name, ShardWriter};
+use crate::contract::manifest::{write_json_atomic, DatasetManifest};
+use crate::contract::schema::{
+    ContextWindow, Sample, Split, CONTEXT_PX, CROP_PX, DEM_PX, SCHEMA_VERSION,
+};
+use crate::contract::shard::{shard_name, ShardWriter};
 
 /// Sample `i`: every field set, rasters varying with `i` (split "train", tile "t_3_4").
 pub fn synthetic_sample(i: usize) -> Sample {
@@ -84,7 +86,7 @@ pub fn write_dataset(
     };
     let summary = serde_json::json!({ "split": split_summary, "rejections_by_ortho": {} });
     write_json_atomic(&dir.join("summary.json"), &summary)?;
-    crate::publication::write_descriptions(dir, &manifest)?;
+    crate::contract::publication::write_descriptions(dir, &manifest)?;
     write_json_atomic(&dir.join("manifest.json"), &manifest)?;
     Ok(manifest)
 }
@@ -97,7 +99,7 @@ pub fn downgrade_to_schema_1_1(dir: &Path) -> anyhow::Result<()> {
     let mut manifest = DatasetManifest::load_dir(dir)?;
     for shard in &mut manifest.shards {
         let path = dir.join(&shard.path);
-        let file = crate::shard::ShardFile::open(&path)?;
+        let file = crate::contract::shard::ShardFile::open(&path)?;
         let schema = file.schema();
         let keep: Vec<usize> = (0..schema.fields().len())
             .filter(|&k| !schema.field(k).name().starts_with("context_"))
@@ -121,7 +123,7 @@ pub fn downgrade_to_schema_1_1(dir: &Path) -> anyhow::Result<()> {
         }
         writer.close()?;
         shard.bytes = std::fs::metadata(&path)?.len();
-        shard.blake3 = crate::manifest::hash_file(&path)?;
+        shard.blake3 = crate::contract::manifest::hash_file(&path)?;
     }
     manifest.schema_version = "1.1.0".into();
     write_json_atomic(&dir.join("manifest.json"), &manifest)?;

@@ -5,7 +5,7 @@
 pub mod import;
 pub mod manifest;
 /// Keyed ChaCha streams live in the data contract (the trainer's epoch planner uses them too).
-pub use dataset::rng;
+pub use dataset::contract::rng;
 pub mod runner;
 pub mod stages;
 pub mod synth;

@@ -78,7 +78,7 @@ enum Command {
     },
     /// Write an orthoimage's acquisition metadata JSON from an ALE ISD or an LROC cumulative-index row.
     ///
-    /// The JSON (Moon body-fixed frame, metres; fields of dataset::acquisition::AcquisitionMetadata) goes next to
+    /// The JSON (Moon body-fixed frame, metres; fields of dataset::contract::acquisition::AcquisitionMetadata) goes next to
     /// the image by default, where `run` looks for it. From an ISD (`isd_generate` of USGS ALE, with SPICE):
     /// positions and attitude are rotated from J2000 with the ISD's own lunar orientation, exact to interpolation.
     /// From CUMINDEX.TAB (+ CUMINDEX.LBL, found next to it) or a CSV of its columns: sun and spacecraft from the

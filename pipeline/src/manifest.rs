@@ -117,7 +117,7 @@ impl PipelineManifest {
         })?;
         manifest.base_dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
         let rows = manifest.publish.rows_per_shard;
-        let group = dataset::shard::ROW_GROUP_ROWS;
+        let group = dataset::contract::shard::ROW_GROUP_ROWS;
         if rows == 0 || (rows > group && !rows.is_multiple_of(group)) {
             anyhow::bail!(
                 "{}: publish.rows_per_shard = {rows}: use 1 to {group} or a multiple of {group} (a shard is whole row groups of {group} rows)",

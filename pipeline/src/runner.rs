@@ -10,8 +10,8 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use dataset::manifest::{hash_file, write_json_atomic};
-use dataset::raster::tmp_path;
+use dataset::contract::manifest::{hash_file, write_json_atomic};
+use dataset::science::raster::tmp_path;
 use serde::{Deserialize, Serialize};
 
 /// What a stage function receives: where to write each declared output (temporary names).

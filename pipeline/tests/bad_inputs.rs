@@ -5,8 +5,8 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::OnceLock;
 
-use dataset::crs::LunarCrs;
-use dataset::raster::{
+use dataset::science::crs::LunarCrs;
+use dataset::science::raster::{
     read_raster, write_geotiff, write_raster, BandOut, BandValues, RasterLayout,
 };
 

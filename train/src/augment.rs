@@ -7,7 +7,7 @@
 //! its ground geometry and `render(augment(s)) = augment(render(s))` (tested against the scalar reference).
 //! Caveat: M6's φh is measured from local east, which a rotation moves: that one term is not rotation-invariant.
 
-use dataset::schema::{ContextWindow, Sample, CONTEXT_PX, CROP_PX, DEM_PX};
+use dataset::contract::schema::{ContextWindow, Sample, CONTEXT_PX, CROP_PX, DEM_PX};
 
 /// One of the 8 symmetries of the square: `mirror` (east↔west) first, then `quarter_turns` × 90° counter-clockwise.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -231,7 +231,7 @@ mod tests {
         use crate::data::{HostBatch, InputNormalisation};
         use crate::renderer_layer::reference_render;
         use crate::testing::{synthetic_samples, test_params};
-        use dataset::brdf::BrdfModel;
+        use dataset::science::brdf::BrdfModel;
         let sample = &synthetic_samples(1, 9)[0];
         let npx = CROP_PX * CROP_PX;
         for model in BrdfModel::ALL {

@@ -3,9 +3,9 @@
 //! image as the reference paper did — an affine map giving the rendering the ground truth's mean and range over
 //! valid pixels. That normalisation **peeks at the ground truth**: it is the paper's baseline, not a fair one.
 
-use dataset::geometry::{Cosines, PixelGeometry};
-use dataset::hapke::{hapke_i_over_f, HFunction, HapkeParams};
-use dataset::schema::Sample;
+use dataset::contract::schema::Sample;
+use dataset::science::geometry::{Cosines, PixelGeometry};
+use dataset::science::hapke::{hapke_i_over_f, HFunction, HapkeParams};
 
 /// I/F of the sample under uniform Hapke: lit fraction × Hapke (which carries the cos i factor itself).
 pub fn hapke_render(sample: &Sample, params: &HapkeParams) -> Vec<f64> {

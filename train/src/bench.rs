@@ -5,8 +5,8 @@ use std::time::Instant;
 
 use burn::optim::{AdamConfig, GradientsParams, Optimizer};
 use burn::prelude::*;
-use dataset::brdf::BrdfModel;
-use dataset::schema::CROP_PX;
+use dataset::contract::schema::CROP_PX;
+use dataset::science::brdf::BrdfModel;
 
 use crate::kernels::TrainBackend;
 use crate::model::UNetConfig;

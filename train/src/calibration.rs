@@ -2,10 +2,10 @@
 //! must beat, and the head's start in `fit`), honest scales for uniform Hapke and Lunar-Lambert.
 
 use anyhow::{bail, Result};
-use dataset::brdf::BrdfModel;
-use dataset::geometry::PixelGeometry;
-use dataset::hapke::{lunar_lambert_i_over_f, HapkeParams};
-use dataset::schema::{Sample, Split};
+use dataset::contract::schema::{Sample, Split};
+use dataset::science::brdf::BrdfModel;
+use dataset::science::geometry::PixelGeometry;
+use dataset::science::hapke::{lunar_lambert_i_over_f, HapkeParams};
 
 use crate::baseline::{hapke_render, lit_render, truth_and_valid};
 use crate::data::{for_each_sample_group, SampleSource};
@@ -141,6 +141,6 @@ pub fn calibrate(
         hapke_scale: hapke.scale(),
         lunar_lambert_albedo: ll.scale(),
         model,
-        model_uniform: dataset::brdf::solve_small_system(ata, atb),
+        model_uniform: dataset::science::brdf::solve_small_system(ata, atb),
     })
 }

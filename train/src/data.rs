@@ -1,5 +1,5 @@
 //! Streaming training data: a [`SampleSource`] (local shards now; an HTTP source can implement the same trait),
-//! the epoch order from [`dataset::planner`], dihedral augmentation, and a background thread that prefetches host
+//! the epoch order from [`dataset::contract::planner`], dihedral augmentation, and a background thread that prefetches host
 //! batches while the device computes.
 
 use std::collections::BTreeMap;
@@ -9,10 +9,10 @@ use std::sync::Arc;
 use std::thread::JoinHandle;
 
 use anyhow::{bail, Context, Result};
-use dataset::manifest::DatasetManifest;
-use dataset::planner::{plan_epoch, plan_weighted_epoch, RowGroupRef};
-use dataset::rng::keyed_rng;
-use dataset::schema::{Sample, Split, CONTEXT_PX, DEM_PX};
+use dataset::contract::manifest::DatasetManifest;
+use dataset::contract::planner::{plan_epoch, plan_weighted_epoch, RowGroupRef};
+use dataset::contract::rng::keyed_rng;
+use dataset::contract::schema::{Sample, Split, CONTEXT_PX, DEM_PX};
 use rand::Rng;
 use rayon::prelude::*;
 
@@ -58,7 +58,7 @@ impl SampleSource for LocalSource {
     fn row_groups(&self, split: Split) -> Result<Vec<RowGroupRef>> {
         let mut groups = Vec::new();
         for shard in self.manifest.split_shards(split) {
-            let sizes = dataset::shard::row_group_sizes(&self.dir.join(shard))?;
+            let sizes = dataset::contract::shard::row_group_sizes(&self.dir.join(shard))?;
             groups.extend(
                 sizes
                     .into_iter()
@@ -74,7 +74,7 @@ impl SampleSource for LocalSource {
     }
 
     fn read_row_group(&self, group: &RowGroupRef) -> Result<Vec<Sample>> {
-        Ok(dataset::shard::read_row_group(
+        Ok(dataset::contract::shard::read_row_group(
             &self.dir.join(&group.shard),
             group.row_group,
         )?)
@@ -137,8 +137,8 @@ impl SampleSource for HttpSource {
         let response = self
             .client
             .get_ok(&path, &[("Accept", dataset::client::ARROW_STREAM)])?;
-        let samples =
-            dataset::shard::samples_from_ipc_stream(&response.body).with_context(|| {
+        let samples = dataset::contract::shard::samples_from_ipc_stream(&response.body)
+            .with_context(|| {
                 format!(
                     "{}{path}: not an Arrow IPC stream of samples",
                     self.client.base_url()
@@ -237,10 +237,10 @@ impl HostBatch {
 
 /// A sample's interior heights (the `128²` crop inside the one-pixel apron), row-major, metres.
 pub fn crop_interior_m(sample: &Sample) -> Vec<f64> {
-    dataset::schema::crop_interior(&sample.dem_m).collect()
+    dataset::contract::schema::crop_interior(&sample.dem_m).collect()
 }
 
-/// Mean slope of the crop's delivered DEM in degrees: the tilt of [`dataset::geometry::plane_normal`] from central
+/// Mean slope of the crop's delivered DEM in degrees: the tilt of [`dataset::science::geometry::plane_normal`] from central
 /// differences over the crop's own cells (the apron gives their neighbours), on the map grid (the slope's size
 /// does not depend on which way rows run).
 pub fn mean_slope_deg(sample: &Sample) -> f64 {
@@ -251,7 +251,7 @@ pub fn mean_slope_deg(sample: &Sample) -> f64 {
         for c in 1..n - 1 {
             let dx = (h(c + 1, r) - h(c - 1, r)) / (2.0 * gsd);
             let dy = (h(c, r + 1) - h(c, r - 1)) / (2.0 * gsd);
-            sum += dataset::geometry::plane_normal(dx, dy)
+            sum += dataset::science::geometry::plane_normal(dx, dy)
                 .z
                 .clamp(-1.0, 1.0)
                 .acos();
@@ -264,7 +264,7 @@ pub fn mean_slope_deg(sample: &Sample) -> f64 {
 /// epoch draws more often: on tycho-full they are 28 % of the test crops and hold the complex crater's walls.
 pub const STEEP_SLOPE_DEG: f64 = 20.0;
 
-/// Each row's draw weight for a steep-weighted epoch ([`dataset::planner::plan_weighted_epoch`]), in the split's
+/// Each row's draw weight for a steep-weighted epoch ([`dataset::contract::planner::plan_weighted_epoch`]), in the split's
 /// row-group order, then row order: `steep_weight` for a crop whose mean slope is at least [`STEEP_SLOPE_DEG`],
 /// 1 otherwise. The slope is the delivered DEM's, so the weighting needs no truth. One pass over the split.
 pub fn steep_row_weights(
@@ -302,7 +302,7 @@ pub struct InputNormalisation {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub elevation: Option<ElevationNormalisation>,
     /// Context input, when the run uses one (`--context-input`): the sample's wide coarse DEM window
-    /// (`dataset::context`) relative to the crop's mean height, so the network sees whether the crop lies in a
+    /// (`dataset::contract::context`) relative to the crop's mean height, so the network sees whether the crop lies in a
     /// crater, on its wall or on a plain kilometres across.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub context: Option<ContextNormalisation>,
@@ -644,7 +644,7 @@ impl Iterator for EpochStream {
 
 /// Call `f` with the samples of each row group of a split in file order, one row group in memory at a time,
 /// whatever the split's size. With `max` below the split's size, the samples are `max` rows spread evenly over the
-/// whole split ([`dataset::planner::spread_rows`]), not its first rows: evaluation, validation and calibration
+/// whole split ([`dataset::contract::planner::spread_rows`]), not its first rows: evaluation, validation and calibration
 /// subsets then see every ortho and tile.
 pub fn for_each_sample_group(
     source: &dyn SampleSource,
@@ -653,7 +653,7 @@ pub fn for_each_sample_group(
     mut f: impl FnMut(&[Sample]),
 ) -> Result<()> {
     let groups = source.row_groups(split)?;
-    let picks = dataset::planner::spread_rows(&groups, max.unwrap_or(usize::MAX));
+    let picks = dataset::contract::planner::spread_rows(&groups, max.unwrap_or(usize::MAX));
     // Picks are in file order, so each group is read once, and only groups that hold a pick are read.
     for chunk in picks.chunk_by(|a, b| a.group == b.group) {
         let group = &groups[chunk[0].group];
@@ -731,7 +731,7 @@ mod tests {
         s.dem_m = vec![crop_m; DEM_PX * DEM_PX];
         let mut heights_m = vec![f32::NAN; CONTEXT_PX * CONTEXT_PX];
         heights_m[..context_m.len()].copy_from_slice(context_m);
-        s.context = Some(dataset::schema::ContextWindow { gsd_m, heights_m });
+        s.context = Some(dataset::contract::schema::ContextWindow { gsd_m, heights_m });
         s
     }
 

@@ -4,7 +4,7 @@
 //! at 0 px: the share of matches within 1 / 3 / 5 px says whether the rendering reproduces the features a
 //! navigation matcher would lock on. The paper used a learned matcher, which is not available here.
 
-use dataset::rng::keyed_rng;
+use dataset::contract::rng::keyed_rng;
 use image::GrayImage;
 use imageproc::binary_descriptors::brief::{brief, BriefDescriptor, TestPair};
 use imageproc::binary_descriptors::BinaryDescriptor;

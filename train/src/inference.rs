@@ -11,9 +11,9 @@ use std::path::Path;
 
 use anyhow::{bail, Context, Result};
 use burn::prelude::*;
-use dataset::brdf::{inverse_leaky_relu, leaky_relu, BrdfModel, LEAKY_SLOPE};
-use dataset::raster::{BandOut, BandValues, Raster, RasterLayout};
-use dataset::schema::{CONTEXT_PX, CROP_PX};
+use dataset::contract::schema::{CONTEXT_PX, CROP_PX};
+use dataset::science::brdf::{inverse_leaky_relu, leaky_relu, BrdfModel, LEAKY_SLOPE};
+use dataset::science::raster::{BandOut, BandValues, Raster, RasterLayout};
 
 use crate::data::InputNormalisation;
 use crate::kernels::TrainOps;
@@ -163,7 +163,7 @@ pub fn infer_params<B: TrainOps>(
     let context = options
         .input
         .context
-        .map(|c| dataset::context::ContextSampler::new(dem, c.gsd_m));
+        .map(|c| dataset::contract::context::ContextSampler::new(dem, c.gsd_m));
     for (b, batch) in origins.chunks(options.batch_size.max(1)).enumerate() {
         let mut input = Vec::with_capacity(batch.len() * options.input.channels() * npx);
         let mut context_input = Vec::new();
@@ -337,7 +337,7 @@ pub fn write_params_geotiff(
         crs: &dem.crs,
         nodata: f32::NAN,
     };
-    dataset::raster::write_geotiff(
+    dataset::science::raster::write_geotiff(
         path,
         &layout,
         &bands,
@@ -356,7 +356,7 @@ pub fn write_params_geotiff(
 /// Render the maps over the DEM with one sun direction and a nadir camera (normals by central differences, cast
 /// shadows ignored): enough to see seams, which live in the parameters, not in the geometry.
 pub fn render_maps(maps: &ParamMaps, dem: &Raster, sun_dir_enu: [f64; 3]) -> Vec<f64> {
-    use dataset::geometry::{plane_normal, Cosines, HalfDiffCosines};
+    use dataset::science::geometry::{plane_normal, Cosines, HalfDiffCosines};
     let (w, h) = (maps.width, maps.height);
     let gsd = dem.transform.gsd_m();
     let sun = glam::DVec3::from(sun_dir_enu).normalize();

@@ -1,7 +1,7 @@
 //! `train`: the Burn side. Read in data-flow order:
 //! - [`data`] (shards → host batches, epoch order, prefetch) with [`augment`];
 //! - [`model`] (U-Net, its hot operations in [`kernels`]) → [`renderer_layer`] (the differentiable renderer layer,
-//!   the batched twin of `dataset::brdf`) → [`metrics`];
+//!   the batched twin of `dataset::science::brdf`) → [`metrics`];
 //! - [`training`] (the fit loop) writing a [`run`] directory (config, history, checkpoints, loading), with
 //!   [`averaging`] (the weight average) and [`calibration`] (uniform least-squares fits);
 //! - [`prediction`] (inference-mode renderings, symmetry means, ensembles) → [`evaluation`] (against baselines,

@@ -119,7 +119,7 @@ impl<B: Backend> ContextEncoder<B> {
             norms.push(BatchNormConfig::new(c_out).init(device));
             c = c_out;
         }
-        let cells = (dataset::schema::CONTEXT_PX / 8).pow(2);
+        let cells = (dataset::contract::schema::CONTEXT_PX / 8).pow(2);
         Self {
             convs,
             norms,

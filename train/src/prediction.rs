@@ -2,14 +2,14 @@
 //! views, or the mean of several runs (a seed ensemble).
 
 use burn::prelude::*;
-use dataset::brdf::BrdfModel;
+use dataset::science::brdf::BrdfModel;
 
 use crate::augment::Dihedral;
 use crate::data::{HostBatch, InputNormalisation};
 use crate::kernels::TrainOps;
 use crate::model::UNet;
 use crate::renderer_layer::{render, SceneTerms};
-use dataset::schema::{Sample, CONTEXT_PX, CROP_PX};
+use dataset::contract::schema::{Sample, CONTEXT_PX, CROP_PX};
 
 use crate::run::TrainedRun;
 

@@ -1,18 +1,18 @@
 //! The differentiable renderer layer: predicted raw parameter maps and a batch's geometry (DEM crops with apron,
 //! per-sample sun direction, camera position and map→ground Jacobian, lit fraction, valid mask) → rendered I/F,
 //! `I = E · V_sun · Σ LeakyReLU(p_k) · T_k` with E = 1 (the parameters carry the scale) and f = 0 where the
-//! surface faces away from sun or camera, as in [`dataset::brdf`].
+//! surface faces away from sun or camera, as in [`dataset::science::brdf`].
 //!
 //! Only the parameter maps carry a gradient; the geometry is a constant of the batch. So the geometric terms
 //! `T_k · V_sun` (zero where the surface faces away) are evaluated once per batch on the host, by the scalar f64
-//! reference itself ([`dataset::geometry::crop_pixel_geometry`], [`BrdfModel::terms`]) in parallel over samples,
+//! reference itself ([`dataset::science::geometry::crop_pixel_geometry`], [`BrdfModel::terms`]) in parallel over samples,
 //! and uploaded as one `[N, P, 128, 128]` tensor; on the device the layer is one multiply-and-sum forward and
 //! one multiply backward. One home for the geometry (the reference), no f32 rounding of near-degenerate
 //! geometry (M6's azimuths, Hapke's opposition peak), and no per-pixel vector algebra in tensor operations.
 
 use burn::prelude::*;
-use dataset::brdf::{BrdfModel, LEAKY_SLOPE};
-use dataset::schema::{CROP_PX, DEM_PX};
+use dataset::contract::schema::{CROP_PX, DEM_PX};
+use dataset::science::brdf::{BrdfModel, LEAKY_SLOPE};
 use rayon::prelude::*;
 
 use crate::data::HostBatch;
@@ -64,7 +64,8 @@ pub fn host_terms<T: Copy + Default + Send>(
             let (grid, sun, camera) = sample_frame(batch, i);
             let heights = &batch.relative_heights_m[i * DEM_PX * DEM_PX..(i + 1) * DEM_PX * DEM_PX];
             let lit = &batch.lit[i * npx..(i + 1) * npx];
-            let frames = dataset::geometry::crop_pixel_frames(heights, CROP_PX, &grid, camera);
+            let frames =
+                dataset::science::geometry::crop_pixel_frames(heights, CROP_PX, &grid, camera);
             for (px, (normal, view)) in frames.enumerate() {
                 if let Some(terms) = model.pixel_terms(normal, sun, view) {
                     for (k, t) in terms.into_iter().take(p).enumerate() {
@@ -98,13 +99,13 @@ pub fn render_loss<B: TrainOps>(
     )
 }
 
-/// The scalar f64 reference ([`dataset::geometry::crop_pixel_geometry`] + [`dataset::brdf::render_crop`]) applied
+/// The scalar f64 reference ([`dataset::science::geometry::crop_pixel_geometry`] + [`dataset::science::brdf::render_crop`]) applied
 /// to a host batch, sample by sample: what [`render`] must reproduce. `planar_params` is `N × P × 128²`.
 pub fn reference_render(model: BrdfModel, batch: &HostBatch, planar_params: &[f64]) -> Vec<f64> {
     let (npx, p) = (CROP_PX * CROP_PX, model.param_count());
     let mut out = Vec::with_capacity(batch.len() * npx);
     for i in 0..batch.len() {
-        out.extend(dataset::brdf::render_crop(
+        out.extend(dataset::science::brdf::render_crop(
             model,
             &planar_params[i * p * npx..(i + 1) * p * npx],
             &host_pixel_geometry(batch, i),
@@ -115,10 +116,13 @@ pub fn reference_render(model: BrdfModel, batch: &HostBatch, planar_params: &[f6
     out
 }
 
-/// The scalar reference geometry ([`dataset::geometry::crop_pixel_geometry`]) of sample `i` of a host batch.
-pub fn host_pixel_geometry(batch: &HostBatch, i: usize) -> Vec<dataset::geometry::PixelGeometry> {
+/// The scalar reference geometry ([`dataset::science::geometry::crop_pixel_geometry`]) of sample `i` of a host batch.
+pub fn host_pixel_geometry(
+    batch: &HostBatch,
+    i: usize,
+) -> Vec<dataset::science::geometry::PixelGeometry> {
     let (grid, sun, camera) = sample_frame(batch, i);
-    dataset::geometry::crop_pixel_geometry(
+    dataset::science::geometry::crop_pixel_geometry(
         &batch.relative_heights_m[i * DEM_PX * DEM_PX..(i + 1) * DEM_PX * DEM_PX],
         CROP_PX,
         &grid,
@@ -131,8 +135,12 @@ pub fn host_pixel_geometry(batch: &HostBatch, i: usize) -> Vec<dataset::geometry
 fn sample_frame(
     batch: &HostBatch,
     i: usize,
-) -> (dataset::geometry::CropGrid, glam::DVec3, glam::DVec3) {
-    let grid = dataset::geometry::CropGrid {
+) -> (
+    dataset::science::geometry::CropGrid,
+    glam::DVec3,
+    glam::DVec3,
+) {
+    let grid = dataset::science::geometry::CropGrid {
         gsd_m: batch.gsd_m[i],
         map_to_en: batch.map_to_en[4 * i..4 * i + 4]
             .try_into()

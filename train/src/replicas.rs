@@ -1,5 +1,5 @@
 //! Data-parallel training in one process (`fit --replicas N`): one thread per replica, each on its own device,
-//! each taking rank `r` of `N`'s stride of every epoch's rows ([`dataset::planner`]), its gradients averaged with
+//! each taking rank `r` of `N`'s stride of every epoch's rows ([`dataset::contract::planner`]), its gradients averaged with
 //! the others' after every backward pass by burn-collective's all-reduce. Every replica starts from one network
 //! (cloned, so parameter ids agree: the all-reduce pairs gradients by id), takes the same averaged step and so
 //! holds the same weights and the same weight average; only the BatchNorm running statistics, which each replica

@@ -10,17 +10,17 @@
 //! - **Renderer** (with `--dem`): rays per pixel and shadows on/off against a 16-ray reference view.
 //! - **Projection resampling kernel** (with `--ortho` and `--dem`): area average (the pipeline's) against bilinear
 //!   and nearest point sampling of the cell centre, on crops cut from a real ortho: time per crop against the
-//!   RMS difference from the exact area average. The kernels live in `dataset::resample`, shared with the stage.
+//!   RMS difference from the exact area average. The kernels live in `dataset::science::resample`, shared with the stage.
 
 use std::path::Path;
 use std::time::Instant;
 
 use anyhow::Result;
-use dataset::brdf::BrdfModel;
-use dataset::geometry::PixelGeometry;
-use dataset::hapke::HapkeParams;
-use dataset::raster::Raster;
-use dataset::schema::{Sample, Split};
+use dataset::contract::schema::{Sample, Split};
+use dataset::science::brdf::BrdfModel;
+use dataset::science::geometry::PixelGeometry;
+use dataset::science::hapke::HapkeParams;
+use dataset::science::raster::Raster;
 
 use crate::baseline::hapke_from_geometry;
 use crate::calibration::{calibrate, lunar_lambert_from_geometry, model_uniform_from_geometry};
@@ -267,11 +267,11 @@ pub fn renderer_rows(dem: &Raster) -> Result<Vec<RenderRow>> {
 /// (only crops the area average finds fully valid), each kernel timed over all of them.
 pub fn resampling_rows(
     ortho: &Raster,
-    dem: &dataset::raster::GeoTransform,
+    dem: &dataset::science::raster::GeoTransform,
     max_crops: usize,
 ) -> Vec<ResampleRow> {
-    use dataset::resample::{resample_cells, ResampleKernel};
-    use dataset::schema::CROP_PX;
+    use dataset::contract::schema::CROP_PX;
+    use dataset::science::resample::{resample_cells, ResampleKernel};
     let ot = &ortho.transform;
     // The ortho's extent in DEM cell coordinates (corner convention).
     let (a, b) = (
@@ -505,7 +505,10 @@ pub fn run_job<B: TrainOps>(job: &ReportJob, device: &B::Device) -> Result<Repor
         job.max_samples,
         job.calibration_samples,
     )?;
-    let raster = job.dem.map(dataset::raster::read_raster).transpose()?;
+    let raster = job
+        .dem
+        .map(dataset::science::raster::read_raster)
+        .transpose()?;
     let renderer = raster
         .as_ref()
         .map(renderer_rows)
@@ -527,7 +530,7 @@ pub fn run_job<B: TrainOps>(job: &ReportJob, device: &B::Device) -> Result<Repor
     };
     let resampling = match (job.ortho, raster.as_ref()) {
         (Some(ortho), Some(raster)) => {
-            let image = dataset::raster::read_raster(ortho)?;
+            let image = dataset::science::raster::read_raster(ortho)?;
             let corners = image.transform.corners(image.width, image.height);
             anyhow::ensure!(
                 raster.crs.same_map(&image.crs, &corners)?,
@@ -554,7 +557,7 @@ pub fn run_job<B: TrainOps>(job: &ReportJob, device: &B::Device) -> Result<Repor
 /// Write `report.json`, `report.md` and one PNG per measured section into `out`.
 pub fn write(report: &Report, out: &Path) -> Result<()> {
     std::fs::create_dir_all(out)?;
-    dataset::manifest::write_json_atomic(&out.join("report.json"), report)?;
+    dataset::contract::manifest::write_json_atomic(&out.join("report.json"), report)?;
     let mut text = markdown(report);
     let font = crate::plot::system_font();
     for (file, title, x_label, points) in plots(report) {
@@ -578,6 +581,6 @@ pub fn write(report: &Report, out: &Path) -> Result<()> {
         );
         text.push_str("\n(Plots drawn without labels: no system font was found.)\n");
     }
-    dataset::manifest::write_text_atomic(&out.join("report.md"), &text)?;
+    dataset::contract::manifest::write_text_atomic(&out.join("report.md"), &text)?;
     Ok(())
 }

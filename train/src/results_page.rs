@@ -103,7 +103,7 @@ pub fn render_results_page(dir: &Path) -> Result<String> {
 /// Write the page for the records in `records` to `out` (atomically: a reader never sees half a page).
 pub fn write_results_page(records: &Path, out: &Path) -> Result<()> {
     let page = render_results_page(records)?;
-    dataset::manifest::write_text_atomic(out, &page)
+    dataset::contract::manifest::write_text_atomic(out, &page)
         .with_context(|| format!("{}: cannot write the results page", out.display()))
 }
 

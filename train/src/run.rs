@@ -11,7 +11,7 @@ use burn::optim::Optimizer;
 use burn::prelude::*;
 use burn::record::{FullPrecisionSettings, NamedMpkFileRecorder, Recorder};
 use burn::tensor::backend::AutodiffBackend;
-use dataset::brdf::BrdfModel;
+use dataset::science::brdf::BrdfModel;
 
 use crate::data::{InputNormalisation, StreamConfig, CONTEXT_CHANNELS};
 use crate::metrics::AggregateMetrics;
@@ -347,7 +347,7 @@ pub(crate) fn save_model<B: Backend>(net: &UNet<B>, path: &Path, recorder: &Rec)
 }
 
 pub(crate) fn write_json<T: serde::Serialize>(path: &Path, value: &T) -> Result<()> {
-    dataset::manifest::write_json_atomic(path, value)
+    dataset::contract::manifest::write_json_atomic(path, value)
         .with_context(|| format!("writing {}", path.display()))
 }
 

@@ -1,9 +1,9 @@
 //! Test and bench fixtures: synthetic samples with a known answer, hard geometric cases, parameter fields, and
 //! synthetic datasets on disk. Used by this crate's tests, `bench`, and the workspace tests; never by training.
 
-use dataset::brdf::{render_crop, BrdfModel};
-use dataset::geometry::{crop_pixel_geometry, CropGrid};
-use dataset::schema::{ContextWindow, Sample, Split, CONTEXT_PX, CROP_PX, DEM_PX};
+use dataset::contract::schema::{ContextWindow, Sample, Split, CONTEXT_PX, CROP_PX, DEM_PX};
+use dataset::science::brdf::{render_crop, BrdfModel};
+use dataset::science::geometry::{crop_pixel_geometry, CropGrid};
 use rand::Rng;
 
 use crate::data::{HostBatch, InputNormalisation};
@@ -11,9 +11,13 @@ use crate::data::{HostBatch, InputNormalisation};
 /// A DEM GeoTIFF-ready raster for inference tests: `width × height` cells of 5 m in the Tycho region's
 /// equirectangular CRS, a gently undulating plain at `base_height_m` with one parabolic bowl in its middle (radius
 /// a quarter of the shorter side, depth a fifth of the radius).
-pub fn bowl_dem(width: usize, height: usize, base_height_m: f64) -> dataset::raster::Raster {
-    use dataset::crs::LunarCrs;
-    use dataset::raster::{GeoTransform, Raster};
+pub fn bowl_dem(
+    width: usize,
+    height: usize,
+    base_height_m: f64,
+) -> dataset::science::raster::Raster {
+    use dataset::science::crs::LunarCrs;
+    use dataset::science::raster::{GeoTransform, Raster};
     let gsd = 5.0;
     let mut r = Raster::new(
         width,
@@ -44,7 +48,7 @@ pub fn bowl_dem(width: usize, height: usize, base_height_m: f64) -> dataset::ras
 /// a camera 50 km up and up to 3 km off-nadir, every 11th pixel invalid, every 13th half lit. The image is
 /// rendered by the scalar reference with a smooth "true" M2 parameter field, so a network can fit it exactly.
 pub fn synthetic_samples(n: usize, seed: u64) -> Vec<Sample> {
-    let mut rng = dataset::rng::keyed_rng(seed, "synthetic-samples", 0);
+    let mut rng = dataset::contract::rng::keyed_rng(seed, "synthetic-samples", 0);
     let origin_height_m = -1200.0;
     (0..n)
         .map(|i| {
@@ -159,7 +163,7 @@ pub fn hard_case_samples() -> Vec<Sample> {
 /// Raw parameter maps `N × P × 128²` for tests: smooth, of both signs (LeakyReLU's negative side is exercised),
 /// kept ≥ 1e-2 away from the kink at 0 so finite differences (step 1e-3) never straddle it.
 pub fn test_params(model: BrdfModel, n: usize, seed: u64) -> Vec<f64> {
-    let mut rng = dataset::rng::keyed_rng(seed, "test-params", 0);
+    let mut rng = dataset::contract::rng::keyed_rng(seed, "test-params", 0);
     let npx = CROP_PX * CROP_PX;
     (0..n * model.param_count())
         .flat_map(|_| {

@@ -15,8 +15,8 @@ use burn::module::AutodiffModule;
 use burn::optim::{AdamConfig, GradientsParams, Optimizer};
 use burn::prelude::*;
 use burn::record::Recorder;
-use dataset::brdf::BrdfModel;
-use dataset::rng::keyed_u64;
+use dataset::contract::rng::keyed_u64;
+use dataset::science::brdf::BrdfModel;
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::data::{
@@ -29,7 +29,7 @@ use crate::metrics::{AggregateMetrics, MetricsAccumulator};
 use crate::model::{UNet, UNetConfig};
 use crate::renderer_layer::{render_loss, SceneTerms};
 use crate::replicas::Replica;
-use dataset::schema::{Split, CROP_PX};
+use dataset::contract::schema::{Split, CROP_PX};
 
 use crate::prediction::{net_outputs, predict_images};
 use crate::run::{
@@ -287,7 +287,7 @@ pub fn fit_replicated<B: TrainBackend>(
         let raw: Vec<f64> = fit
             .model_uniform
             .iter()
-            .map(|&c| dataset::brdf::inverse_leaky_relu(c))
+            .map(|&c| dataset::science::brdf::inverse_leaky_relu(c))
             .collect();
         let net = net.with_uniform_head(&raw, device);
         let optim = AdamConfig::new().with_epsilon(1e-8).init::<B, UNet<B>>();
@@ -780,10 +780,10 @@ pub fn compare_models<B: TrainBackend>(
     );
     std::fs::create_dir_all(out)?;
     let markdown = format!("{budget}{table}");
-    dataset::manifest::write_text_atomic(
+    dataset::contract::manifest::write_text_atomic(
         &out.join("compare.md"),
         &format!("# BRDF model comparison\n\n{markdown}"),
     )?;
-    dataset::manifest::write_json_atomic(&out.join("compare.json"), &rows)?;
+    dataset::contract::manifest::write_json_atomic(&out.join("compare.json"), &rows)?;
     Ok(markdown)
 }

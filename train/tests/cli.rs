@@ -58,14 +58,14 @@ fn bad_inputs_fail_with_one_line_naming_the_file_and_the_fix() {
     )
     .unwrap();
     std::fs::write(d.join("not-a-dem.tif"), b"not a tiff").unwrap();
-    let dem = dataset::raster::Raster::new(
+    let dem = dataset::science::raster::Raster::new(
         4,
         4,
-        dataset::raster::GeoTransform::north_up(0.0, 0.0, 5.0),
-        dataset::crs::LunarCrs::equirectangular(-43.31, -11.36),
+        dataset::science::raster::GeoTransform::north_up(0.0, 0.0, 5.0),
+        dataset::science::crs::LunarCrs::equirectangular(-43.31, -11.36),
         -1200.0,
     );
-    dataset::raster::write_raster(&d.join("dem.tif"), &dem, &[]).unwrap();
+    dataset::science::raster::write_raster(&d.join("dem.tif"), &dem, &[]).unwrap();
     train::testing::write_synthetic_dataset(
         &d.join("data"),
         train::testing::synthetic_samples(2, 1),

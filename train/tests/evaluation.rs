@@ -5,9 +5,9 @@
 use burn::backend::Flex;
 use burn::module::Module;
 use burn::prelude::Backend;
-use dataset::brdf::BrdfModel;
-use dataset::hapke::HapkeParams;
-use dataset::schema::{Split, CROP_PX};
+use dataset::contract::schema::{Split, CROP_PX};
+use dataset::science::brdf::BrdfModel;
+use dataset::science::hapke::HapkeParams;
 use train::baseline::{hapke_render, normalise_like_paper};
 use train::calibration::calibrate;
 use train::data::{HostBatch, InputNormalisation, LocalSource, SampleSource, StreamConfig};
@@ -384,8 +384,8 @@ fn report_rows_cover_every_model_and_the_plot_is_written() {
 
 #[test]
 fn report_resampling_section_measures_point_kernels_against_the_area_average() {
-    use dataset::crs::LunarCrs;
-    use dataset::raster::{GeoTransform, Raster};
+    use dataset::science::crs::LunarCrs;
+    use dataset::science::raster::{GeoTransform, Raster};
     // A 2 m ortho with fine texture (a 2 m checkerboard over a ramp) and a 5 m grid offset from it by 3 m / 1 m.
     let crs = LunarCrs::equirectangular(0.0, 0.0);
     let mut ortho = Raster::new(700, 400, GeoTransform::north_up(0.0, 0.0, 2.0), crs, 0.0);

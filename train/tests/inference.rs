@@ -3,10 +3,10 @@
 
 use burn::backend::Flex;
 use burn::prelude::*;
-use dataset::brdf::BrdfModel;
-use dataset::crs::LunarCrs;
-use dataset::raster::{read_bands, write_raster, GeoTransform, Raster};
-use dataset::schema::{Sample, CROP_PX};
+use dataset::contract::schema::{Sample, CROP_PX};
+use dataset::science::brdf::BrdfModel;
+use dataset::science::crs::LunarCrs;
+use dataset::science::raster::{read_bands, write_raster, GeoTransform, Raster};
 use train::augment::Dihedral;
 use train::data::HostBatch;
 use train::data::{

@@ -5,8 +5,8 @@
 use burn::backend::{Autodiff, Flex};
 use burn::prelude::*;
 use burn::tensor::{set_default_dtypes, FloatDType, IntDType};
-use dataset::brdf::BrdfModel;
-use dataset::schema::CROP_PX;
+use dataset::contract::schema::CROP_PX;
+use dataset::science::brdf::BrdfModel;
 use train::data::{HostBatch, InputNormalisation};
 use train::renderer_layer::{reference_render, render, render_loss, SceneTerms};
 use train::testing::{hard_case_samples, synthetic_samples, test_params};

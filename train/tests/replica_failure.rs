@@ -4,7 +4,7 @@
 use std::path::PathBuf;
 use std::sync::Arc;
 
-use dataset::schema::Split;
+use dataset::contract::schema::Split;
 use train::data::{LocalSource, SampleSource};
 use train::run::FitConfig;
 use train::training::fit_replicated;
@@ -23,16 +23,19 @@ impl SampleSource for BreaksAfter {
     fn describe(&self) -> String {
         self.inner.describe()
     }
-    fn manifest(&self) -> &dataset::manifest::DatasetManifest {
+    fn manifest(&self) -> &dataset::contract::manifest::DatasetManifest {
         self.inner.manifest()
     }
-    fn row_groups(&self, split: Split) -> anyhow::Result<Vec<dataset::planner::RowGroupRef>> {
+    fn row_groups(
+        &self,
+        split: Split,
+    ) -> anyhow::Result<Vec<dataset::contract::planner::RowGroupRef>> {
         self.inner.row_groups(split)
     }
     fn read_row_group(
         &self,
-        group: &dataset::planner::RowGroupRef,
-    ) -> anyhow::Result<Vec<dataset::schema::Sample>> {
+        group: &dataset::contract::planner::RowGroupRef,
+    ) -> anyhow::Result<Vec<dataset::contract::schema::Sample>> {
         if group.shard.contains("train") && self.broken_after.exists() {
             anyhow::bail!("{}: disk gone (injected)", group.shard);
         }

@@ -16,7 +16,7 @@ use burn::module::{AutodiffModule, Module, ModuleVisitor, Param, ParamId};
 use burn::optim::{AdamConfig, GradientsParams, Optimizer};
 use burn::prelude::*;
 use burn::record::Recorder;
-use dataset::schema::Split;
+use dataset::contract::schema::Split;
 use train::data::{EpochStream, HostBatch, StreamConfig};
 use train::model::UNet;
 use train::replicas::Replica;

@@ -5,7 +5,7 @@
 use std::path::PathBuf;
 
 use burn::backend::Flex;
-use dataset::brdf::BrdfModel;
+use dataset::science::brdf::BrdfModel;
 use train::inference::{infer_params, InferOptions, DEFAULT_OVERLAP};
 use train::run::{load_trained, Checkpoint};
 

@@ -9,8 +9,8 @@ use std::sync::Arc;
 use burn::backend::{Autodiff, Flex};
 use burn::module::Module;
 use burn::record::{FullPrecisionSettings, NamedMpkFileRecorder};
-use dataset::brdf::{inverse_leaky_relu, BrdfModel};
-use dataset::schema::CROP_PX;
+use dataset::contract::schema::CROP_PX;
+use dataset::science::brdf::{inverse_leaky_relu, BrdfModel};
 use train::data::{HostBatch, InputNormalisation, LocalSource, SampleSource, StreamConfig};
 use train::model::UNetConfig;
 use train::prediction::predict_images;
@@ -343,7 +343,7 @@ fn an_ensemble_loads_every_member_first_and_map_averaging_refuses_mixed_models()
 /// uniform draw gives), the same rows whenever the epoch is streamed again.
 #[test]
 fn steep_weighted_epochs_draw_steep_crops_in_proportion_to_their_weight() {
-    use dataset::schema::{Split, DEM_PX};
+    use dataset::contract::schema::{Split, DEM_PX};
     use train::data::{steep_row_weights, EpochStream};
     let dir = tempfile::tempdir().unwrap();
     let mut train_samples = synthetic_samples(40, 11);

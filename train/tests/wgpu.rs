@@ -18,7 +18,7 @@
 use std::path::Path;
 use std::process::Command;
 
-use dataset::raster::read_bands;
+use dataset::science::raster::read_bands;
 use serde_json::Value;
 use train::testing::{synthetic_samples, write_synthetic_dataset};
 
@@ -258,5 +258,5 @@ fn write_test_dem(out: &Path) {
             r.data[row * r.width + col] = f32::NAN;
         }
     }
-    dataset::raster::write_raster(out, &r, &[]).unwrap();
+    dataset::science::raster::write_raster(out, &r, &[]).unwrap();
 }

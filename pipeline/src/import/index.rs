@@ -20,9 +20,11 @@ use std::collections::HashMap;
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 
-use dataset::acquisition::j2000_seconds_from_iso_utc;
-use dataset::crs::{body_fixed_from_lonlat, enu_axes, lonlat_from_body_fixed, MOON_RADIUS_M};
-use dataset::geometry::angle_between;
+use dataset::contract::acquisition::j2000_seconds_from_iso_utc;
+use dataset::science::crs::{
+    body_fixed_from_lonlat, enu_axes, lonlat_from_body_fixed, MOON_RADIUS_M,
+};
+use dataset::science::geometry::angle_between;
 use glam::{DMat3, DQuat, DVec3};
 
 use super::{ImportError, ImportedGeometry};

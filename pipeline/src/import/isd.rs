@@ -20,8 +20,8 @@ use std::path::Path;
 use glam::{DMat3, DQuat, DVec3};
 
 use super::{ImportError, ImportedGeometry};
-use dataset::acquisition::utc_seconds_from_ephemeris_time;
-use dataset::crs::MOON_RADIUS_M;
+use dataset::contract::acquisition::utc_seconds_from_ephemeris_time;
+use dataset::science::crs::MOON_RADIUS_M;
 
 /// The J2000 frame's NAIF id: every vector and rotation of a usable ISD is referred to it.
 pub const J2000: i64 = 1;

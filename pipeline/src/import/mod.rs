@@ -1,6 +1,6 @@
 //! Acquisition metadata from the products LROC users hold: a USGS ALE image support data file ([`isd`]) or a row
 //! of the LROC cumulative index ([`index`]), turned into the project's per-ortho acquisition JSON
-//! (`dataset::acquisition::AcquisitionMetadata`: Moon body-fixed frame, metres, the units in every key).
+//! (`dataset::contract::acquisition::AcquisitionMetadata`: Moon body-fixed frame, metres, the units in every key).
 //!
 //! Both importers end in [`finish`]: the ortho's ground sample distance comes from the ortho itself, the off-nadir
 //! roll from the imported geometry, and the JSON is validated before it is written (atomically).
@@ -10,7 +10,7 @@ pub mod isd;
 
 use std::path::{Path, PathBuf};
 
-use dataset::acquisition::AcquisitionMetadata;
+use dataset::contract::acquisition::AcquisitionMetadata;
 use glam::{DQuat, DVec3};
 
 /// One-line import errors: the file, the key, and what was expected.
@@ -35,7 +35,7 @@ pub enum ImportError {
     #[error("{path}: {problem}")]
     Invalid { path: PathBuf, problem: String },
     #[error(transparent)]
-    Raster(#[from] dataset::raster::RasterError),
+    Raster(#[from] dataset::science::raster::RasterError),
 }
 
 impl ImportError {
@@ -69,15 +69,19 @@ pub fn finish(
     image: &Path,
     out: &Path,
 ) -> Result<AcquisitionMetadata, ImportError> {
-    let (_, info) = dataset::raster::open_lunar(image)?;
+    let (_, info) = dataset::science::raster::open_lunar(image)?;
     let image_file = relative_to(image, out.parent().unwrap_or(Path::new(".")));
     let q = geometry.camera_to_body.normalize();
     let mut meta = AcquisitionMetadata {
         ortho_id: geometry.product_id.clone(),
         image_file,
         camera_id: geometry.camera_id.clone(),
-        start_time_utc: dataset::acquisition::iso_utc_from_j2000_seconds(geometry.start_utc_s),
-        stop_time_utc: dataset::acquisition::iso_utc_from_j2000_seconds(geometry.stop_utc_s),
+        start_time_utc: dataset::contract::acquisition::iso_utc_from_j2000_seconds(
+            geometry.start_utc_s,
+        ),
+        stop_time_utc: dataset::contract::acquisition::iso_utc_from_j2000_seconds(
+            geometry.stop_utc_s,
+        ),
         sun_position_body_m: geometry.sun_body_m.into(),
         spacecraft_start_body_m: geometry.spacecraft_start_body_m.into(),
         spacecraft_stop_body_m: geometry.spacecraft_stop_body_m.into(),
@@ -141,9 +145,11 @@ pub fn import(
         }
     };
     let meta = finish(&geometry, image, out)?;
-    dataset::manifest::write_json_atomic(out, &meta).map_err(|source| ImportError::Io {
-        path: out.to_path_buf(),
-        source,
+    dataset::contract::manifest::write_json_atomic(out, &meta).map_err(|source| {
+        ImportError::Io {
+            path: out.to_path_buf(),
+            source,
+        }
     })?;
     Ok(meta)
 }

@@ -95,7 +95,7 @@ pub fn run_area_px(runs: &[Run]) -> u64 {
 /// Erosion runs on the DEM grid rather than at ortho resolution: a cell is valid only if *all* ortho pixels it
 /// overlaps are, so this is exact for crops aligned to the DEM grid, and 6× fewer cells for 2 m orthos.
 pub fn run(
-    dem: &dataset::raster::Raster,
+    dem: &dataset::science::raster::Raster,
     orthos: &[super::ingest::OrthoRecord],
     out: &std::path::Path,
 ) -> anyhow::Result<()> {
@@ -106,10 +106,10 @@ pub fn run(
     let per_ortho: Vec<Vec<Run>> = orthos
         .par_iter()
         .map(|record| -> anyhow::Result<Vec<Run>> {
-            let ortho = dataset::raster::read_raster(&record.image_path)?;
+            let ortho = dataset::science::raster::read_raster(&record.image_path)?;
             let (c0, r0, w, h, mask) = dem_cell_validity(&ortho, dem);
             drop(ortho);
-            let eroded = erode_square(&mask, w, h, dataset::schema::DEM_PX);
+            let eroded = erode_square(&mask, w, h, dataset::contract::schema::DEM_PX);
             Ok(to_runs(&eroded, w)
                 .into_iter()
                 .map(|run| Run {
@@ -143,8 +143,8 @@ pub fn run(
 
 /// The DEM window (c0, r0, width, height) under an ortho and its cell validity mask.
 pub fn dem_cell_validity(
-    ortho: &dataset::raster::Raster,
-    dem: &dataset::raster::Raster,
+    ortho: &dataset::science::raster::Raster,
+    dem: &dataset::science::raster::Raster,
 ) -> (usize, usize, usize, usize, Vec<u8>) {
     let (dt, ot) = (&dem.transform, &ortho.transform);
     let (oc0, or0) = dt.map_to_pixel(ot.origin_x, ot.origin_y);

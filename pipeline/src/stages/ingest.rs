@@ -5,9 +5,9 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context};
-use dataset::acquisition::AcquisitionMetadata;
-use dataset::crs::LocalFrame;
-use dataset::raster::open_lunar;
+use dataset::contract::acquisition::AcquisitionMetadata;
+use dataset::science::crs::LocalFrame;
+use dataset::science::raster::open_lunar;
 
 use super::table::{f64s, read_table, strings, write_table, Col};
 
@@ -41,7 +41,7 @@ pub fn metadata_files(ortho_dir: &Path) -> anyhow::Result<Vec<PathBuf>> {
     images.sort();
     for image in images {
         if !image.with_extension("json").exists() {
-            bail!("{}: orthoimage has no acquisition metadata; add {} (fields: dataset::acquisition::AcquisitionMetadata)", image.display(), image.with_extension("json").display());
+            bail!("{}: orthoimage has no acquisition metadata; add {} (fields: dataset::contract::acquisition::AcquisitionMetadata)", image.display(), image.with_extension("json").display());
         }
     }
     if files.is_empty() {

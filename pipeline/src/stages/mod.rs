@@ -14,7 +14,7 @@ pub mod table;
 use std::path::PathBuf;
 
 use anyhow::Context;
-use dataset::raster::Raster;
+use dataset::science::raster::Raster;
 
 use crate::manifest::PipelineManifest;
 use crate::runner::{Runner, Stage};
@@ -25,7 +25,7 @@ pub const STAGES: [&str; 6] = ["ingest", "erode", "sample", "split", "project", 
 /// Rows per row group of the projected split files and the shards cut from them: the default 256, or the whole
 /// shard when shards are smaller (the manifest requires `rows_per_shard` ≤ 256 or a multiple of 256).
 pub fn row_group_rows(rows_per_shard: usize) -> usize {
-    rows_per_shard.min(dataset::shard::ROW_GROUP_ROWS)
+    rows_per_shard.min(dataset::contract::shard::ROW_GROUP_ROWS)
 }
 
 /// Outputs of each stage, under the manifest's output directory.
@@ -71,7 +71,7 @@ impl LazyDem {
         if let Some(dem) = self.cell.get() {
             return Ok(dem);
         }
-        let dem = dataset::raster::read_raster(&self.path)?;
+        let dem = dataset::science::raster::read_raster(&self.path)?;
         Ok(self.cell.get_or_init(|| dem))
     }
 }
@@ -92,7 +92,7 @@ pub fn pipeline(
     let images: Vec<PathBuf> = metadata
         .iter()
         .map(|p| -> anyhow::Result<PathBuf> {
-            let meta = dataset::acquisition::AcquisitionMetadata::load(p)?;
+            let meta = dataset::contract::acquisition::AcquisitionMetadata::load(p)?;
             Ok(p.with_file_name(meta.image_file))
         })
         .collect::<anyhow::Result<_>>()?;
@@ -102,7 +102,8 @@ pub fn pipeline(
     });
     let provenance = format!("g2r-pipeline {}", env!("CARGO_PKG_VERSION"));
     // The footprint a split must contain: the whole DEM tensor, crop + apron (130 cells), not just the image.
-    let crop_half_m = |dem: &Raster| dataset::schema::DEM_PX as f64 / 2.0 * dem.transform.gsd_m();
+    let crop_half_m =
+        |dem: &Raster| dataset::contract::schema::DEM_PX as f64 / 2.0 * dem.transform.gsd_m();
     let seed = m.dataset.seed;
     let out_dir = m.out_dir();
     let lock_path = out_dir.join("pipeline.lock.json");
@@ -128,7 +129,7 @@ pub fn pipeline(
             .into_iter()
             .chain(images.iter().cloned())
             .collect(),
-        params: serde_json::json!({ "crop_with_apron_px": dataset::schema::DEM_PX }),
+        params: serde_json::json!({ "crop_with_apron_px": dataset::contract::schema::DEM_PX }),
         outputs: vec![layout.runs.clone()],
         run: Box::new(move |out| {
             erode::run(dem2.get()?, &ingest::read(&l2.orthos, &od)?, &out.paths[0])
@@ -187,7 +188,7 @@ pub fn pipeline(
     let project = Stage {
         name: "project",
         // 2: projects assigned positions only, into one file per split. 3: every sample carries its context
-        // window (schema 1.2). 4: context cells average blocks of pixels (dataset::context), not single pixels.
+        // window (schema 1.2). 4: context cells average blocks of pixels (dataset::contract::context), not single pixels.
         code_version: "4",
         // Everything projection reads: assigned positions, the DEM, and each ortho's image and metadata.
         inputs: [
@@ -233,7 +234,7 @@ pub fn pipeline(
     let check_dir = layout.dataset.clone();
     let publish = Stage {
         name: "publish",
-        // 2: card and Croissant written by dataset::publication. 3: shards copied from per-split files.
+        // 2: card and Croissant written by dataset::contract::publication. 3: shards copied from per-split files.
         code_version: "3",
         inputs: layout
             .split_samples
@@ -304,8 +305,10 @@ pub fn pipeline(
         }),
         // Shards are listed by manifest.json, not declared up front: a missing or altered shard makes publish stale.
         check: Some(Box::new(move || {
-            let manifest =
-                dataset::manifest::DatasetManifest::load(&check_dir.join("manifest.json")).ok()?;
+            let manifest = dataset::contract::manifest::DatasetManifest::load(
+                &check_dir.join("manifest.json"),
+            )
+            .ok()?;
             manifest.verify(&check_dir).into_iter().next()
         })),
     };

@@ -6,13 +6,15 @@
 //! Crop convention: centre (c, r) covers DEM columns c−64 … c+63 and rows r−64 … r+63; its centre point is the
 //! corner shared by the four middle cells, i.e. the geotransform at (c, r) in pixel-edge coordinates.
 
-use dataset::acquisition::AcquisitionMetadata;
-use dataset::context::ContextSampler;
-use dataset::crs::{CrsError, LocalFrame};
-use dataset::horizon::{visibility_window, HeightField, VisibilityWindow, SUN_ANGULAR_RADIUS_RAD};
-use dataset::raster::Raster;
-use dataset::resample::{resample_cells, ResampleKernel};
-use dataset::schema::{crop_interior, ContextWindow, Sample, CROP_PX, DEM_PX};
+use dataset::contract::acquisition::AcquisitionMetadata;
+use dataset::contract::context::ContextSampler;
+use dataset::contract::schema::{crop_interior, ContextWindow, Sample, CROP_PX, DEM_PX};
+use dataset::science::crs::{CrsError, LocalFrame};
+use dataset::science::horizon::{
+    visibility_window, HeightField, VisibilityWindow, SUN_ANGULAR_RADIUS_RAD,
+};
+use dataset::science::raster::Raster;
+use dataset::science::resample::{resample_cells, ResampleKernel};
 
 /// Rejection thresholds and shadow sampling, from the pipeline manifest.
 #[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
@@ -26,7 +28,7 @@ pub struct ProjectParams {
     pub max_occluded_fraction: f64,
     /// Elevation samples across the sun disk for soft shadows on the 5 m DEM.
     pub sun_disk_samples: usize,
-    /// Cell size of each sample's context window (`dataset::context`): 32 cells of 512 m see 16 km around the
+    /// Cell size of each sample's context window (`dataset::contract::context`): 32 cells of 512 m see 16 km around the
     /// crop, enough to hold a crater of ~10–20 km across and its ejecta.
     #[serde(default = "default_context_gsd_m")]
     pub context_gsd_m: f64,
@@ -88,7 +90,7 @@ impl<'a> OrthoProjector<'a> {
         let h = dem.bilinear(cc, cr);
         let frame = LocalFrame::new(&dem.crs, cx, cy, if h.is_finite() { h as f64 } else { 0.0 })?;
         let sun = frame.sun_dir_enu(meta.sun_body());
-        let mid = dataset::geometry::spacecraft_position_at(
+        let mid = dataset::science::geometry::spacecraft_position_at(
             meta.spacecraft_start_body_m.into(),
             meta.spacecraft_stop_body_m.into(),
             0.5,
@@ -207,7 +209,7 @@ impl<'a> OrthoProjector<'a> {
         Ok(Sample {
             sample_id: format!("{}:{col}:{row}", self.meta.ortho_id),
             // The caller places the sample: split and tile come from the assignment table.
-            split: dataset::schema::Split::Train,
+            split: dataset::contract::schema::Split::Train,
             tile_id: String::new(),
             ortho_id: self.meta.ortho_id.clone(),
             center_x_m: cx,
@@ -329,8 +331,10 @@ pub fn run(
                 .split_samples
                 .iter()
                 .map(|path| {
-                    Ok(dataset::shard::ShardWriter::create_unhashed(path)?
-                        .with_row_group_rows(row_group_rows))
+                    Ok(
+                        dataset::contract::shard::ShardWriter::create_unhashed(path)?
+                            .with_row_group_rows(row_group_rows),
+                    )
                 })
                 .collect::<anyhow::Result<Vec<_>>>()?;
             let mut train_dem = TrainDemStatistic::default();
@@ -376,7 +380,7 @@ pub fn run(
             .collect();
         scope.spawn(move || {
             for record in to_read {
-                let loaded = dataset::raster::read_raster(&record.image_path)
+                let loaded = dataset::science::raster::read_raster(&record.image_path)
                     .map_err(anyhow::Error::from)
                     .and_then(|ortho| {
                         Ok((ortho, AcquisitionMetadata::load(&record.metadata_path)?))
@@ -398,7 +402,7 @@ pub fn run(
                     .map_err(|_| anyhow::anyhow!("ortho reader thread stopped early"))??;
                 let projector =
                     OrthoProjector::new((dem, field), ortho, meta, params, provenance.to_string())?;
-                for chunk in positions.chunks(dataset::shard::ROW_GROUP_ROWS) {
+                for chunk in positions.chunks(dataset::contract::shard::ROW_GROUP_ROWS) {
                     let results: Vec<Result<(usize, Sample), Rejection>> = chunk
                         .par_iter()
                         .map(|&i| {
@@ -434,18 +438,18 @@ pub fn run(
             .join()
             .map_err(|_| anyhow::anyhow!("shard writer thread panicked"))?;
         projected?;
-        dataset::manifest::write_json_atomic(out.train_dem, &written?)?;
+        dataset::contract::manifest::write_json_atomic(out.train_dem, &written?)?;
         Ok(())
     })?;
-    dataset::manifest::write_json_atomic(out.rejections, &rejections)?;
+    dataset::contract::manifest::write_json_atomic(out.rejections, &rejections)?;
     Ok(())
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use dataset::crs::{body_fixed_from_lonlat, LunarCrs};
-    use dataset::raster::GeoTransform;
+    use dataset::science::crs::{body_fixed_from_lonlat, LunarCrs};
+    use dataset::science::raster::GeoTransform;
     use glam::DVec3;
 
     const H0: f32 = -1200.0;
@@ -625,11 +629,13 @@ mod tests {
         );
         // The camera images p when (spacecraft − p) ⟂ velocity: bisect on t.
         let along = |t: f64| {
-            (dataset::geometry::spacecraft_position_at(a, b, t + 1e-6)
-                - dataset::geometry::spacecraft_position_at(a, b, t - 1e-6))
+            (dataset::science::geometry::spacecraft_position_at(a, b, t + 1e-6)
+                - dataset::science::geometry::spacecraft_position_at(a, b, t - 1e-6))
             .normalize()
         };
-        let f = |t: f64| (dataset::geometry::spacecraft_position_at(a, b, t) - p).dot(along(t));
+        let f = |t: f64| {
+            (dataset::science::geometry::spacecraft_position_at(a, b, t) - p).dot(along(t))
+        };
         let (mut lo, mut hi) = (-1.0, 2.0);
         for _ in 0..80 {
             let mid = 0.5 * (lo + hi);
@@ -639,7 +645,8 @@ mod tests {
                 lo = mid
             }
         }
-        let camera = enu(dataset::geometry::spacecraft_position_at(a, b, 0.5 * (lo + hi)) - p);
+        let camera =
+            enu(dataset::science::geometry::spacecraft_position_at(a, b, 0.5 * (lo + hi)) - p);
         assert!(
             (DVec3::from(sample.sun_dir_enu) - sun).length() < 1e-9,
             "{:?} vs {sun:?}",

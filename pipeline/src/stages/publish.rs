@@ -6,11 +6,11 @@
 use std::collections::BTreeMap;
 use std::path::Path;
 
-use dataset::manifest::{write_json_atomic, DatasetManifest, ShardEntry};
-use dataset::publication::{croissant, dataset_card};
+use dataset::contract::manifest::{write_json_atomic, DatasetManifest, ShardEntry};
+use dataset::contract::publication::{croissant, dataset_card};
 
-use dataset::schema::SCHEMA_VERSION;
-use dataset::shard::{shard_name, EncodedRowGroups, ShardWriter};
+use dataset::contract::schema::SCHEMA_VERSION;
+use dataset::contract::shard::{shard_name, EncodedRowGroups, ShardWriter};
 
 use super::project::TrainDemStatistic;
 use super::split::{split_of_tile, tile_of, Split, SplitParams};

@@ -56,7 +56,7 @@ pub fn run(
         u32s(&batches, "start_col")?,
         u32s(&batches, "len")?,
     );
-    let crop_area_m2 = (dataset::schema::CROP_PX as f64 * dem_gsd_m).powi(2);
+    let crop_area_m2 = (dataset::contract::schema::CROP_PX as f64 * dem_gsd_m).powi(2);
     let (mut out_ids, mut out_cols, mut out_rows) = (Vec::new(), Vec::new(), Vec::new());
     let mut i = 0;
     while i < ids.len() {

@@ -6,7 +6,7 @@
 use serde::{Deserialize, Serialize};
 
 /// The split itself is part of the data contract: one type for schema, manifests, sources and command lines.
-pub use dataset::schema::Split;
+pub use dataset::contract::schema::Split;
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -81,7 +81,7 @@ pub fn split_of_footprint(
 /// project stage.
 pub fn run(
     positions_path: &std::path::Path,
-    dem_transform: &dataset::raster::GeoTransform,
+    dem_transform: &dataset::science::raster::GeoTransform,
     crop_half_m: f64,
     seed: u64,
     params: &SplitParams,
@@ -127,7 +127,7 @@ pub fn run(
             ("tile_id", Col::Str(tiles)),
         ],
     )?;
-    dataset::manifest::write_json_atomic(
+    dataset::contract::manifest::write_json_atomic(
         summary_out,
         &serde_json::json!({
             "dropped_straddling_splits": dropped,
@@ -139,7 +139,7 @@ pub fn run(
 }
 
 /// Map coordinates of the crop centred at DEM grid corner (col, row): where the project stage puts `center_x/y`.
-pub fn crop_centre_m(t: &dataset::raster::GeoTransform, col: u32, row: u32) -> (f64, f64) {
+pub fn crop_centre_m(t: &dataset::science::raster::GeoTransform, col: u32, row: u32) -> (f64, f64) {
     t.pixel_edge(col as f64, row as f64)
 }
 

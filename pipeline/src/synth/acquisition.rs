@@ -2,8 +2,8 @@
 //! 30 % slewed, from a ~50 km circular orbit. Produces the metadata a real user would have, plus the strip
 //! outline (which only the renderer uses; the pipeline finds valid pixels from nodata, as with real data).
 
-use dataset::acquisition::{iso_utc_from_j2000_seconds, AcquisitionMetadata};
-use dataset::crs::{LocalFrame, LunarCrs};
+use dataset::contract::acquisition::{iso_utc_from_j2000_seconds, AcquisitionMetadata};
+use dataset::science::crs::{LocalFrame, LunarCrs};
 use glam::{DMat3, DQuat, DVec2, DVec3};
 use rand::Rng;
 
@@ -137,7 +137,7 @@ fn plan_one(
     let (sc_start, sc_stop) = (spacecraft(start_map), spacecraft(stop_map));
 
     // Attitude at mid-strip: camera z = boresight toward the strip centre, x = along-track, y completes.
-    let sc_mid = dataset::geometry::spacecraft_position_at(sc_start, sc_stop, 0.5);
+    let sc_mid = dataset::science::geometry::spacecraft_position_at(sc_start, sc_stop, 0.5);
     let target = crs
         .body_fixed(cx, cy, base_height_m)
         .expect("scene CRS is valid");

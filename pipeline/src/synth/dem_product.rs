@@ -37,7 +37,7 @@ pub fn degrade(
             }
         });
     // 2. Separable Gaussian smoothing.
-    let heights = dataset::raster::gaussian_blur(&heights, w, h, cfg.smoothing_sigma_px);
+    let heights = dataset::science::raster::gaussian_blur(&heights, w, h, cfg.smoothing_sigma_px);
     // 3. Long-wavelength correlated error and white noise (per-row streams: deterministic under rayon).
     let correlated = Fbm {
         key: keyed_u64(seed, "dem-correlated-error", 0),

@@ -7,11 +7,11 @@
 //! body-fixed frame, standing in for SPICE's MOON_PA → MOON_ME offset. Any rotation that the importer undoes
 //! exactly would do; a real one keeps the numbers realistic.
 
-use dataset::acquisition::{
+use dataset::contract::acquisition::{
     ephemeris_time_from_utc_seconds, j2000_seconds_from_iso_utc, AcquisitionMetadata,
 };
-use dataset::crs::{lonlat_from_body_fixed, LunarCrs, MOON_RADIUS_M};
-use dataset::geometry::spacecraft_position_at;
+use dataset::science::crs::{lonlat_from_body_fixed, LunarCrs, MOON_RADIUS_M};
+use dataset::science::geometry::spacecraft_position_at;
 use glam::{DMat3, DQuat, DVec2, DVec3};
 
 use super::acquisition::Strip;

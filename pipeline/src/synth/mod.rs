@@ -17,10 +17,10 @@ pub mod units;
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context};
-use dataset::crs::LunarCrs;
-use dataset::manifest::{write_json_atomic, FileEntry};
-use dataset::raster::{write_geotiff, BandOut, BandValues, GeoTransform, RasterLayout};
-use dataset::world as layout;
+use dataset::contract::manifest::{write_json_atomic, FileEntry};
+use dataset::contract::world as layout;
+use dataset::science::crs::LunarCrs;
+use dataset::science::raster::{write_geotiff, BandOut, BandValues, GeoTransform, RasterLayout};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 use tracing::info;

@@ -2,11 +2,11 @@
 //! tile, soft cast shadows and camera occlusion swept on the fine DEM, pushbroom camera position per ground point,
 //! sensor noise. The ortho grid is the map grid, so rendering here is also orthorectification.
 
-use dataset::crs::{LocalFrame, LunarCrs, MOON_RADIUS_M};
-use dataset::geometry::{plane_normal, Cosines};
-use dataset::hapke::{hapke_i_over_f, HFunction, HapkeParams};
-use dataset::horizon::{visibility_window, HeightField, SUN_ANGULAR_RADIUS_RAD};
-use dataset::raster::bilinear;
+use dataset::science::crs::{LocalFrame, LunarCrs, MOON_RADIUS_M};
+use dataset::science::geometry::{plane_normal, Cosines};
+use dataset::science::hapke::{hapke_i_over_f, HFunction, HapkeParams};
+use dataset::science::horizon::{visibility_window, HeightField, SUN_ANGULAR_RADIUS_RAD};
+use dataset::science::raster::bilinear;
 use rand_distr::{Distribution, Normal};
 use rayon::prelude::*;
 
@@ -78,7 +78,7 @@ pub fn render_ortho(
         SUN_ANGULAR_RADIUS_RAD,
         acq.sun_disk_samples,
     );
-    let mid = dataset::geometry::spacecraft_position_at(
+    let mid = dataset::science::geometry::spacecraft_position_at(
         strip.meta.spacecraft_start_body_m.into(),
         strip.meta.spacecraft_stop_body_m.into(),
         0.5,

@@ -11,7 +11,7 @@ use super::noise::Fbm;
 use super::units::Units;
 use super::Grid;
 use crate::rng::{keyed_rng, keyed_u64};
-use dataset::world::TerrainClass;
+use dataset::contract::world::TerrainClass;
 
 /// One crater of the catalogue written to `truth/craters.json`.
 #[derive(Debug, Clone, Serialize, Deserialize)]

@@ -1,7 +1,7 @@
 //! The methods `eval` compares, and their renderings of one crop.
 
-use dataset::hapke::HapkeParams;
-use dataset::schema::Sample;
+use dataset::contract::schema::Sample;
+use dataset::science::hapke::HapkeParams;
 
 use crate::baseline::{hapke_render, normalise_like_paper, truth_and_valid};
 use crate::calibration::{lunar_lambert_render, model_uniform_render, Calibration};

@@ -28,7 +28,7 @@ use std::collections::BTreeMap;
 use std::path::Path;
 
 use anyhow::{bail, Context, Result};
-use dataset::schema::{Sample, Split, CROP_PX};
+use dataset::contract::schema::{Sample, Split, CROP_PX};
 use rayon::prelude::*;
 
 use crate::baseline::truth_and_valid;
@@ -302,8 +302,8 @@ pub fn run_job<B: TrainOps>(job: &EvalJob, device: &B::Device) -> Result<EvalRep
 /// Write `metrics.json` and `metrics.md` into `out` (atomically).
 pub fn write_report(report: &EvalReport, out: &Path) -> Result<()> {
     std::fs::create_dir_all(out)?;
-    dataset::manifest::write_json_atomic(&out.join("metrics.json"), report)?;
-    dataset::manifest::write_text_atomic(&out.join("metrics.md"), &markdown(report))?;
+    dataset::contract::manifest::write_json_atomic(&out.join("metrics.json"), report)?;
+    dataset::contract::manifest::write_text_atomic(&out.join("metrics.md"), &markdown(report))?;
     Ok(())
 }
 
@@ -312,10 +312,12 @@ mod tests {
     use super::*;
     use crate::calibration::{lunar_lambert_render, ScaleFit};
     use crate::metrics::ImageMetrics;
-    use dataset::crs::LunarCrs;
-    use dataset::hapke::lunar_lambert_i_over_f;
-    use dataset::raster::{write_geotiff, BandOut, BandValues, GeoTransform, RasterLayout};
-    use dataset::world::TerrainClass;
+    use dataset::contract::world::TerrainClass;
+    use dataset::science::crs::LunarCrs;
+    use dataset::science::hapke::lunar_lambert_i_over_f;
+    use dataset::science::raster::{
+        write_geotiff, BandOut, BandValues, GeoTransform, RasterLayout,
+    };
 
     /// A 4 × 4 truth/ folder: constant Hapke bands, and (optionally) a morphology albedo on `morphology_gsd_m`.
     fn tiny_world(dir: &Path, morphology_gsd_m: Option<f64>) {
@@ -403,7 +405,7 @@ mod tests {
     /// terrain class and unit come from the class map's cell under the centre.
     #[test]
     fn the_true_dem_replaces_the_crop_heights_cell_by_cell_and_the_class_map_names_the_ground() {
-        use dataset::schema::DEM_PX;
+        use dataset::contract::schema::DEM_PX;
         let tmp = tempfile::tempdir().unwrap();
         tiny_world(tmp.path(), None);
         let mut sample = crate::testing::synthetic_samples(1, 5).remove(0);
@@ -434,7 +436,7 @@ mod tests {
             description,
         };
         write_geotiff(
-            &tmp.path().join(dataset::world::TRUE_DEM),
+            &tmp.path().join(dataset::contract::world::TRUE_DEM),
             &layout,
             &[band(&heights, "h")],
             &[],
@@ -450,7 +452,8 @@ mod tests {
             })
             .unzip();
         write_geotiff(
-            &tmp.path().join(dataset::world::TRUE_TERRAIN_CLASS),
+            &tmp.path()
+                .join(dataset::contract::world::TRUE_TERRAIN_CLASS),
             &RasterLayout {
                 width: 200,
                 height: 200,
@@ -586,7 +589,7 @@ mod tests {
     #[test]
     fn mean_slope_of_a_tilted_plane_is_its_angle() {
         let mut sample = crate::testing::synthetic_samples(1, 3).remove(0);
-        let n = dataset::schema::DEM_PX;
+        let n = dataset::contract::schema::DEM_PX;
         // 5 m cells rising 5 m per cell eastwards: 45°.
         sample.gsd_m = 5.0;
         sample.dem_m = (0..n * n).map(|k| (k % n) as f32 * 5.0).collect();

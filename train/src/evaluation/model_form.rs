@@ -1,14 +1,14 @@
 //! The model-form oracle: the run's BRDF model with, at every pixel, the best coefficients a map that cannot see
 //! the geometry could hold for the world's true material there (least squares over the geometries of orbital
-//! images, [`dataset::brdf::orbital_geometries`]). Against `oracle` (the true Hapke maps) it isolates what the
+//! images, [`dataset::science::brdf::orbital_geometries`]). Against `oracle` (the true Hapke maps) it isolates what the
 //! model's *form* costs, whatever a network puts in its maps: H1's single scale, for instance, cannot follow a
 //! material whose phase function differs from the Moon-wide one.
 //!
 //! The true material varies only in w and b in the synthetic worlds (c, B_S0, h_S and θ̄ are constant bands), so
 //! the fits are tabulated once over a (w, b) grid and interpolated bilinearly per pixel.
 
-use dataset::brdf::{best_coefficients, orbital_geometries, BrdfModel};
-use dataset::hapke::{hapke_i_over_f, HFunction, HapkeParams};
+use dataset::science::brdf::{best_coefficients, orbital_geometries, BrdfModel};
+use dataset::science::hapke::{hapke_i_over_f, HFunction, HapkeParams};
 use rayon::prelude::*;
 
 /// Albedo nodes: 0.02..=0.95 in steps of 0.01 (the generator's clamp range).

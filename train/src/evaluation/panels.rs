@@ -3,7 +3,7 @@
 use std::path::Path;
 
 use anyhow::{Context, Result};
-use dataset::schema::{Sample, CROP_PX};
+use dataset::contract::schema::{Sample, CROP_PX};
 
 use crate::baseline::truth_and_valid;
 

@@ -1,6 +1,6 @@
 //! The evaluation report: per-image and per-ortho results, aggregated tables, Markdown.
 
-use dataset::schema::Split;
+use dataset::contract::schema::Split;
 use std::collections::BTreeMap;
 
 use crate::calibration::Calibration;
@@ -124,7 +124,7 @@ pub fn breakdowns(per_image: &[PerImage]) -> Vec<Breakdown> {
             .map(|h| if h >= 0.5 { "highland" } else { "mare" })
     };
     let class_order = |name: &str| {
-        dataset::world::TerrainClass::ALL
+        dataset::contract::world::TerrainClass::ALL
             .iter()
             .position(|c| c.name() == name)
     };

@@ -4,11 +4,11 @@
 use std::path::Path;
 
 use anyhow::{bail, Result};
-use dataset::geometry::PixelGeometry;
-use dataset::hapke::{hapke_i_over_f, HFunction, HapkeParams};
-use dataset::raster::{read_bands, read_raster, Raster};
-use dataset::schema::{Sample, CROP_PX, DEM_PX};
-use dataset::world::TerrainClass;
+use dataset::contract::schema::{Sample, CROP_PX, DEM_PX};
+use dataset::contract::world::TerrainClass;
+use dataset::science::geometry::PixelGeometry;
+use dataset::science::hapke::{hapke_i_over_f, HFunction, HapkeParams};
+use dataset::science::raster::{read_bands, read_raster, Raster};
 
 use super::model_form::ModelFormTable;
 
@@ -42,7 +42,7 @@ pub enum TrueAlbedo {
 
 impl TruthMaps {
     pub fn open(world: &Path) -> Result<Self> {
-        let path = world.join(dataset::world::TRUE_HAPKE);
+        let path = world.join(dataset::contract::world::TRUE_HAPKE);
         if !path.exists() {
             bail!(
                 "{}: missing: --world must be a synthetic world directory (g2r-pipeline synth --out) with truth/",
@@ -58,7 +58,7 @@ impl TruthMaps {
             );
         }
         // Worlds generated before the morphology map existed have only the full oracle.
-        let morphology_path = world.join(dataset::world::TRUE_W_MORPHOLOGY);
+        let morphology_path = world.join(dataset::contract::world::TRUE_W_MORPHOLOGY);
         let w_morphology = if morphology_path.exists() {
             let morphology = read_bands(&morphology_path)?.remove(0);
             let full = &bands[0];
@@ -75,13 +75,13 @@ impl TruthMaps {
         } else {
             None
         };
-        let true_dem_path = world.join(dataset::world::TRUE_DEM);
+        let true_dem_path = world.join(dataset::contract::world::TRUE_DEM);
         let true_dem = if true_dem_path.exists() {
             Some(read_raster(&true_dem_path)?)
         } else {
             None
         };
-        let terrain_path = world.join(dataset::world::TRUE_TERRAIN_CLASS);
+        let terrain_path = world.join(dataset::contract::world::TRUE_TERRAIN_CLASS);
         let terrain = if terrain_path.exists() {
             let mut bands = read_bands(&terrain_path)?;
             if bands.len() != 2 {

@@ -15,7 +15,7 @@ type Ad = Autodiff<Flex>;
 /// tests share.
 fn random<const D: usize>(shape: [usize; D], seed: u64) -> Tensor<Ad, D> {
     use rand::Rng;
-    let mut rng = dataset::rng::keyed_rng(seed, "kernel-tests", 0);
+    let mut rng = dataset::contract::rng::keyed_rng(seed, "kernel-tests", 0);
     let values: Vec<f32> = (0..shape.iter().product::<usize>())
         .map(|_| rng.random_range(-1.732f32..1.732))
         .collect();

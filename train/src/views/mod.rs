@@ -9,8 +9,8 @@ use std::path::Path;
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
-use dataset::brdf::BrdfModel;
-use dataset::hapke::HapkeParams;
+use dataset::science::brdf::BrdfModel;
+use dataset::science::hapke::HapkeParams;
 use glam::DVec3;
 
 use crate::views::raycast::{render_view, Heightfield, Reflectance, ViewOptions, ViewStats};
@@ -46,7 +46,7 @@ pub fn run(job: &RenderJob) -> Result<()> {
         bail!("--width/--height must be positive and --fov within (0.1, 179) degrees");
     }
     let poses = read_trajectory(job.trajectory)?;
-    let mut dem = dataset::raster::read_raster(job.dem)?;
+    let mut dem = dataset::science::raster::read_raster(job.dem)?;
     let filled = crate::views::raycast::fill_holes(&mut dem);
     if filled > 0 {
         tracing::warn!(
@@ -58,7 +58,7 @@ pub fn run(job: &RenderJob) -> Result<()> {
     let field = Heightfield::new(&dem).with_context(|| format!("{}", job.dem.display()))?;
     let mut methods = vec![("hapke", Reflectance::Hapke(HapkeParams::lunar_typical()))];
     if let Some(path) = job.params {
-        let mut bands = dataset::raster::read_bands(path)?;
+        let mut bands = dataset::science::raster::read_bands(path)?;
         if bands[0].width != dem.width
             || bands[0].height != dem.height
             || bands[0].transform != dem.transform
@@ -73,16 +73,17 @@ pub fn run(job: &RenderJob) -> Result<()> {
         for band in &mut bands {
             crate::views::raycast::fill_holes(band);
         }
-        let model = dataset::raster::read_metadata_item(path, crate::inference::BRDF_MODEL_KEY)?
-            .with_context(|| {
-                format!(
-                    "{}: no {} metadata item: pass a GeoTIFF written by `g2r-train infer`",
-                    path.display(),
-                    crate::inference::BRDF_MODEL_KEY
-                )
-            })?
-            .parse::<BrdfModel>()
-            .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+        let model =
+            dataset::science::raster::read_metadata_item(path, crate::inference::BRDF_MODEL_KEY)?
+                .with_context(|| {
+                    format!(
+                        "{}: no {} metadata item: pass a GeoTIFF written by `g2r-train infer`",
+                        path.display(),
+                        crate::inference::BRDF_MODEL_KEY
+                    )
+                })?
+                .parse::<BrdfModel>()
+                .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
         let learned = Reflectance::from_param_bands(model, bands)
             .with_context(|| format!("{}", path.display()))?;
         methods.push(("learned", learned));
@@ -140,12 +141,12 @@ pub fn run(job: &RenderJob) -> Result<()> {
             },
         );
         let path = job.out.join(&record.file);
-        let tmp = dataset::raster::tmp_path(&path);
+        let tmp = dataset::science::raster::tmp_path(&path);
         png.save_with_format(&tmp, image::ImageFormat::Png)
             .with_context(|| format!("writing {}", path.display()))?;
         std::fs::rename(&tmp, &path)?;
     }
-    dataset::manifest::write_json_atomic(
+    dataset::contract::manifest::write_json_atomic(
         &job.out.join("views.json"),
         &serde_json::json!({
             "i_over_f_scale": scale,

@@ -13,7 +13,7 @@
 use std::path::Path;
 
 use anyhow::{bail, Context, Result};
-use dataset::crs::{body_fixed_from_lonlat, enu_axes};
+use dataset::science::crs::{body_fixed_from_lonlat, enu_axes};
 use glam::{DMat3, DQuat, DVec3};
 
 /// One camera pose: position and camera→body-fixed rotation.
@@ -137,7 +137,8 @@ mod tests {
         assert!(close(q * DVec3::X, east), "image right = east");
         assert!(close(q * -DVec3::Y, north), "image top = north");
         assert!(
-            (p.position_body_m.length() - (dataset::crs::MOON_RADIUS_M + 50_000.0)).abs() < 1e-6
+            (p.position_body_m.length() - (dataset::science::crs::MOON_RADIUS_M + 50_000.0)).abs()
+                < 1e-6
         );
         // Yaw 90°: east at the image top.
         let q = pose_from_lonlat(-11.36, -43.31, 50_000.0, 90.0, 0.0, 0.0).camera_to_body;

@@ -8,7 +8,7 @@ use burn::backend::{Autodiff, Flex};
 use burn::module::{Module, ModuleVisitor, Param, ParamId};
 use burn::prelude::*;
 use burn::record::{FullPrecisionSettings, NamedMpkFileRecorder};
-use dataset::brdf::BrdfModel;
+use dataset::science::brdf::BrdfModel;
 use train::data::StreamConfig;
 use train::model::UNet;
 use train::run::FitConfig;

@@ -4,7 +4,7 @@
 use std::path::{Path, PathBuf};
 
 use clap::{Args, Parser, Subcommand};
-use dataset::brdf::BrdfModel;
+use dataset::science::brdf::BrdfModel;
 use train::backend::BackendKind;
 use train::data::StreamConfig;
 use train::run::FitConfig;
@@ -269,7 +269,7 @@ pub enum Command {
         #[arg(long)]
         data: String,
         #[arg(long, default_value = "test")]
-        split: dataset::schema::Split,
+        split: dataset::contract::schema::Split,
         /// Synthetic world directory: adds the oracle (its true Hapke maps). Only evaluation reads truth/.
         #[arg(long)]
         world: Option<PathBuf>,
@@ -324,7 +324,7 @@ pub enum Command {
         #[arg(long)]
         out: PathBuf,
         #[arg(long, default_value = "test")]
-        split: dataset::schema::Split,
+        split: dataset::contract::schema::Split,
         #[arg(long)]
         max_samples: Option<usize>,
         #[arg(long, default_value_t = 256)]

@@ -8,7 +8,7 @@ use std::sync::Arc;
 
 use anyhow::Result;
 use clap::Parser;
-use dataset::brdf::BrdfModel;
+use dataset::science::brdf::BrdfModel;
 use train::backend::Inner;
 use train::backend::ReplicaDevice;
 use train::data::{open_source, SampleSource};
@@ -108,7 +108,7 @@ fn run(cli: Cli) -> Result<()> {
                 )
                 .expect("valid template"),
             );
-            let raster = dataset::raster::read_raster(&dem)?;
+            let raster = dataset::science::raster::read_raster(&dem)?;
             let paths = runs.paths();
             let job = train::inference::InferJob {
                 runs: &paths,

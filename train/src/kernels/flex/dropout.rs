@@ -36,7 +36,7 @@ pub(in crate::kernels) fn dropout_mask(
     prob: f64,
     seed: u64,
 ) -> (Vec<f32>, Vec<f32>) {
-    use dataset::rng::{draw_at, keyed_u64};
+    use dataset::contract::rng::{draw_at, keyed_u64};
     let keep = 1.0 - prob;
     let threshold = (keep * 4_294_967_296.0).min(4_294_967_295.0) as u64;
     let scale = (1.0 / keep) as f32;

@@ -7,8 +7,8 @@ use std::path::{Path, PathBuf};
 
 use glam::{DQuat, DVec3};
 
-use crate::crs::MOON_RADIUS_M;
-use crate::geometry::{imaging_fraction, spacecraft_position_at};
+use crate::science::crs::MOON_RADIUS_M;
+use crate::science::geometry::{imaging_fraction, spacecraft_position_at};
 
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -42,7 +42,7 @@ pub enum MetadataError {
         path: PathBuf,
         source: std::io::Error,
     },
-    #[error("{path}: invalid acquisition metadata ({source}); every field of dataset::acquisition::AcquisitionMetadata is required")]
+    #[error("{path}: invalid acquisition metadata ({source}); every field of dataset::contract::acquisition::AcquisitionMetadata is required")]
     Parse {
         path: PathBuf,
         source: serde_json::Error,

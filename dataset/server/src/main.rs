@@ -77,9 +77,9 @@ fn main() -> ExitCode {
 
 fn run(cli: Cli) -> anyhow::Result<ExitCode> {
     match cli.command {
-        Command::Schema => print!("{}", dataset::schema::schema_markdown()),
+        Command::Schema => print!("{}", dataset::contract::schema::schema_markdown()),
         Command::Inspect { shard } => {
-            let sizes = dataset::shard::row_group_sizes(&shard)?;
+            let sizes = dataset::contract::shard::row_group_sizes(&shard)?;
             println!(
                 "{}: {} rows in {} row groups {:?}",
                 shard.display(),
@@ -87,7 +87,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 sizes.len(),
                 sizes
             );
-            if let Some(first) = dataset::shard::read_row_group(&shard, 0)?.first() {
+            if let Some(first) = dataset::contract::shard::read_row_group(&shard, 0)?.first() {
                 println!(
                     "first sample {} (split {}, tile {}, ortho {}) at lon {:.5} lat {:.5}, i={:.1} e={:.1} g={:.1}",
                     first.sample_id, first.split, first.tile_id, first.ortho_id, first.center_lon_deg,
@@ -96,7 +96,8 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             }
         }
         Command::Verify { dir } => {
-            let manifest = dataset::manifest::DatasetManifest::load(&dir.join("manifest.json"))?;
+            let manifest =
+                dataset::contract::manifest::DatasetManifest::load(&dir.join("manifest.json"))?;
             let problems = manifest.verify(&dir);
             for p in &problems {
                 eprintln!("{p}");
@@ -112,7 +113,8 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             println!("all {} shards match manifest.json", manifest.shards.len());
         }
         Command::Publish { dir } => {
-            let manifest = dataset::manifest::DatasetManifest::load(&dir.join("manifest.json"))?;
+            let manifest =
+                dataset::contract::manifest::DatasetManifest::load(&dir.join("manifest.json"))?;
             let problems = manifest.verify(&dir);
             if !problems.is_empty() {
                 for p in &problems {
@@ -125,7 +127,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                     manifest.shards.len()
                 );
             }
-            dataset::publication::write_descriptions(&dir, &manifest)?;
+            dataset::contract::publication::write_descriptions(&dir, &manifest)?;
             println!(
                 "{}: {} shards verified; wrote README.md and croissant.json",
                 dir.display(),
@@ -134,7 +136,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         }
         Command::Serve { dir, addr, verify } => {
             let runtime = tokio::runtime::Runtime::new()?;
-            runtime.block_on(dataset::server::serve(&dir, addr, verify, |bound| {
+            runtime.block_on(dataset_server::serve(&dir, addr, verify, |bound| {
                 println!(
                     "serving {} at http://{bound}/ (viewer) and http://{bound}/v1/info; Ctrl-C stops",
                     dir.display()
@@ -147,7 +149,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             requests,
             seed,
         } => {
-            let report = dataset::loadtest::run(&url, clients, requests, seed)?;
+            let report = dataset_server::loadtest::run(&url, clients, requests, seed)?;
             println!("{}", serde_json::to_string_pretty(&report)?);
             if report.errors > 0 {
                 return Ok(ExitCode::FAILURE);

@@ -6,8 +6,8 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Result};
 use rand::Rng;
 
-use crate::client::HttpClient;
-use crate::rng::keyed_rng;
+use dataset::client::HttpClient;
+use dataset::contract::rng::keyed_rng;
 
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct LoadReport {
@@ -75,7 +75,7 @@ pub fn run(base_url: &str, clients: usize, requests: usize, seed: u64) -> Result
     if splits.is_empty() {
         bail!("{base_url}: the dataset has no rows to load-test with");
     }
-    let manifest: crate::manifest::DatasetManifest = client.get_json("/v1/manifest")?;
+    let manifest: dataset::contract::manifest::DatasetManifest = client.get_json("/v1/manifest")?;
     let ids: serde_json::Value =
         client.get_json(&format!("/v1/rows?split={}&length=100", splits[0].0))?;
     let ids: Vec<String> = ids["rows"]

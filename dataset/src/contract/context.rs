@@ -15,8 +15,8 @@
 //! 8000 × 8000 tycho-full DEM that was 0.72 GiB, which took the dataset build's peak RSS from 1.8 to 2.5 GiB
 //! (docs/design.md, Performance targets asks ≤ 2 GiB regardless of size); over 6 × 6-pixel blocks (512 m cells on a 5 m DEM) it is 21 MB.
 
-use crate::raster::Raster;
-use crate::schema::CONTEXT_PX;
+use crate::contract::schema::CONTEXT_PX;
+use crate::science::raster::Raster;
 
 /// Blocks per cell edge (at least): sets the block size from the cell size and the DEM's pixel size.
 pub const BLOCKS_PER_CELL: f64 = 16.0;
@@ -149,8 +149,8 @@ impl<'a> ContextSampler<'a> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::crs::LunarCrs;
-    use crate::raster::GeoTransform;
+    use crate::science::crs::LunarCrs;
+    use crate::science::raster::GeoTransform;
 
     fn dem(width: usize, height: usize, z: impl Fn(usize, usize) -> f32) -> Raster {
         let crs = LunarCrs::equirectangular(0.0, 0.0);

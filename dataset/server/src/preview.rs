@@ -4,7 +4,7 @@
 
 use image::{ImageEncoder, Rgb, RgbImage};
 
-use crate::schema::{ContextWindow, Sample, CONTEXT_PX, CROP_PX, DEM_PX};
+use dataset::contract::schema::{ContextWindow, Sample, CONTEXT_PX, CROP_PX, DEM_PX};
 
 /// Which preview.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -167,7 +167,7 @@ mod tests {
             valid: (0..n).map(|k| u8::from(k >= CROP_PX)).collect(),
             sun_lit: vec![0.5; n],
             gsd_m: 5.0,
-            ..crate::testing::synthetic_sample(0)
+            ..dataset::testing::synthetic_sample(0)
         }
     }
 

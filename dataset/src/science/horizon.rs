@@ -43,7 +43,7 @@ impl SourceDirection {
     /// from true north (polar stereographic) without skewing shadows.
     pub fn from_enu(
         dir_enu: glam::DVec3,
-        frame: &crate::crs::LocalFrame,
+        frame: &crate::science::crs::LocalFrame,
         angular_radius_rad: f64,
     ) -> Self {
         let horizontal = (dir_enu.x * dir_enu.x + dir_enu.y * dir_enu.y).sqrt();
@@ -68,7 +68,7 @@ pub fn drop_for_curvature(
     origin_col: f64,
     origin_row: f64,
 ) {
-    let two_r = 2.0 * crate::crs::MOON_RADIUS_M;
+    let two_r = 2.0 * crate::science::crs::MOON_RADIUS_M;
     for (i, h) in heights.iter_mut().enumerate() {
         let (dc, dr) = (
             (i % width) as f64 - origin_col,
@@ -166,7 +166,7 @@ impl<'a> HorizonGrid<'a> {
         let step_m = 0.5 * self.gsd_m;
         let darkest = dir.elevation_rad + dir.angular_radius_rad;
         let mut horizon_tan = f64::NEG_INFINITY;
-        let radius = crate::crs::MOON_RADIUS_M;
+        let radius = crate::science::crs::MOON_RADIUS_M;
         let (mut c, mut r) = (col as f64, row as f64);
         let mut dist = 0.0;
         loop {
@@ -176,7 +176,8 @@ impl<'a> HorizonGrid<'a> {
             if c < 0.0 || r < 0.0 || c > (self.width - 1) as f64 || r > (self.height - 1) as f64 {
                 break;
             }
-            let h = crate::raster::bilinear(self.heights, self.width, self.height, c, r) as f64;
+            let h = crate::science::raster::bilinear(self.heights, self.width, self.height, c, r)
+                as f64;
             let tan_here = (h - dist * dist / (2.0 * radius) - h0) / dist;
             horizon_tan = horizon_tan.max(tan_here);
             if horizon_tan.atan() >= darkest {
@@ -366,7 +367,7 @@ pub struct HeightField<'a> {
     pub heights: &'a [f32],
     pub width: usize,
     pub height: usize,
-    pub transform: crate::raster::GeoTransform,
+    pub transform: crate::science::raster::GeoTransform,
     /// Highest minus lowest finite height: bounds the longest shadow anything on this raster can receive.
     pub relief_m: f64,
 }
@@ -376,7 +377,7 @@ impl<'a> HeightField<'a> {
         heights: &'a [f32],
         width: usize,
         height: usize,
-        transform: crate::raster::GeoTransform,
+        transform: crate::science::raster::GeoTransform,
     ) -> Self {
         let (lo, hi) = heights
             .iter()
@@ -419,7 +420,7 @@ impl VisibilityWindow {
 
     /// Bilinear visible fraction at continuous *field* pixel coordinates (pixel-centre convention).
     pub fn at(&self, col: f64, row: f64) -> f32 {
-        crate::raster::bilinear(
+        crate::science::raster::bilinear(
             &self.fraction,
             self.width,
             self.height,
@@ -437,7 +438,7 @@ pub fn visibility_window(
     field: &HeightField<'_>,
     cols: std::ops::Range<usize>,
     rows: std::ops::Range<usize>,
-    frame: &crate::crs::LocalFrame,
+    frame: &crate::science::crs::LocalFrame,
     toward_source_enu: glam::DVec3,
     angular_radius_rad: f64,
     disk_samples: usize,
@@ -506,8 +507,8 @@ mod tests {
 
     #[test]
     fn a_window_extended_toward_the_source_matches_a_sweep_of_the_whole_field() {
-        use crate::crs::{LocalFrame, LunarCrs};
-        use crate::raster::GeoTransform;
+        use crate::science::crs::{LocalFrame, LunarCrs};
+        use crate::science::raster::GeoTransform;
         // 360 × 360 cells of 5 m: rolling terrain plus a 200 m ridge; area of interest in the middle.
         let (w, h, gsd) = (360usize, 360usize, 5.0);
         let heights: Vec<f32> = (0..w * h)
@@ -690,7 +691,7 @@ mod tests {
             angular_radius_rad: 0.0,
         };
         let lit = grid.sweep_visible_fraction(&dir, 1);
-        let terminator_m = crate::crs::MOON_RADIUS_M * 0.1f64.to_radians().tan();
+        let terminator_m = crate::science::crs::MOON_RADIUS_M * 0.1f64.to_radians().tan();
         for col in (0..w).step_by(7) {
             let d = col as f64 * gsd;
             if (d - terminator_m).abs() > 40.0 {

@@ -6,7 +6,7 @@ use std::collections::BTreeMap;
 use std::io;
 use std::path::{Path, PathBuf};
 
-use crate::schema::SCHEMA_VERSION;
+use crate::contract::schema::SCHEMA_VERSION;
 
 /// blake3 of a file's bytes, hex.
 pub fn hash_file(path: &Path) -> io::Result<String> {
@@ -174,7 +174,7 @@ pub fn write_json_atomic<T: serde::Serialize>(path: &Path, value: &T) -> io::Res
 
 /// Write text atomically: a temp name, then rename, so a reader never sees half a file.
 pub fn write_text_atomic(path: &Path, text: &str) -> io::Result<()> {
-    let tmp = crate::raster::tmp_path(path);
+    let tmp = crate::science::raster::tmp_path(path);
     std::fs::write(&tmp, text)?;
     std::fs::rename(&tmp, path)
 }

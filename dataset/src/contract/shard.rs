@@ -17,12 +17,12 @@ use parquet::file::properties::{EnabledStatistics, WriterProperties};
 use parquet::file::writer::SerializedFileWriter;
 use rayon::prelude::*;
 
-use crate::manifest::{hash_file, ShardEntry};
-use crate::raster::tmp_path;
-use crate::schema::{
+use crate::contract::manifest::{hash_file, ShardEntry};
+use crate::contract::schema::{
     batch_to_sample_metadata, batch_to_samples, sample_schema, samples_to_batch, Sample,
     SchemaError, FLOAT_TENSOR_COLUMNS, SCHEMA_VERSION, TENSOR_COLUMNS,
 };
+use crate::science::raster::tmp_path;
 
 /// Rows per row group: ~256 samples ≈ 40 MB uncompressed, one HTTP range read for random access.
 pub const ROW_GROUP_ROWS: usize = 256;
@@ -441,7 +441,7 @@ pub struct ShardFile {
 
 impl ShardFile {
     /// The file's own Arrow schema: a schema 1.1 shard has no context columns, unlike this build's
-    /// [`crate::schema::sample_schema`].
+    /// [`crate::contract::schema::sample_schema`].
     pub fn schema(&self) -> arrow::datatypes::SchemaRef {
         self.metadata.schema().clone()
     }
@@ -665,7 +665,7 @@ pub fn read_sample_positions(path: &Path) -> Result<SamplePositions, ShardError>
         })?;
         let bad = || ShardError::Schema {
             path: path.to_path_buf(),
-            source: crate::schema::SchemaError::Column("sample_id/center_x/center_y"),
+            source: crate::contract::schema::SchemaError::Column("sample_id/center_x/center_y"),
         };
         let id = batch
             .column_by_name("sample_id")

@@ -13,7 +13,7 @@
 
 use std::f64::consts::PI;
 
-use crate::geometry::clamp_unit;
+use crate::science::geometry::clamp_unit;
 
 /// Which approximation of Chandrasekhar's H-function to use.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -221,7 +221,7 @@ pub fn hapke_reflectance(
 /// Hapke's I/F split by scattering order: `single_per_phase · p(g)` is the single-scattering part for a phase
 /// function p (opposition surge, roughness and the Lommel–Seeliger ratio included), `multiple` the
 /// multiple-scattering part, so `hapke_i_over_f = single_per_phase · double_hg(cos g, b, c) + multiple` (tested).
-/// The pieces of the H3 model ([`crate::brdf`]).
+/// The pieces of the H3 model ([`crate::science::brdf`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct HapkeParts {
     pub single_per_phase: f64,

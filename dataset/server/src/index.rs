@@ -7,14 +7,14 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
 
-use crate::manifest::{hash_file, DatasetManifest};
-use crate::planner::RowGroupRef;
-use crate::schema::Sample;
-use crate::shard::ShardFile;
+use dataset::contract::manifest::{hash_file, DatasetManifest};
+use dataset::contract::planner::RowGroupRef;
+use dataset::contract::schema::Sample;
+use dataset::contract::shard::ShardFile;
 
 /// One row: its metadata and where it lives.
 pub struct RowEntry {
-    /// Raster fields empty (see [`crate::schema::batch_to_sample_metadata`]).
+    /// Raster fields empty (see [`dataset::contract::schema::batch_to_sample_metadata`]).
     pub meta: Sample,
     pub shard: usize,
     pub row_group: usize,
@@ -101,8 +101,8 @@ impl DatasetIndex {
             .and_then(|t| serde_json::from_str(&t).ok())
             .unwrap_or(serde_json::Value::Null);
         let card = std::fs::read_to_string(dir.join("README.md"))
-            .unwrap_or_else(|_| crate::publication::dataset_card(&manifest, &summary));
-        let croissant = crate::publication::croissant(&manifest);
+            .unwrap_or_else(|_| dataset::contract::publication::dataset_card(&manifest, &summary));
+        let croissant = dataset::contract::publication::croissant(&manifest);
 
         let (mut shards, mut rows) = (Vec::new(), Vec::new());
         let mut splits: BTreeMap<String, Vec<usize>> = manifest

@@ -5,8 +5,8 @@
 use std::collections::BTreeMap;
 use std::path::Path;
 
-use crate::manifest::{write_json_atomic, DatasetManifest};
-use crate::schema::{sample_schema, schema_markdown, SCHEMA_VERSION};
+use crate::contract::manifest::{write_json_atomic, DatasetManifest};
+use crate::contract::schema::{sample_schema, schema_markdown, SCHEMA_VERSION};
 
 /// Rejected crops summed over orthos, by reason, from `summary.json`'s `rejections_by_ortho`.
 fn rejected_by_reason(summary: &serde_json::Value) -> BTreeMap<String, u64> {
@@ -108,7 +108,10 @@ pub fn write_descriptions(dir: &Path, manifest: &DatasetManifest) -> anyhow::Res
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => serde_json::Value::Null,
         Err(e) => return Err(anyhow::anyhow!("{}: {e}", summary_path.display())),
     };
-    crate::manifest::write_text_atomic(&dir.join("README.md"), &dataset_card(manifest, &summary))?;
+    crate::contract::manifest::write_text_atomic(
+        &dir.join("README.md"),
+        &dataset_card(manifest, &summary),
+    )?;
     write_json_atomic(&dir.join("croissant.json"), &croissant(manifest))?;
     Ok(())
 }
@@ -116,7 +119,7 @@ pub fn write_descriptions(dir: &Path, manifest: &DatasetManifest) -> anyhow::Res
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::manifest::ShardEntry;
+    use crate::contract::manifest::ShardEntry;
 
     fn manifest() -> DatasetManifest {
         DatasetManifest {

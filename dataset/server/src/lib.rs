@@ -20,6 +20,7 @@
 //! | `GET /v1/manifest`, `/v1/croissant` | `manifest.json`, Croissant JSON-LD |
 
 pub mod index;
+pub mod loadtest;
 pub mod preview;
 
 use std::collections::BTreeMap;
@@ -36,8 +37,8 @@ use axum::{Json, Router};
 use base64::Engine;
 use tower::ServiceExt;
 
-use crate::planner::plan_epoch;
-use crate::schema::{Sample, CONTEXT_PX, CROP_PX, DEM_PX};
+use dataset::contract::planner::plan_epoch;
+use dataset::contract::schema::{Sample, CONTEXT_PX, CROP_PX, DEM_PX};
 use index::DatasetIndex;
 use preview::Preview;
 
@@ -45,8 +46,8 @@ use preview::Preview;
 pub const MAX_ROWS_PER_REQUEST: usize = 100;
 /// Most rows `/v1/filter` lists (it returns the total count too).
 pub const MAX_FILTER_ROWS: usize = 1000;
-/// The media type of Arrow IPC streams (row groups, epoch streams); one home, shared with the client.
-pub use crate::client::ARROW_STREAM;
+// The media type of Arrow IPC streams: its one home is the client.
+use dataset::client::ARROW_STREAM;
 /// Most row groups one `/v1/stream` window may hold (≈ 55 MB decoded each).
 pub const MAX_STREAM_WINDOW: usize = 8;
 /// Epoch streams running at once; more wait their turn (each holds up to a window, a few hundred MB).
@@ -227,7 +228,7 @@ async fn info(State(index): Shared) -> Json<serde_json::Value> {
     let dataset_schema = index
         .shards
         .first()
-        .map_or_else(crate::schema::sample_schema, |s| s.schema());
+        .map_or_else(dataset::contract::schema::sample_schema, |s| s.schema());
     let schema: Vec<serde_json::Value> = dataset_schema
         .fields()
         .iter()
@@ -450,7 +451,7 @@ async fn row_group_ipc(
     }
     let bytes = blocking(move || {
         let batches = index.shards[shard].read_batches(group, None, true)?;
-        Ok(crate::shard::ipc_stream_bytes(&batches)?)
+        Ok(dataset::contract::shard::ipc_stream_bytes(&batches)?)
     })
     .await?;
     Ok(arrow_response(bytes))
@@ -473,7 +474,7 @@ async fn row_groups(
     ))
 }
 
-/// One epoch in the trainer's order (`dataset::planner::plan_epoch`), one IPC record batch per shuffle window,
+/// One epoch in the trainer's order (`dataset::contract::planner::plan_epoch`), one IPC record batch per shuffle window,
 /// streamed as windows are read: memory is one window, whatever the split's size.
 async fn epoch_stream(
     State(index): Shared,
@@ -519,7 +520,9 @@ async fn epoch_stream(
             let schema = index
                 .shards
                 .first()
-                .map_or_else(crate::schema::sample_schema, |shard| shard.schema());
+                .map_or_else(dataset::contract::schema::sample_schema, |shard| {
+                    shard.schema()
+                });
             let mut writer = arrow::ipc::writer::StreamWriter::try_new(Vec::new(), &schema)?;
             let mut start = 0;
             for (w, window_groups) in plan.windows.iter().enumerate() {

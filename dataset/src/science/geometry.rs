@@ -5,8 +5,8 @@
 
 use glam::DVec3;
 
-use crate::crs::LocalFrame;
-use crate::raster::GeoTransform;
+use crate::science::crs::LocalFrame;
+use crate::science::raster::GeoTransform;
 
 /// Surface normals (ENU, unit, pointing up) of a `width × height` crop from heights with a 1-pixel apron.
 ///
@@ -72,7 +72,7 @@ pub struct CropGrid {
 impl CropGrid {
     /// Radius of the frame origin from the body centre, metres.
     pub fn origin_radius_m(&self) -> f64 {
-        crate::crs::MOON_RADIUS_M + self.origin_height_m
+        crate::science::crs::MOON_RADIUS_M + self.origin_height_m
     }
 
     /// Ground (east, north) at the origin height of apron-grid cell centre (col, row) in an `n`-cell grid.
@@ -307,11 +307,11 @@ pub fn imaging_fraction(ground_body: DVec3, start_body: DVec3, stop_body: DVec3)
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::crs::LunarCrs;
+    use crate::science::crs::LunarCrs;
 
     #[test]
     fn imaging_fraction_inverts_spacecraft_position() {
-        let r = crate::crs::MOON_RADIUS_M + 50_000.0;
+        let r = crate::science::crs::MOON_RADIUS_M + 50_000.0;
         let a = DVec3::new(r, 0.0, 0.0);
         let b = DVec3::new(
             r * deg(0.4).cos(),
@@ -322,7 +322,7 @@ mod tests {
             // A ground point below the spacecraft, displaced cross-track (as a slewed camera sees it).
             let sc = spacecraft_position_at(a, b, t);
             let cross = a.cross(b).normalize();
-            let ground = sc.normalize() * crate::crs::MOON_RADIUS_M + cross * 8_000.0;
+            let ground = sc.normalize() * crate::science::crs::MOON_RADIUS_M + cross * 8_000.0;
             let got = imaging_fraction(ground, a, b);
             // 1e-9 of a 12 km arc is 12 µm: f64 rounding of 1.7e6 m vectors, far below any pixel.
             assert!((got - t).abs() < 1e-9, "t={t}: {got}");
@@ -442,10 +442,10 @@ mod tests {
         assert!((c.cos_i - 0.5).abs() < 1e-9);
         // Exact on the sphere: the equirectangular y offset of 5 km is an arc θ = 5000/R; the camera sits at radius
         // Rc = R − 1200 + 50 000 above it, the crop at R0 = R − 1200. (Flat-Earth atan(0.1) would be 0.16° off.)
-        let theta = 5000.0 / crate::crs::MOON_RADIUS_M;
+        let theta = 5000.0 / crate::science::crs::MOON_RADIUS_M;
         let (rc, r0) = (
-            crate::crs::MOON_RADIUS_M + 48_800.0,
-            crate::crs::MOON_RADIUS_M - 1200.0,
+            crate::science::crs::MOON_RADIUS_M + 48_800.0,
+            crate::science::crs::MOON_RADIUS_M - 1200.0,
         );
         let expected = (rc * theta.sin()).atan2(rc * theta.cos() - r0);
         assert!(
@@ -512,7 +512,7 @@ mod tests {
 
     #[test]
     fn spacecraft_interpolation_stays_on_the_orbit() {
-        let r = crate::crs::MOON_RADIUS_M + 50_000.0;
+        let r = crate::science::crs::MOON_RADIUS_M + 50_000.0;
         let a = DVec3::new(r, 0.0, 0.0);
         let b = DVec3::new(r * deg(1.0).cos(), 0.0, r * deg(1.0).sin());
         let mid = spacecraft_position_at(a, b, 0.5);

@@ -8,7 +8,7 @@
 
 use rand::seq::SliceRandom;
 
-use crate::rng::keyed_rng;
+use crate::contract::rng::keyed_rng;
 
 /// One row group of one shard (`shard` is the file name relative to the dataset directory).
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -74,13 +74,14 @@ pub fn weighted_pick(weights: &[f64], take: usize, seed: u64, epoch: u64) -> Vec
         weights.iter().all(|w| w.is_finite() && *w > 0.0),
         "row weights must be finite and positive"
     );
-    let key = crate::rng::keyed_u64(seed, "epoch-weighted-rows", epoch);
+    let key = crate::contract::rng::keyed_u64(seed, "epoch-weighted-rows", epoch);
     let mut order: Vec<(f64, usize)> = weights
         .iter()
         .enumerate()
         .map(|(i, w)| {
             // 53 random bits, offset by half a step: u in (0, 1), never 0.
-            let u = ((crate::rng::draw_at(key, i as u64) >> 11) as f64 + 0.5) / (1u64 << 53) as f64;
+            let u = ((crate::contract::rng::draw_at(key, i as u64) >> 11) as f64 + 0.5)
+                / (1u64 << 53) as f64;
             (u.ln() / w, i)
         })
         .collect();

@@ -17,7 +17,7 @@ pub const SCHEMA_VERSION: &str = "1.2.0";
 pub const CROP_PX: usize = 128;
 /// DEM edge in pixels: the crop plus a 1-pixel apron on every side, so border normals are exact.
 pub const DEM_PX: usize = CROP_PX + 2;
-/// Context window edge in cells ([`crate::context`]).
+/// Context window edge in cells ([`crate::contract::context`]).
 pub const CONTEXT_PX: usize = 32;
 
 /// A `DEM_PX`² crop's interior heights (the `CROP_PX`² cells inside the one-pixel apron), row-major: the cells the
@@ -31,7 +31,7 @@ pub fn crop_interior(dem_m: &[f32]) -> impl Iterator<Item = f64> + Clone + '_ {
     })
 }
 
-/// A coarse, wide DEM window around the crop ([`crate::context`]): what lies kilometres around it.
+/// A coarse, wide DEM window around the crop ([`crate::contract::context`]): what lies kilometres around it.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ContextWindow {
     /// Cell size, metres.
@@ -130,8 +130,8 @@ pub struct Sample {
 
 impl Sample {
     /// Where the sample's pixels sit in its crop's ENU frame.
-    pub fn crop_grid(&self) -> crate::geometry::CropGrid {
-        crate::geometry::CropGrid {
+    pub fn crop_grid(&self) -> crate::science::geometry::CropGrid {
+        crate::science::geometry::CropGrid {
             gsd_m: self.gsd_m,
             map_to_en: self.map_to_en,
             origin_height_m: self.enu_origin_height_m,
@@ -139,13 +139,13 @@ impl Sample {
     }
 
     /// Per-pixel geometry of the crop (scalar reference), from the stored heights, sun and camera.
-    pub fn pixel_geometry(&self) -> Vec<crate::geometry::PixelGeometry> {
+    pub fn pixel_geometry(&self) -> Vec<crate::science::geometry::PixelGeometry> {
         let relative: Vec<f64> = self
             .dem_m
             .iter()
             .map(|&h| h as f64 - self.enu_origin_height_m)
             .collect();
-        crate::geometry::crop_pixel_geometry(
+        crate::science::geometry::crop_pixel_geometry(
             &relative,
             CROP_PX,
             &self.crop_grid(),
@@ -334,7 +334,7 @@ pub enum SchemaError {
         expected: usize,
     },
     #[error(
-        "sample '{0}' has no context window; every written sample carries one (dataset::context)"
+        "sample '{0}' has no context window; every written sample carries one (dataset::contract::context)"
     )]
     MissingContext(String),
     #[error("sample '{sample}' has split '{split}'; a split is train, val or test")]

@@ -11,7 +11,7 @@ use gdal::spatial_ref::SpatialRef;
 use gdal::{Dataset, DriverManager, Metadata};
 use rayon::prelude::*;
 
-use crate::crs::{LunarCrs, MOON_RADIUS_M};
+use crate::science::crs::{LunarCrs, MOON_RADIUS_M};
 
 /// North-up affine georeferencing: origin is the top-left corner of pixel (0, 0).
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -57,7 +57,7 @@ impl GeoTransform {
     }
 
     /// The four outer corners of a `width` × `height` raster on this grid, as map points: where two CRSs are
-    /// compared ([`crate::crs::LunarCrs::same_map`]) before the raster is read in the other's map.
+    /// compared ([`crate::science::crs::LunarCrs::same_map`]) before the raster is read in the other's map.
     pub fn corners(&self, width: usize, height: usize) -> [(f64, f64); 4] {
         let (x0, y0, x1, y1) = self.bounds(width, height);
         [(x0, y0), (x1, y0), (x1, y1), (x0, y1)]

@@ -4,7 +4,7 @@
 //! pixel of a camera would record, and what the pipeline uses (0.5–2 m orthos → 5 m cells). The cheaper point
 //! kernels sample the cell centre only and alias fine texture; the report measures what they save and cost.
 
-use crate::raster::Raster;
+use crate::science::raster::Raster;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ResampleKernel {
@@ -32,7 +32,7 @@ impl ResampleKernel {
 /// (0 where invalid) and a validity mask (1 = valid). A cell reaching outside the ortho is invalid.
 pub fn resample_cells(
     ortho: &Raster,
-    dem: &crate::raster::GeoTransform,
+    dem: &crate::science::raster::GeoTransform,
     (c0, r0): (usize, usize),
     n: usize,
     kernel: ResampleKernel,
@@ -98,7 +98,7 @@ fn bilinear_strict(ortho: &Raster, col: f64, row: f64) -> Option<f32> {
 /// ortho pixel space and the weights separate into per-column and per-row overlaps.
 fn area_average(
     ortho: &Raster,
-    dem: &crate::raster::GeoTransform,
+    dem: &crate::science::raster::GeoTransform,
     (c0, r0): (usize, usize),
     n: usize,
 ) -> (Vec<f32>, Vec<u8>) {
@@ -151,8 +151,8 @@ fn area_average(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::crs::LunarCrs;
-    use crate::raster::GeoTransform;
+    use crate::science::crs::LunarCrs;
+    use crate::science::raster::GeoTransform;
 
     /// A 2 m ortho holding `f` at pixel centres, and a 5 m grid whose origin is 3 m west / 1 m north of it.
     fn scene(f: impl Fn(f64, f64) -> f64) -> (Raster, GeoTransform) {

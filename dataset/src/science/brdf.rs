@@ -24,8 +24,8 @@
 
 use glam::DVec3;
 
-use crate::geometry::{Cosines, HalfDiffCosines, PixelGeometry};
-use crate::hapke::{double_hg, hapke_i_over_f, hapke_parts, HFunction, HapkeParams};
+use crate::science::geometry::{Cosines, HalfDiffCosines, PixelGeometry};
+use crate::science::hapke::{double_hg, hapke_i_over_f, hapke_parts, HFunction, HapkeParams};
 
 /// Negative slope of the LeakyReLU applied to every raw parameter.
 pub const LEAKY_SLOPE: f64 = 0.01;

@@ -1,0 +1,32 @@
+//! The data contract, on the [`crate::science`] core, in the order data flows: what arrives with each image
+//! ([`acquisition`]) and where the synthetic world keeps it ([`world`]); the seeded draw streams every stage
+//! takes its randomness from ([`rng`]); the terrain [`context`] cut around each crop; one DEM–image pair as a row
+//! ([`schema`]); rows in Parquet [`shard`]s; the [`manifest`] that lists and hashes them; the dataset card and
+//! Croissant of a [`publication`]; and the epoch [`planner`] that reads a publication back in training order.
+
+// What arrives with each image: the acquisition metadata JSON.
+pub mod acquisition;
+
+// Where the synthetic world keeps its files.
+pub mod world;
+
+// The seeded, purpose-keyed draw streams every stage takes its randomness from.
+pub mod rng;
+
+// The terrain context cut around each crop.
+pub mod context;
+
+// One DEM–image pair as a Parquet row.
+pub mod schema;
+
+// Rows in Parquet shards: writing, reading, hashing.
+pub mod shard;
+
+// The manifest that lists and hashes the shards.
+pub mod manifest;
+
+// The dataset card and Croissant of a publication.
+pub mod publication;
+
+// The epoch planner that reads a publication back in training order.
+pub mod planner;
