@@ -213,7 +213,7 @@ pub struct Comparison {
     pub median_ratio: f64,
 }
 
-/// Alternate the PyTorch peer and [`bench`] `rounds` times on the same machine (so both see the same machine
+/// Alternate the PyTorch peer and [`bench()`] `rounds` times on the same machine (so both see the same machine
 /// state) and report each round's samples/s and their ratio.
 #[allow(clippy::too_many_arguments)]
 pub fn compare_with_torch<B: TrainBackend>(

@@ -18,7 +18,7 @@ use dataset::science::raster::{BandOut, BandValues, Raster, RasterLayout};
 use crate::data::InputNormalisation;
 use crate::kernels::TrainOps;
 use crate::model::UNet;
-use crate::run::{load_ensemble, Checkpoint};
+use crate::run_dir::{load_ensemble, Checkpoint};
 
 /// Default overlap between neighbouring crops, pixels (a quarter crop).
 pub const DEFAULT_OVERLAP: usize = 32;
@@ -27,7 +27,7 @@ pub const DEFAULT_OVERLAP: usize = 32;
 pub struct InferOptions {
     pub overlap: usize,
     pub batch_size: usize,
-    /// The run's network input normalisation (`run::run_input`).
+    /// The run's network input normalisation (`run_dir::run_input`).
     pub input: InputNormalisation,
 }
 

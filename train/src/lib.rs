@@ -2,11 +2,11 @@
 //! - [`data`] (shards → host batches, epoch order, prefetch) with [`augment`];
 //! - [`model`] (U-Net, its hot operations in [`kernels`]) → [`renderer_layer`] (the differentiable renderer layer,
 //!   the batched twin of `dataset::science::brdf`) → [`metrics`];
-//! - [`training`] (the fit loop) writing a [`run`] directory (config, history, checkpoints, loading), with
+//! - [`training`] (the fit loop) writing a run directory ([`run_dir`]: config, history, checkpoints, loading), with
 //!   [`averaging`] (the weight average) and [`calibration`] (uniform least-squares fits);
 //! - [`prediction`] (inference-mode renderings, symmetry means, ensembles) → [`evaluation`] (against baselines,
 //!   [`baseline`], and the oracle; [`features`] matching) and [`inference`] (parameter GeoTIFFs from a DEM);
-//! - [`report`] (speed against error, [`plot`]), [`views`] (the novel-view ray caster), [`bench`];
+//! - [`report`] (speed against error, [`plot`]), [`views`] (the novel-view ray caster), [`mod@bench`];
 //! - [`testing`]: fixtures for tests and benches; [`backend`]: which Burn backend a job runs on.
 
 pub mod augment;
@@ -28,7 +28,7 @@ pub mod renderer_layer;
 pub mod replicas;
 pub mod report;
 pub mod results_page;
-pub mod run;
+pub mod run_dir;
 pub mod testing;
 pub mod training;
 pub mod views;

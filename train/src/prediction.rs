@@ -11,7 +11,7 @@ use crate::model::UNet;
 use crate::renderer_layer::{render, SceneTerms};
 use dataset::contract::schema::{Sample, CONTEXT_PX, CROP_PX};
 
-use crate::run::TrainedRun;
+use crate::run_dir::TrainedRun;
 
 /// The network's raw parameter maps for one host batch: `[N, P, 128, 128]` (the renderer applies the activation).
 pub(crate) fn net_outputs<B: TrainOps>(

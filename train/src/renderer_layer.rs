@@ -79,7 +79,7 @@ pub fn host_terms<T: Copy + Default + Send>(
 
 /// Rendered I/F `[N, 1, 128, 128]` = Σ_k LeakyReLU(p_k) · T_k (E = 1: the parameters carry the scale).
 pub fn render<B: Backend>(raw_params: Tensor<B, 4>, scene: &SceneTerms<B>) -> Tensor<B, 4> {
-    crate::kernels::reference::render(raw_params, scene.terms.clone(), LEAKY_SLOPE)
+    crate::kernels::stock::render(raw_params, scene.terms.clone(), LEAKY_SLOPE)
 }
 
 /// The train step's loss, the mean squared error of [`render`] over the valid pixels of the whole batch (0, with a

@@ -29,7 +29,7 @@ use crate::inference::{infer_params, render_maps, seam_score, InferOptions};
 use crate::kernels::TrainOps;
 use crate::model::UNet;
 use crate::plot::{write_scatter, Point, Scatter};
-use crate::run::{load_trained, Checkpoint};
+use crate::run_dir::{load_trained, Checkpoint};
 
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct ModelRow {

@@ -32,9 +32,9 @@ use crate::replicas::Replica;
 use dataset::contract::schema::{Split, CROP_PX};
 
 use crate::prediction::{net_outputs, predict_images};
-use crate::run::{
+use crate::run_dir::{
     append_jsonl, read_history, read_json, run_input, save_last, save_model, write_json,
-    Checkpoint, Cursor, EpochMetrics, FitConfig, Normalisation, Rec, ValMetrics,
+    Checkpoint, Cursor, EpochMetrics, FitConfig, Rec, RunNormalisation, ValMetrics,
 };
 
 /// Train crops the elevation input's mean and std are taken over (spread over the split).
@@ -274,7 +274,7 @@ pub fn fit_replicated<B: TrainBackend>(
         }
         write_json(
             &out.join("normalisation.json"),
-            &Normalisation {
+            &RunNormalisation {
                 input,
                 dataset: source.manifest().name.clone(),
             },

@@ -20,7 +20,7 @@ use dataset::contract::schema::Split;
 use train::data::{EpochStream, HostBatch, StreamConfig};
 use train::model::UNet;
 use train::replicas::Replica;
-use train::run::FitConfig;
+use train::run_dir::FitConfig;
 use train::training::{fit, fit_replicated, input_normalisation, train_loss};
 
 mod support;

@@ -7,7 +7,7 @@ use std::path::PathBuf;
 use burn::backend::Flex;
 use dataset::science::brdf::BrdfModel;
 use train::inference::{infer_params, InferOptions, DEFAULT_OVERLAP};
-use train::run::{load_trained, Checkpoint};
+use train::run_dir::{load_trained, Checkpoint};
 
 fn shipped() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("shipped/tycho-full-h1")

@@ -16,7 +16,7 @@ use train::model::UNetConfig;
 use train::prediction::predict_images;
 use train::renderer_layer::reference_render;
 use train::replicas::Replica;
-use train::run::FitConfig;
+use train::run_dir::FitConfig;
 use train::testing::synthetic_samples;
 use train::training::fit;
 
@@ -33,7 +33,7 @@ fn config(
     dropout: bool,
 ) -> FitConfig {
     FitConfig {
-        version: train::run::FIT_CONFIG_VERSION,
+        version: train::run_dir::FIT_CONFIG_VERSION,
         model,
         epochs,
         learning_rate: lr,
@@ -47,7 +47,7 @@ fn config(
             max_samples: Some(max_samples),
         },
         max_val_samples: Some(4),
-        lr_schedule: train::run::LrSchedule::Constant,
+        lr_schedule: train::run_dir::LrSchedule::Constant,
         elevation_input: false,
         context_input: false,
         ema_decay: None,
@@ -182,7 +182,7 @@ fn fingerprint_of(run: &Path, checkpoint: &str, cfg: &FitConfig) -> Vec<f64> {
             &device,
         )
         .unwrap();
-    let input = train::run::run_input(run, cfg).unwrap();
+    let input = train::run_dir::run_input(run, cfg).unwrap();
     predict_images(
         &net,
         cfg.model,
@@ -206,7 +206,7 @@ fn stopping_and_resuming_gives_the_same_network_as_an_uninterrupted_run() {
     // elevation plane and the context input, the resumed half must feed the network what the first half did; the
     // hidden layer before the head must be checkpointed with the rest.
     let cfg = FitConfig {
-        lr_schedule: train::run::LrSchedule::Cosine,
+        lr_schedule: train::run_dir::LrSchedule::Cosine,
         elevation_input: true,
         context_input: true,
         ema_decay: Some(0.9),
@@ -242,7 +242,8 @@ fn stopping_and_resuming_gives_the_same_network_as_an_uninterrupted_run() {
     assert_ne!(ema(&straight), fingerprint(&straight, &cfg));
     assert!(a.history.iter().all(|m| m.ema_val.is_some()));
     let auto =
-        train::run::load_trained::<Flex>(&straight, train::run::Checkpoint::Auto, &device).unwrap();
+        train::run_dir::load_trained::<Flex>(&straight, train::run_dir::Checkpoint::Auto, &device)
+            .unwrap();
     assert_eq!(auto.checkpoint, "last/ema.mpk");
 
     // Resuming with another BRDF model is refused with the fix in the message.
@@ -291,9 +292,9 @@ fn an_ensemble_loads_every_member_first_and_map_averaging_refuses_mixed_models()
     }
     let missing = tmp.path().join("no-such-run");
     let load = |runs: &[&Path], one_model| {
-        train::run::load_ensemble::<Flex>(
+        train::run_dir::load_ensemble::<Flex>(
             runs,
-            train::run::Checkpoint::Auto,
+            train::run_dir::Checkpoint::Auto,
             one_model,
             &Default::default(),
         )
@@ -331,7 +332,7 @@ fn an_ensemble_loads_every_member_first_and_map_averaging_refuses_mixed_models()
     assert_eq!(same[0].checkpoint, "last/model.mpk");
     let err = format!(
         "{:#}",
-        train::run::load_trained::<Flex>(&m2, train::run::Checkpoint::EmaBest, &device)
+        train::run_dir::load_trained::<Flex>(&m2, train::run_dir::Checkpoint::EmaBest, &device)
             .err()
             .expect("no average kept")
     );

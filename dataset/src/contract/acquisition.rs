@@ -6,6 +6,7 @@
 use std::path::{Path, PathBuf};
 
 use glam::{DQuat, DVec3};
+use hifitime::{Epoch, Unit};
 
 use crate::science::crs::MOON_RADIUS_M;
 use crate::science::geometry::{imaging_fraction, spacecraft_position_at};
@@ -130,93 +131,52 @@ impl AcquisitionMetadata {
     }
 }
 
-/// ISO 8601 UTC timestamp for `seconds` after 2000-01-01T00:00:00Z (no wall clock involved).
+/// 2000-01-01T00:00:00Z, the origin of the UTC second counts below: seconds on the UTC scale, which skips leap
+/// seconds (as the timestamps of PDS labels and LROC index tables do).
+fn utc_origin() -> Epoch {
+    Epoch::from_gregorian_utc_at_midnight(2000, 1, 1)
+}
+
+fn epoch_from_utc_seconds(seconds: f64) -> Epoch {
+    Epoch::from_utc_duration(utc_origin().to_utc_duration() + seconds * Unit::Second)
+}
+
+fn utc_seconds_of(epoch: Epoch) -> f64 {
+    (epoch.to_utc_duration() - utc_origin().to_utc_duration()).to_seconds()
+}
+
+/// ISO 8601 UTC timestamp, to the millisecond, for `seconds` after 2000-01-01T00:00:00Z (no wall clock involved).
 pub fn iso_utc_from_j2000_seconds(seconds: f64) -> String {
-    let whole = seconds.floor() as i64;
-    let millis = ((seconds - whole as f64) * 1000.0).round() as i64;
-    let (days, secs_of_day) = (whole.div_euclid(86_400), whole.rem_euclid(86_400));
-    // Civil-from-days (H. Hinnant), days since 1970-01-01; J2000 is day 10957.
-    let z = days + 10_957 + 719_468;
-    let era = z.div_euclid(146_097);
-    let doe = z - era * 146_097;
-    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
-    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
-    let mp = (5 * doy + 2) / 153;
-    let day = doy - (153 * mp + 2) / 5 + 1;
-    let month = if mp < 10 { mp + 3 } else { mp - 9 };
-    let year = yoe + era * 400 + (month <= 2) as i64;
+    let (year, month, day, hour, minute, second, nanos) = epoch_from_utc_seconds(seconds)
+        .round(Unit::Millisecond * 1)
+        .to_gregorian_utc();
     format!(
-        "{year:04}-{month:02}-{day:02}T{:02}:{:02}:{:02}.{millis:03}Z",
-        secs_of_day / 3600,
-        secs_of_day % 3600 / 60,
-        secs_of_day % 60
+        "{year:04}-{month:02}-{day:02}T{hour:02}:{minute:02}:{second:02}.{:03}Z",
+        nanos / 1_000_000
     )
 }
 
 /// Seconds after 2000-01-01T00:00:00Z for an ISO 8601 UTC timestamp (`YYYY-MM-DDThh:mm:ss[.fff][Z]`, the form
-/// PDS labels and LROC index tables use); the inverse of [`iso_utc_from_j2000_seconds`]. `None` when malformed.
+/// PDS labels and LROC index tables use, optionally quoted); the inverse of [`iso_utc_from_j2000_seconds`].
+/// `None` when malformed, or when it is a date without a time of day (an acquisition needs the instant).
 pub fn j2000_seconds_from_iso_utc(text: &str) -> Option<f64> {
-    let text = text.trim().trim_matches('"').trim_end_matches('Z');
-    let (date, time) = text.split_once('T')?;
-    let mut d = date.splitn(3, '-').map(|p| p.parse::<i64>().ok());
-    let (year, month, day) = (d.next()??, d.next()??, d.next()??);
-    let mut t = time.splitn(3, ':');
-    let (hour, minute) = (
-        t.next()?.parse::<i64>().ok()?,
-        t.next()?.parse::<i64>().ok()?,
-    );
-    let second = t.next()?.parse::<f64>().ok()?;
-    let valid = (1..=12).contains(&month)
-        && (1..=31).contains(&day)
-        && (0..24).contains(&hour)
-        && (0..60).contains(&minute)
-        && (0.0..61.0).contains(&second);
-    if !valid {
+    let text = text.trim().trim_matches('"');
+    if !text.contains('T') {
         return None;
     }
-    // Days-from-civil (H. Hinnant), then shift the epoch from 1970-01-01 to 2000-01-01 (day 10957).
-    let y = year - (month <= 2) as i64;
-    let era = y.div_euclid(400);
-    let yoe = y - era * 400;
-    let mp = (month + 9) % 12;
-    let doy = (153 * mp + 2) / 5 + day - 1;
-    let doe = yoe * 365 + yoe / 4 - yoe / 100 + doy;
-    let days = era * 146_097 + doe - 719_468 - 10_957;
-    Some((days * 86_400 + hour * 3600 + minute * 60) as f64 + second)
+    Epoch::from_gregorian_str(text).ok().map(utc_seconds_of)
 }
-
-/// TAI − UTC (leap seconds) in effect at `utc_seconds` after 2000-01-01T00:00:00Z, from the IERS bulletins
-/// (naif0012.tls). LRO data start in 2009; no leap second has been announced after 2017-01-01.
-fn tai_minus_utc_s(utc_seconds: f64) -> f64 {
-    // (first UTC second of the new offset, after 2000-01-01T00:00:00Z; TAI − UTC from then on).
-    const STEPS: [(f64, f64); 5] = [
-        (189_388_800.0, 33.0), // 2006-01-01
-        (284_083_200.0, 34.0), // 2009-01-01
-        (394_329_600.0, 35.0), // 2012-07-01
-        (488_937_600.0, 36.0), // 2015-07-01
-        (536_457_600.0, 37.0), // 2017-01-01
-    ];
-    STEPS
-        .iter()
-        .rev()
-        .find(|(from, _)| utc_seconds >= *from)
-        .map_or(32.0, |&(_, offset)| offset)
-}
-
-/// 2000-01-01T12:00:00 TT is 11:58:55.816 UTC: 43,135.816 s after 2000-01-01T00:00:00Z (when TAI − UTC was 32 s).
-const J2000_EPOCH_UTC_S: f64 = 43_200.0 - 32.184 - 32.0;
 
 /// SPICE ephemeris time (TDB seconds past the J2000 epoch, as in ALE ISDs) of a UTC instant given as seconds after
-/// 2000-01-01T00:00:00Z without leap seconds (the timestamps of [`iso_utc_from_j2000_seconds`]). TDB is taken as
-/// TT: they differ by at most 1.7 ms, which moves an orbiter at 1.6 km/s by under 3 m along its track.
+/// 2000-01-01T00:00:00Z (the timestamps of [`iso_utc_from_j2000_seconds`]), through the IERS leap-second table
+/// and SPICE's TDB model.
 pub fn ephemeris_time_from_utc_seconds(utc_seconds: f64) -> f64 {
-    utc_seconds - J2000_EPOCH_UTC_S + (tai_minus_utc_s(utc_seconds) - 32.0)
+    epoch_from_utc_seconds(utc_seconds).to_et_seconds()
 }
 
-/// The inverse of [`ephemeris_time_from_utc_seconds`] (exact away from the leap second itself).
+/// The inverse of [`ephemeris_time_from_utc_seconds`] (exact away from a leap second itself).
 pub fn utc_seconds_from_ephemeris_time(et: f64) -> f64 {
-    let guess = et + J2000_EPOCH_UTC_S;
-    et + J2000_EPOCH_UTC_S - (tai_minus_utc_s(guess - (tai_minus_utc_s(guess) - 32.0)) - 32.0)
+    utc_seconds_of(Epoch::from_et_seconds(et))
 }
 
 #[cfg(test)]
@@ -274,16 +234,32 @@ mod tests {
 
     #[test]
     fn ephemeris_time_matches_spice() {
-        // The J2000 epoch is 11:58:55.816 UTC; SPICE str2et('2010-01-01T00:00:00') = 315,576,066.1839 (TDB; TT
-        // differs by ≤ 1.7 ms, the stated approximation).
+        // The J2000 epoch is 12:00:00 TT = 11:58:55.816 UTC; TDB differs from TT by at most 1.7 ms.
         let epoch = j2000_seconds_from_iso_utc("2000-01-01T11:58:55.816").unwrap();
-        assert!(ephemeris_time_from_utc_seconds(epoch).abs() < 1e-9);
+        let et = ephemeris_time_from_utc_seconds(epoch);
+        assert!(et.abs() < 1.7e-3, "{et}");
+        // SPICE str2et('2010-01-01T00:00:00') = 315,576,066.1839 (TDB, given to 0.1 ms).
         let utc_2010 = j2000_seconds_from_iso_utc("2010-01-01T00:00:00").unwrap();
         let et = ephemeris_time_from_utc_seconds(utc_2010);
-        assert!((et - 315_576_066.183_9).abs() < 2e-3, "{et}");
+        assert!((et - 315_576_066.183_9).abs() < 1e-4, "{et}");
         for utc in [utc_2010, 5.0e8, 6.0e8, 1.0e6] {
             let back = utc_seconds_from_ephemeris_time(ephemeris_time_from_utc_seconds(utc));
             assert!((back - utc).abs() < 1e-6, "{utc}: {back}");
         }
+    }
+
+    #[test]
+    fn a_leap_second_lasts_one_utc_second_and_two_of_ephemeris_time() {
+        // 2016-12-31T23:59:60 was inserted: one second of UTC count, two of elapsed time across it.
+        let before = j2000_seconds_from_iso_utc("2016-12-31T23:59:59").unwrap();
+        let after = j2000_seconds_from_iso_utc("2017-01-01T00:00:00").unwrap();
+        assert_eq!(after - before, 1.0);
+        let elapsed =
+            ephemeris_time_from_utc_seconds(after) - ephemeris_time_from_utc_seconds(before);
+        assert!((elapsed - 2.0).abs() < 1e-6, "{elapsed}");
+        // A day without one: 86,400 s of both (TDB's rate differs from TT's by under 2e-8).
+        let (a, b) = (before - 86_400.0 * 100.0, before - 86_400.0 * 99.0);
+        let elapsed = ephemeris_time_from_utc_seconds(b) - ephemeris_time_from_utc_seconds(a);
+        assert!((elapsed - 86_400.0).abs() < 2e-3, "{elapsed}");
     }
 }

@@ -105,12 +105,12 @@ impl IndexTable {
                 (names, Layout::Fixed(columns))
             }
             None => {
-                let file = std::fs::File::open(path).map_err(io(path))?;
-                let mut header = String::new();
-                BufReader::new(file)
-                    .read_line(&mut header)
-                    .map_err(io(path))?;
-                let header = split_csv(header.trim_end());
+                let header: Vec<String> = csv_reader(path)?
+                    .headers()
+                    .map_err(|e| csv_error(path, e))?
+                    .iter()
+                    .map(clean)
+                    .collect();
                 if !header.iter().any(|h| h == "PRODUCT_ID") {
                     return Err(ImportError::Invalid {
                         path: path.to_path_buf(),
@@ -128,42 +128,47 @@ impl IndexTable {
         })
     }
 
-    /// The fields of one line of the table.
-    fn fields(&self, line: &str) -> Vec<String> {
-        match &self.layout {
-            Layout::Fixed(columns) => columns
-                .iter()
-                .map(|c| {
-                    let bytes = line.as_bytes();
-                    let from = (c.start_byte - 1).min(bytes.len());
-                    let to = (from + c.bytes).min(bytes.len());
-                    clean(&String::from_utf8_lossy(&bytes[from..to]))
-                })
-                .collect(),
-            Layout::Csv => split_csv(line),
-        }
-    }
-
     /// The fields of the row whose `PRODUCT_ID` is `product_id` (the first such row), read by streaming the file.
     pub fn row(&self, product_id: &str) -> Result<Vec<String>, ImportError> {
         let id_column = self.column("PRODUCT_ID")?;
-        let io = |source| ImportError::Io {
-            path: self.path.clone(),
-            source,
+        let found = match &self.layout {
+            Layout::Fixed(columns) => {
+                let io = |source| ImportError::Io {
+                    path: self.path.clone(),
+                    source,
+                };
+                let file = std::fs::File::open(&self.path).map_err(io)?;
+                let mut found = None;
+                for line in BufReader::new(file).lines() {
+                    let line = line.map_err(io)?;
+                    if line.trim().is_empty() {
+                        continue;
+                    }
+                    let fields = fixed_fields(columns, &line);
+                    if fields.get(id_column).is_some_and(|v| v == product_id) {
+                        found = Some(fields);
+                        break;
+                    }
+                }
+                found
+            }
+            Layout::Csv => {
+                let mut found = None;
+                for record in csv_reader(&self.path)?.records() {
+                    let record = record.map_err(|e| csv_error(&self.path, e))?;
+                    if record
+                        .get(id_column)
+                        .map(clean)
+                        .is_some_and(|v| v == product_id)
+                    {
+                        found = Some(record.iter().map(clean).collect());
+                        break;
+                    }
+                }
+                found
+            }
         };
-        let file = std::fs::File::open(&self.path).map_err(io)?;
-        let skip = matches!(self.layout, Layout::Csv) as usize;
-        for line in BufReader::new(file).lines().skip(skip) {
-            let line = line.map_err(io)?;
-            if line.trim().is_empty() {
-                continue;
-            }
-            let fields = self.fields(&line);
-            if fields.get(id_column).is_some_and(|v| v == product_id) {
-                return Ok(fields);
-            }
-        }
-        Err(ImportError::Invalid {
+        found.ok_or_else(|| ImportError::Invalid {
             path: self.path.clone(),
             problem: format!("no row with PRODUCT_ID {product_id}"),
         })
@@ -421,18 +426,39 @@ fn clean(field: &str) -> String {
     field.trim().trim_matches('"').trim().to_string()
 }
 
-/// One CSV line split on commas outside double quotes.
-fn split_csv(line: &str) -> Vec<String> {
-    let mut fields = vec![String::new()];
-    let mut quoted = false;
-    for c in line.chars() {
-        match c {
-            '"' => quoted = !quoted,
-            ',' if !quoted => fields.push(String::new()),
-            c => fields.last_mut().expect("never empty").push(c),
-        }
+/// A PDS3 fixed-width line's fields, cut at the label's byte positions.
+fn fixed_fields(columns: &[LabelColumn], line: &str) -> Vec<String> {
+    let bytes = line.as_bytes();
+    columns
+        .iter()
+        .map(|c| {
+            let from = (c.start_byte - 1).min(bytes.len());
+            let to = (from + c.bytes).min(bytes.len());
+            clean(&String::from_utf8_lossy(&bytes[from..to]))
+        })
+        .collect()
+}
+
+/// A reader of an index exported as CSV: a header row, quoted fields, rows of any length (a short row is caught
+/// where its missing field is asked for, with the field's name).
+fn csv_reader(path: &Path) -> Result<csv::Reader<std::fs::File>, ImportError> {
+    csv::ReaderBuilder::new()
+        .flexible(true)
+        .from_path(path)
+        .map_err(|e| csv_error(path, e))
+}
+
+fn csv_error(path: &Path, error: csv::Error) -> ImportError {
+    match error.into_kind() {
+        csv::ErrorKind::Io(source) => ImportError::Io {
+            path: path.to_path_buf(),
+            source,
+        },
+        kind => ImportError::Invalid {
+            path: path.to_path_buf(),
+            problem: format!("not a readable CSV index: {kind:?}"),
+        },
     }
-    fields.iter().map(|f| clean(f)).collect()
 }
 
 #[cfg(test)]

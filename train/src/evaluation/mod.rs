@@ -38,7 +38,7 @@ use crate::features::{FeatureMatcher, MatchStats};
 use crate::kernels::TrainOps;
 use crate::metrics::{image_metrics, MetricsAccumulator};
 use crate::prediction::predict_ensemble;
-use crate::run::{load_ensemble, Checkpoint, TrainedRun};
+use crate::run_dir::{load_ensemble, Checkpoint, TrainedRun};
 
 #[derive(Debug, Clone)]
 pub struct EvalOptions {

@@ -345,7 +345,7 @@ impl<B: TrainOps, C: CheckpointStrategy> TrainOps for Autodiff<B, C> {
     ) -> FloatTensor<Self> {
         // The network's up convolutions all have a bias; without one, compose the stock operations.
         let Some(bias) = bias else {
-            return super::reference::upsample_conv2d::<Self>(x, weight, None);
+            return super::stock::upsample_conv2d::<Self>(x, weight, None);
         };
         match UpsampleConv2d
             .prepare::<C>([x.node.clone(), weight.node.clone(), bias.node.clone()])

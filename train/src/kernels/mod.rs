@@ -6,9 +6,9 @@
 //! broadcast sub/div/mul and their broadcast-reducing backward passes) and the stock convolution backward
 //! (a 128 × 128-kernel convolution over swapped dims for the weight gradient) cost most of a CPU train step in
 //! strided copies rather than arithmetic (`docs/performance.md` has the profile). Here:
-//! - [`mod@autodiff`] implements the trait for `Autodiff<B>`: forward on the inner backend, one graph node per
+//! - `autodiff` implements the trait for `Autodiff<B>`: forward on the inner backend, one graph node per
 //!   operation, and a backward pass that calls the inner backend's gradient kernels;
-//! - [`flex`] implements it for Flex with contiguous f32 kernels, one file per operation (im2col + gemm, one pass
+//! - `flex/` implements it for Flex with contiguous f32 kernels, one file per operation (im2col + gemm, one pass
 //!   per channel);
 //! - every other backend (CUDA) takes the trait's defaults: stock Burn operations, the same math.
 //!
@@ -19,7 +19,7 @@
 mod autodiff;
 mod flex;
 pub mod profile;
-pub mod reference;
+pub mod stock;
 
 use burn::nn::conv::Conv2d;
 use burn::nn::pool::MaxPool2d;
@@ -70,7 +70,7 @@ pub struct NormGrads<B: Backend> {
     pub beta: FloatTensor<B>,
 }
 
-/// The train step's hot operations. Defaults are stock Burn operations ([`reference`]); a backend overrides what
+/// The train step's hot operations. Defaults are stock Burn operations ([`stock`]); a backend overrides what
 /// it can do faster. Inputs are `[N, C, H, W]`, `gamma`/`beta` `[C]`.
 pub trait TrainOps: Backend {
     /// Convolution forward (the stock one unless overridden). `Autodiff` makes it a graph node whose backward
@@ -111,7 +111,7 @@ pub trait TrainOps: Backend {
         weight: FloatTensor<Self>,
         bias: Option<FloatTensor<Self>>,
     ) -> FloatTensor<Self> {
-        reference::upsample_conv2d::<Self>(x, weight, bias)
+        stock::upsample_conv2d::<Self>(x, weight, bias)
     }
 
     /// ∂L/∂x (coarse) of [`TrainOps::train_upsample_conv2d`].
@@ -120,7 +120,7 @@ pub trait TrainOps: Backend {
         weight: FloatTensor<Self>,
         output_grad: FloatTensor<Self>,
     ) -> FloatTensor<Self> {
-        reference::upsample_conv2d_x_grad::<Self>(x, weight, output_grad)
+        stock::upsample_conv2d_x_grad::<Self>(x, weight, output_grad)
     }
 
     /// ∂L/∂weight of [`TrainOps::train_upsample_conv2d`].
@@ -129,17 +129,17 @@ pub trait TrainOps: Backend {
         weight: FloatTensor<Self>,
         output_grad: FloatTensor<Self>,
     ) -> FloatTensor<Self> {
-        reference::upsample_conv2d_weight_grad::<Self>(x, weight, output_grad)
+        stock::upsample_conv2d_weight_grad::<Self>(x, weight, output_grad)
     }
 
     /// ∂L/∂bias of a convolution: the output gradient summed over batch and positions, `[C_out]`.
     fn train_conv2d_bias_grad(output_grad: FloatTensor<Self>) -> FloatTensor<Self> {
-        reference::channel_sums::<Self>(output_grad)
+        stock::channel_sums::<Self>(output_grad)
     }
 
     /// Inverted dropout (training): `x · mask / (1 − prob)` with a keep mask drawn from the backend's seeded RNG.
     fn dropout(x: FloatTensor<Self>, prob: f64) -> DropoutOutput<Self> {
-        reference::dropout::<Self>(x, prob)
+        stock::dropout::<Self>(x, prob)
     }
 
     /// ∂L/∂x of [`TrainOps::dropout`]: `∂y · mask / (1 − prob)`.
@@ -148,7 +148,7 @@ pub trait TrainOps: Backend {
         mask: FloatTensor<Self>,
         prob: f64,
     ) -> FloatTensor<Self> {
-        reference::dropout_backward::<Self>(output_grad, mask, prob)
+        stock::dropout_backward::<Self>(output_grad, mask, prob)
     }
 
     /// 2 × 2 max-pool with stride 2 (floor mode): the output and the backend's record of where each maximum was.
@@ -189,7 +189,7 @@ pub trait TrainOps: Backend {
         b: FloatTensor<Self>,
         slope: f64,
     ) -> FloatTensor<Self> {
-        reference::join_channels::<Self>(a, b, slope)
+        stock::join_channels::<Self>(a, b, slope)
     }
 
     /// The gradients of [`TrainOps::train_join_channels`] for `a` and `b` from the output's gradient.
@@ -198,7 +198,7 @@ pub trait TrainOps: Backend {
         grad: FloatTensor<Self>,
         slope: f64,
     ) -> (FloatTensor<Self>, FloatTensor<Self>) {
-        reference::join_channels_backward::<Self>(a, grad, slope)
+        stock::join_channels_backward::<Self>(a, grad, slope)
     }
 
     /// The renderer layer's masked MSE from raw parameter maps `[N, P, H, W]`, the scene's terms (same shape),
@@ -212,7 +212,7 @@ pub trait TrainOps: Backend {
         valid: FloatTensor<Self>,
         slope: f64,
     ) -> RenderLoss<Self> {
-        reference::render_masked_mse::<Self>(raw, terms, image, valid, slope)
+        stock::render_masked_mse::<Self>(raw, terms, image, valid, slope)
     }
 
     /// ∂L/∂raw of [`TrainOps::render_masked_mse`], given the loss's incoming gradient `loss_grad` (`[1]`).
@@ -223,7 +223,7 @@ pub trait TrainOps: Backend {
         loss_grad: FloatTensor<Self>,
         slope: f64,
     ) -> FloatTensor<Self> {
-        reference::render_masked_mse_backward::<Self>(raw, terms, residual, loss_grad, slope)
+        stock::render_masked_mse_backward::<Self>(raw, terms, residual, loss_grad, slope)
     }
 
     /// Training-mode BatchNorm (batch statistics) followed by LeakyReLU with `slope`.
@@ -234,7 +234,7 @@ pub trait TrainOps: Backend {
         epsilon: f64,
         slope: f64,
     ) -> NormOutput<Self> {
-        reference::batch_norm_leaky_relu::<Self>(x, gamma, beta, epsilon, slope)
+        stock::batch_norm_leaky_relu::<Self>(x, gamma, beta, epsilon, slope)
     }
 
     /// Backward of [`TrainOps::batch_norm_leaky_relu`] given the forward's input, parameters, statistics and
@@ -253,7 +253,7 @@ pub trait TrainOps: Backend {
         slope: f64,
     ) -> NormGrads<Self> {
         let _ = beta;
-        reference::batch_norm_leaky_relu_backward::<Self>(
+        stock::batch_norm_leaky_relu_backward::<Self>(
             x,
             gamma,
             mean,

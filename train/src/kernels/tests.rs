@@ -98,7 +98,7 @@ fn fused_batch_norm_matches_stock_batch_norm_and_autodiff() {
 
 /// The stock-op defaults (what CUDA runs) against Burn's autodiff of the stock module.
 #[test]
-fn reference_batch_norm_backward_matches_autodiff() {
+fn stock_batch_norm_backward_matches_autodiff() {
     let device = Default::default();
     let (shape, slope, eps) = ([2, 3, 6, 5], 0.01, 1e-5);
     let x = (random(shape, 20) * 1.5 - 0.2).require_grad();
@@ -107,7 +107,7 @@ fn reference_batch_norm_backward_matches_autodiff() {
     let y = leaky_relu(norm.forward(x.clone()), slope);
     let grads = (y.clone() * weights.clone()).sum().backward();
     let inner = |t: Tensor<Ad, 4>| primitive(t.inner());
-    let out = reference::batch_norm_leaky_relu::<Flex>(
+    let out = stock::batch_norm_leaky_relu::<Flex>(
         inner(x.clone()),
         primitive(norm.gamma.val().inner()),
         primitive(norm.beta.val().inner()),
@@ -120,7 +120,7 @@ fn reference_batch_norm_backward_matches_autodiff() {
         values(y),
         1e-5,
     );
-    let g = reference::batch_norm_leaky_relu_backward::<Flex>(
+    let g = stock::batch_norm_leaky_relu_backward::<Flex>(
         inner(x.clone()),
         primitive(norm.gamma.val().inner()),
         out.mean,
@@ -380,10 +380,10 @@ fn upsample_conv2d_matches_interpolate_then_conv() {
         inner(conv.weight.val()),
         inner(weights),
     );
-    let dx = reference::upsample_conv2d_x_grad::<Flex>(x.clone(), w.clone(), dy.clone());
-    let dw = reference::upsample_conv2d_weight_grad::<Flex>(x, w, dy);
-    assert_close("reference dx", values(tensor::<Flex, 4>(dx)), stock.1, 1e-5);
-    assert_close("reference dW", values(tensor::<Flex, 4>(dw)), stock.2, 1e-5);
+    let dx = stock::upsample_conv2d_x_grad::<Flex>(x.clone(), w.clone(), dy.clone());
+    let dw = stock::upsample_conv2d_weight_grad::<Flex>(x, w, dy);
+    assert_close("stock dx", values(tensor::<Flex, 4>(dx)), stock.1, 1e-5);
+    assert_close("stock dW", values(tensor::<Flex, 4>(dw)), stock.2, 1e-5);
 }
 
 /// Planes large enough that the kernels work in several row blocks (`flex::conv::ConvShape::block_rows`: 3 blocks for
@@ -463,7 +463,7 @@ fn join_channels_matches_leaky_relu_then_cat_and_splits_its_gradient() {
         primitive(weights.inner()),
     );
     let (fa, fb) = Flex::train_join_channels_backward(a.clone(), g.clone(), 0.01);
-    let (ra, rb) = reference::join_channels_backward::<Flex>(a, g, 0.01);
+    let (ra, rb) = stock::join_channels_backward::<Flex>(a, g, 0.01);
     assert_eq!(values(tensor::<Flex, 4>(fa)), values(tensor::<Flex, 4>(ra)));
     assert_eq!(values(tensor::<Flex, 4>(fb)), values(tensor::<Flex, 4>(rb)));
 }
@@ -519,15 +519,15 @@ fn render_masked_mse_matches_the_stock_composition() {
         inner(valid),
     );
     let cpu = Flex::render_masked_mse(raw.clone(), t.clone(), i.clone(), v.clone(), slope);
-    let stock = reference::render_masked_mse::<Flex>(raw.clone(), t.clone(), i, v, slope);
+    let stock = stock::render_masked_mse::<Flex>(raw.clone(), t.clone(), i, v, slope);
     let loss = |l| values(tensor::<Flex, 1>(l));
-    assert_close("reference loss", loss(stock.loss), loss(cpu.loss), 1e-6);
+    assert_close("stock loss", loss(stock.loss), loss(cpu.loss), 1e-6);
     let g = primitive(Tensor::<Flex, 1>::from_floats([0.5], &Default::default()));
     let d_cpu =
         Flex::render_masked_mse_backward(raw.clone(), t.clone(), cpu.residual, g.clone(), slope);
-    let d_stock = reference::render_masked_mse_backward::<Flex>(raw, t, stock.residual, g, slope);
+    let d_stock = stock::render_masked_mse_backward::<Flex>(raw, t, stock.residual, g, slope);
     assert_close(
-        "reference d raw",
+        "stock d raw",
         values(tensor::<Flex, 4>(d_stock)),
         values(tensor::<Flex, 4>(d_cpu)),
         1e-6,

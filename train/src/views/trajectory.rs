@@ -52,15 +52,29 @@ pub fn read_trajectory(path: &Path) -> Result<Vec<Pose>> {
 
 /// Parse trajectory text (see the module docs).
 pub fn parse_trajectory(text: &str) -> Result<Vec<Pose>> {
-    let mut lines = text
+    // Comment lines (`#`) and blank lines are skipped; fields are trimmed; rows of the wrong length are
+    // reported below with their line number rather than by the reader.
+    let mut reader = csv::ReaderBuilder::new()
+        .comment(Some(b'#'))
+        .trim(csv::Trim::All)
+        .flexible(true)
+        .from_reader(text.as_bytes());
+    let header = reader.headers()?.clone();
+    if header.iter().all(str::is_empty) {
+        bail!("empty trajectory: write a header `x,y,z,q0,qx,qy,qz` or `lon,lat,alt,yaw,pitch,roll` and one row per view");
+    }
+    // The reader's positions do not count comment lines: number the lines it reads as records here (one record
+    // per non-empty line that is not a comment, as the reader splits them).
+    let record_lines: Vec<usize> = text
         .lines()
         .enumerate()
-        .map(|(i, l)| (i + 1, l.trim()))
-        .filter(|(_, l)| !l.is_empty() && !l.starts_with('#'));
-    let Some((header_line, header)) = lines.next() else {
-        bail!("empty trajectory: write a header `x,y,z,q0,qx,qy,qz` or `lon,lat,alt,yaw,pitch,roll` and one row per view");
-    };
-    let columns: Vec<String> = header.split(',').map(|c| c.trim().to_lowercase()).collect();
+        .filter(|(_, l)| !l.is_empty() && !l.starts_with('#'))
+        .map(|(i, _)| i + 1)
+        .collect();
+    let line_of = |record: usize| record_lines.get(record).copied().unwrap_or(0);
+    let header_line = line_of(0);
+    let header = header.iter().collect::<Vec<_>>().join(",");
+    let columns: Vec<String> = header.split(',').map(str::to_lowercase).collect();
     let format = if columns == XYZ_QUAT {
         0
     } else if columns == LONLAT_YPR {
@@ -72,10 +86,16 @@ pub fn parse_trajectory(text: &str) -> Result<Vec<Pose>> {
         );
     };
     let mut poses = Vec::new();
-    for (line, row) in lines {
-        let values: Vec<f64> = row
-            .split(',')
-            .map(|v| v.trim().parse::<f64>())
+    for (index, record) in reader.records().enumerate() {
+        let record = record?;
+        if record.iter().all(str::is_empty) {
+            continue;
+        }
+        let line = line_of(index + 1);
+        let row = record.iter().collect::<Vec<_>>().join(",");
+        let values: Vec<f64> = record
+            .iter()
+            .map(str::parse::<f64>)
             .collect::<Result<_, _>>()
             .map_err(|_| {
                 anyhow::anyhow!("line {line}: `{row}` has a value that is not a number")

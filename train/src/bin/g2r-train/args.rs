@@ -7,7 +7,7 @@ use clap::{Args, Parser, Subcommand};
 use dataset::science::brdf::BrdfModel;
 use train::backend::BackendKind;
 use train::data::StreamConfig;
-use train::run::FitConfig;
+use train::run_dir::FitConfig;
 
 #[derive(Parser)]
 #[command(
@@ -38,8 +38,8 @@ pub struct RunsArgs {
     pub ensemble: Vec<PathBuf>,
     /// Which checkpoint of each run: auto (ema-last when the run kept a weight average, else best, else last),
     /// best, last, ema-best or ema-last.
-    #[arg(long, default_value = "auto", value_parser = named::<train::run::Checkpoint>(train::run::Checkpoint::NAMES))]
-    pub checkpoint: train::run::Checkpoint,
+    #[arg(long, default_value = "auto", value_parser = named::<train::run_dir::Checkpoint>(train::run_dir::Checkpoint::NAMES))]
+    pub checkpoint: train::run_dir::Checkpoint,
     #[arg(long, value_enum, default_value = "flex")]
     pub backend: BackendKind,
 }
@@ -88,8 +88,8 @@ pub struct TrainArgs {
     #[arg(long, value_enum, default_value = "flex")]
     pub backend: BackendKind,
     /// Learning-rate schedule: constant, or cosine decay from --lr to 0 over the run.
-    #[arg(long, default_value = "constant", value_parser = named::<train::run::LrSchedule>(train::run::LrSchedule::NAMES))]
-    pub lr_schedule: train::run::LrSchedule,
+    #[arg(long, default_value = "constant", value_parser = named::<train::run_dir::LrSchedule>(train::run_dir::LrSchedule::NAMES))]
+    pub lr_schedule: train::run_dir::LrSchedule,
     /// Add absolute elevation as a second input plane (normalised by the mean and std of 256 spread train
     /// crops). The paper's input is relief only (crop mean removed), which hides whether a crop lies on a crater
     /// floor, a mare plain or a highland rim; at the crop scale that explains much of the albedo. Meaningful
@@ -202,7 +202,7 @@ fn parse_steep_weight(text: &str) -> Result<f64, String> {
 impl TrainArgs {
     pub fn fit_config(&self) -> FitConfig {
         FitConfig {
-            version: train::run::FIT_CONFIG_VERSION,
+            version: train::run_dir::FIT_CONFIG_VERSION,
             model: self.model,
             epochs: self.epochs,
             learning_rate: self.lr,
@@ -334,8 +334,8 @@ pub enum Command {
         run: Option<PathBuf>,
         /// Which checkpoint of each run: auto (ema-last when the run kept a weight average, else best, else last),
         /// best, last, ema-best or ema-last.
-        #[arg(long, default_value = "auto", value_parser = named::<train::run::Checkpoint>(train::run::Checkpoint::NAMES))]
-        checkpoint: train::run::Checkpoint,
+        #[arg(long, default_value = "auto", value_parser = named::<train::run_dir::Checkpoint>(train::run_dir::Checkpoint::NAMES))]
+        checkpoint: train::run_dir::Checkpoint,
         /// DEM GeoTIFF for the renderer section (and, with --run, the inference-overlap section).
         #[arg(long)]
         dem: Option<PathBuf>,

@@ -57,7 +57,7 @@ pub fn batch_norm_leaky_relu(
 ) -> NormOutput<Flex> {
     let prepared = (f32_data(&x), f32_data(&gamma), f32_data(&beta));
     let (Some((xc, shape)), Some((gamma_c, _)), Some((beta_c, _))) = prepared else {
-        return reference::batch_norm_leaky_relu::<Flex>(x, gamma, beta, epsilon, slope);
+        return stock::batch_norm_leaky_relu::<Flex>(x, gamma, beta, epsilon, slope);
     };
     let (c, plane) = (shape[1], shape[2..].iter().product::<usize>());
     let values = slice(&xc);
@@ -107,7 +107,7 @@ pub fn batch_norm_leaky_relu_backward(
     let [Some((xc, shape)), Some((gamma_c, _)), Some((beta_c, _)), Some((mean_c, _)), Some((var_c, _)), Some((dy_c, _))] =
         prepared
     else {
-        return reference::batch_norm_leaky_relu_backward::<Flex>(
+        return stock::batch_norm_leaky_relu_backward::<Flex>(
             x,
             gamma,
             mean,

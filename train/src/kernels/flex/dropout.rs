@@ -11,7 +11,7 @@ const DROPOUT_CHUNK: usize = 1 << 14;
 pub fn dropout(x: FloatTensor<Flex>, prob: f64) -> DropoutOutput<Flex> {
     use burn::tensor::ops::FloatTensorOps;
     let Some((xc, shape)) = f32_data(&x) else {
-        return reference::dropout::<Flex>(x, prob);
+        return stock::dropout::<Flex>(x, prob);
     };
     let draws = <Flex as FloatTensorOps<Flex>>::float_random(
         burn::tensor::Shape::new([2]),
@@ -71,7 +71,7 @@ pub fn dropout_backward(
     prob: f64,
 ) -> FloatTensor<Flex> {
     let (Some((dy_c, shape)), Some((mask_c, _))) = (f32_data(&output_grad), f32_data(&mask)) else {
-        return reference::dropout_backward::<Flex>(output_grad, mask, prob);
+        return stock::dropout_backward::<Flex>(output_grad, mask, prob);
     };
     let scale = (1.0 / (1.0 - prob)) as f32;
     let (dy, m) = (slice(&dy_c), slice(&mask_c));

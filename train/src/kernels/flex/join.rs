@@ -5,14 +5,14 @@ use super::*;
 /// `[LeakyReLU(a), b]` along channels, per sample: the first part activated as it is copied, the second copied.
 pub fn join_channels(a: FloatTensor<Flex>, b: FloatTensor<Flex>, slope: f64) -> FloatTensor<Flex> {
     let (Some((ac, a_shape)), Some((bc, b_shape))) = (f32_data(&a), f32_data(&b)) else {
-        return reference::join_channels::<Flex>(a, b, slope);
+        return stock::join_channels::<Flex>(a, b, slope);
     };
     let (sample_a, sample_b) = (
         a_shape[1..].iter().product::<usize>(),
         b_shape[1..].iter().product::<usize>(),
     );
     if sample_a == 0 || sample_b == 0 {
-        return reference::join_channels::<Flex>(a, b, slope);
+        return stock::join_channels::<Flex>(a, b, slope);
     }
     let slope = slope as f32;
     let mut out = vec![0.0f32; a_shape[0] * (sample_a + sample_b)];
@@ -48,13 +48,13 @@ pub fn join_channels_backward(
     slope: f64,
 ) -> (FloatTensor<Flex>, FloatTensor<Flex>) {
     let (Some((ac, a_shape)), Some((gc, shape))) = (f32_data(&a), f32_data(&grad)) else {
-        return reference::join_channels_backward::<Flex>(a, grad, slope);
+        return stock::join_channels_backward::<Flex>(a, grad, slope);
     };
     let plane = shape[2..].iter().product::<usize>();
     let (sample, sample_a) = (shape[1] * plane, a_shape[1] * plane);
     let sample_b = sample - sample_a;
     if sample_a == 0 || sample_b == 0 {
-        return reference::join_channels_backward::<Flex>(a, grad, slope);
+        return stock::join_channels_backward::<Flex>(a, grad, slope);
     }
     let slope = slope as f32;
     let (mut grad_a, mut grad_b) = (

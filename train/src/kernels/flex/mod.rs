@@ -12,7 +12,7 @@
 //!   layer's masked squared error).
 //!
 //! Elementwise loops run in [`vectorized`]. Anything else (other dtypes, strides, groups) goes to the stock path
-//! in [`super::reference`].
+//! in [`super::stock`].
 
 use burn::backend::Flex;
 use burn::tensor::ops::{ConvOptions, FloatTensor, IntTensor, ModuleOps};
@@ -21,7 +21,7 @@ use burn_flex::FlexTensor;
 use rayon::prelude::*;
 
 use super::profile::{timed, Kernel};
-use super::{reference, DropoutOutput, MaxPoolOutput, NormGrads, NormOutput, RenderLoss, TrainOps};
+use super::{stock, DropoutOutput, MaxPoolOutput, NormGrads, NormOutput, RenderLoss, TrainOps};
 
 mod batch_norm;
 mod conv;

@@ -16,7 +16,7 @@ pub fn render_masked_mse(
     let [Some((raw_c, shape)), Some((terms_c, terms_shape)), Some((image_c, _)), Some((valid_c, _))] =
         prepared
     else {
-        return reference::render_masked_mse::<Flex>(raw, terms, image, valid, slope);
+        return stock::render_masked_mse::<Flex>(raw, terms, image, valid, slope);
     };
     assert_eq!(
         shape, terms_shape,
@@ -79,9 +79,7 @@ pub fn render_masked_mse_backward(
     let [Some((raw_c, shape)), Some((terms_c, _)), Some((resid_c, _)), Some((grad_c, _))] =
         prepared
     else {
-        return reference::render_masked_mse_backward::<Flex>(
-            raw, terms, residual, loss_grad, slope,
-        );
+        return stock::render_masked_mse_backward::<Flex>(raw, terms, residual, loss_grad, slope);
     };
     let (p, plane) = (shape[1], shape[2..].iter().product::<usize>());
     let (raw, terms, resid) = (slice(&raw_c), slice(&terms_c), slice(&resid_c));

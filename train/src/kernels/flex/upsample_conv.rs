@@ -55,7 +55,7 @@ pub fn upsample_conv2d(
     bias: Option<FloatTensor<Flex>>,
 ) -> FloatTensor<Flex> {
     let Some((xc, wc, bias_c, s)) = upsample_conv_operands(&x, &weight, bias.as_ref()) else {
-        return reference::upsample_conv2d::<Flex>(x, weight, bias);
+        return stock::upsample_conv2d::<Flex>(x, weight, bias);
     };
     let (xs, bias) = (slice(&xc), bias_c.as_ref().map(slice));
     let (h, w, hw) = (s.height, s.width, s.positions());
@@ -112,7 +112,7 @@ pub fn upsample_conv2d_x_grad(
 ) -> FloatTensor<Flex> {
     let Some((_, wc, Some(dy_c), s)) = upsample_conv_operands(&x, &weight, Some(&output_grad))
     else {
-        return reference::upsample_conv2d_x_grad::<Flex>(x, weight, output_grad);
+        return stock::upsample_conv2d_x_grad::<Flex>(x, weight, output_grad);
     };
     let dy = slice(&dy_c);
     let hw = s.positions();
@@ -153,7 +153,7 @@ pub fn upsample_conv2d_weight_grad(
 ) -> FloatTensor<Flex> {
     let Some((xc, _, Some(dy_c), s)) = upsample_conv_operands(&x, &weight, Some(&output_grad))
     else {
-        return reference::upsample_conv2d_weight_grad::<Flex>(x, weight, output_grad);
+        return stock::upsample_conv2d_weight_grad::<Flex>(x, weight, output_grad);
     };
     let (xs, dy) = (slice(&xc), slice(&dy_c));
     let hw = s.positions();

@@ -22,7 +22,7 @@ use crate::model::{UNet, UNetConfig};
 /// `version` key) added fields one at a time, each absent in older files; those files load with the values
 /// every run had before the field existed (constant learning rate, relief input only, no context window). From
 /// version 2 on every field is written and required, and a new field means a new version with its conversion
-/// in [`StoredFitConfig`].
+/// in `StoredFitConfig`.
 pub const FIT_CONFIG_VERSION: u32 = 6;
 
 /// Everything that defines a run (saved as `config.json`; a resume must match it). The network's head always
@@ -388,7 +388,7 @@ pub(crate) fn read_history(path: &Path) -> Result<Vec<EpochMetrics>> {
 
 /// The training data's input normalisation, saved with a run (`normalisation.json`).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct Normalisation {
+pub struct RunNormalisation {
     /// How heights became the network's input.
     #[serde(flatten)]
     pub input: InputNormalisation,
@@ -396,7 +396,7 @@ pub struct Normalisation {
 }
 
 /// A run's `normalisation.json`.
-pub fn load_normalisation(run: &Path) -> Result<Normalisation> {
+pub fn load_normalisation(run: &Path) -> Result<RunNormalisation> {
     read_json(&run.join("normalisation.json"))
 }
 
