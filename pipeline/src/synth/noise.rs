@@ -1,6 +1,12 @@
 //! Stateless, seeded 2-D gradient noise and fractional Brownian motion (fBm): any cell can be evaluated
 //! independently, so rasters fill in parallel and the result does not depend on the thread count.
 
+/// Hermite smoothstep from `e0` (0) to `e1` (1); e0 > e1 gives a falling step.
+pub fn smoothstep(e0: f64, e1: f64, x: f64) -> f64 {
+    let t = ((x - e0) / (e1 - e0)).clamp(0.0, 1.0);
+    t * t * (3.0 - 2.0 * t)
+}
+
 /// 2-D gradient (Perlin-type) noise on a unit lattice, keyed by `key`; output roughly in [-1, 1].
 #[inline]
 pub fn gradient_noise(x: f64, y: f64, key: u64) -> f64 {

@@ -4,8 +4,8 @@
 use rayon::prelude::*;
 
 use super::config::ReflectanceConfig;
+use super::noise::smoothstep;
 use super::noise::Fbm;
-use super::terrain::smoothstep;
 use super::units::Units;
 use super::Grid;
 use crate::rng::keyed_u64;

@@ -7,7 +7,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::config::{ComplexCraterConfig, TerrainConfig};
-use super::noise::Fbm;
+use super::noise::{smoothstep, Fbm};
 use super::units::Units;
 use super::Grid;
 use crate::rng::{keyed_rng, keyed_u64};
@@ -120,12 +120,6 @@ pub fn complex_crater_freshness(rho: f64, floor_rho: f64) -> f64 {
     } else {
         rho.powi(-2) * ejecta_taper(rho)
     }
-}
-
-/// Hermite smoothstep from `e0` (0) to `e1` (1); e0 > e1 gives a falling step.
-pub fn smoothstep(e0: f64, e1: f64, x: f64) -> f64 {
-    let t = ((x - e0) / (e1 - e0)).clamp(0.0, 1.0);
-    t * t * (3.0 - 2.0 * t)
 }
 
 /// Background fBm heights for every fine cell; mare plains are smoother and lie `mare_depth_m` lower.

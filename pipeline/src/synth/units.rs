@@ -6,8 +6,8 @@
 //! ±20 % component no DEM could predict, far past the 5–10 % the design notes budget for.
 
 use super::config::ReflectanceConfig;
+use super::noise::smoothstep;
 use super::noise::Fbm;
-use super::terrain::smoothstep;
 use crate::rng::keyed_u64;
 
 pub struct Units {
