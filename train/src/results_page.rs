@@ -31,12 +31,20 @@
 //! - `documented`: the commit (and its date) at which the figures first appeared in the repository's docs, an upper
 //!   bound on when they were measured; shown only where `measured` is null.
 //! - `figures`: the row's figures as named numbers (e.g. `learned_over_paper_hapke_sse`, `val_pixel_mse`), for
-//!   tools and plots that read the records; optional, and not shown on the page, whose cells quote them.
+//!   tools and plots that read the records. A cell shows one as `{name}` (the number as recorded), `{name:.N}`
+//!   (N decimals) or `{name:.Ne}` (N decimals in scientific notation, e.g. `1.650e-4`); a cell naming a figure
+//!   its row lacks is an error, and a cell holds no other braces. Rows converted this way show numbers that
+//!   cannot differ from their record; older rows still quote theirs in the cell text.
+//!
+//! [`write_generated_blocks`] copies sections into other documents (the README's headline table): a block opened
+//! by `<!-- generated: results-page SECTION.json -->` and closed by `<!-- end generated -->` holds that section's
+//! table, and the same test that guards the page guards those blocks.
 //!
 //! The table gets a `command` column when any of its rows has a command and a `measured` column when any has a
 //! date; a value a row lacks reads "not recorded". A section without rows has no table. Blocks (headings,
 //! paragraphs, tables) are separated by one blank line and the page ends with one newline.
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use anyhow::{ensure, Context, Result};
@@ -81,7 +89,7 @@ struct Row {
     documented: Option<String>,
     /// Named numbers for tools (the page shows the cells); names are checked, values are JSON numbers.
     #[serde(default)]
-    figures: std::collections::BTreeMap<String, f64>,
+    figures: BTreeMap<String, f64>,
 }
 
 /// The Markdown page for the records in `dir` (the module docs give their form and order). Errors name the record
@@ -120,6 +128,95 @@ pub fn check_results_page(records: &Path, out: &Path) -> Result<()> {
         records.display(),
         out.display()
     );
+    Ok(())
+}
+
+/// `g2r-train results-page`: write (or, with `check`, compare) the page and the generated blocks of `documents`;
+/// says what it did.
+pub fn run_job(records: &Path, out: &Path, documents: &[PathBuf], check: bool) -> Result<String> {
+    if check {
+        check_results_page(records, out)?;
+        check_generated_blocks(records, documents)?;
+        Ok(format!(
+            "{} and the blocks in {documents:?} are what {} give",
+            out.display(),
+            records.display()
+        ))
+    } else {
+        write_results_page(records, out)?;
+        write_generated_blocks(records, documents)?;
+        Ok(format!(
+            "wrote {} and the blocks in {documents:?}",
+            out.display()
+        ))
+    }
+}
+
+/// Opens a generated block in another document; the record file's name and ` -->` follow on the same line.
+const BLOCK_OPEN: &str = "<!-- generated: results-page ";
+/// Closes a generated block.
+const BLOCK_CLOSE: &str = "<!-- end generated -->";
+
+/// `text` with each generated block (module docs) holding the table of the record it names in `records`.
+pub fn fill_generated_blocks(text: &str, records: &Path) -> Result<String> {
+    let mut out = String::with_capacity(text.len());
+    let mut lines = text.split_inclusive('\n');
+    while let Some(line) = lines.next() {
+        out.push_str(line);
+        let Some(rest) = line.trim_end().strip_prefix(BLOCK_OPEN) else {
+            continue;
+        };
+        let name = rest
+            .strip_suffix(" -->")
+            .with_context(|| format!("{line:?}: a block opens with {BLOCK_OPEN}NAME.json -->"))?;
+        let path = records.join(name);
+        let section: Section = serde_json::from_str(
+            &std::fs::read_to_string(&path)
+                .with_context(|| format!("{}: cannot read the result record", path.display()))?,
+        )
+        .with_context(|| format!("{}: not a valid result record", path.display()))?;
+        let table = render_table(&section)
+            .with_context(|| format!("{}: the result record cannot be rendered", path.display()))?;
+        out.push_str(&table);
+        out.push('\n');
+        let closed = lines.by_ref().any(|line| line.trim_end() == BLOCK_CLOSE);
+        ensure!(
+            closed,
+            "the block for {name} is not closed by {BLOCK_CLOSE}"
+        );
+        out.push_str(BLOCK_CLOSE);
+        out.push('\n');
+    }
+    Ok(out)
+}
+
+/// Refill the generated blocks of each document in `documents` from the records in `records` (atomically).
+pub fn write_generated_blocks(records: &Path, documents: &[PathBuf]) -> Result<()> {
+    for document in documents {
+        let text = std::fs::read_to_string(document)
+            .with_context(|| format!("{}: cannot read it", document.display()))?;
+        let filled = fill_generated_blocks(&text, records)
+            .with_context(|| format!("{}: its generated blocks", document.display()))?;
+        dataset::contract::manifest::write_text_atomic(document, &filled)
+            .with_context(|| format!("{}: cannot write it", document.display()))?;
+    }
+    Ok(())
+}
+
+/// Fail, naming the command that fixes it, when a document's generated blocks differ from their records.
+pub fn check_generated_blocks(records: &Path, documents: &[PathBuf]) -> Result<()> {
+    for document in documents {
+        let text = std::fs::read_to_string(document)
+            .with_context(|| format!("{}: cannot read it", document.display()))?;
+        let filled = fill_generated_blocks(&text, records)
+            .with_context(|| format!("{}: its generated blocks", document.display()))?;
+        ensure!(
+            filled == text,
+            "{}: a generated block differs from the records in {}: run `g2r-train results-page`",
+            document.display(),
+            records.display()
+        );
+    }
     Ok(())
 }
 
@@ -215,7 +312,12 @@ fn render_table(section: &Section) -> Result<String> {
             row.cells.len(),
             section.columns.len()
         );
-        let mut cells = row.cells.clone();
+        let mut cells = row
+            .cells
+            .iter()
+            .map(|cell| fill_figures(cell, &row.figures))
+            .collect::<Result<Vec<_>>>()
+            .with_context(|| format!("row {}", index + 1))?;
         if with_command {
             cells.push(row.command.as_deref().unwrap_or(NOT_RECORDED).to_string());
         }
@@ -225,6 +327,43 @@ fn render_table(section: &Section) -> Result<String> {
         lines.push(table_line(&cells).with_context(|| format!("row {}", index + 1))?);
     }
     Ok(lines.join("\n"))
+}
+
+/// A cell with each `{name}`, `{name:.N}` or `{name:.Ne}` replaced by the row's figure of that name.
+fn fill_figures(cell: &str, figures: &BTreeMap<String, f64>) -> Result<String> {
+    let mut out = String::with_capacity(cell.len());
+    let mut rest = cell;
+    while let Some(open) = rest.find('{') {
+        out.push_str(&rest[..open]);
+        let after = &rest[open + 1..];
+        let close = after
+            .find('}')
+            .with_context(|| format!("an unclosed {{ in the cell {cell:?}"))?;
+        let (name, format) = after[..close]
+            .split_once(':')
+            .unwrap_or((&after[..close], ""));
+        let value = *figures.get(name).with_context(|| {
+            format!("the cell names the figure {{{name}}}, which its row does not record")
+        })?;
+        let decimals = |digits: &str| -> Result<usize> {
+            digits
+                .parse()
+                .with_context(|| format!("{{{name}:{format}}}: the format is .N or .Ne"))
+        };
+        let text = match format {
+            "" => format!("{value}"),
+            f if f.starts_with('.') && f.ends_with('e') => {
+                format!("{:.*e}", decimals(&f[1..f.len() - 1])?, value)
+            }
+            f if f.starts_with('.') => format!("{:.*}", decimals(&f[1..])?, value),
+            _ => anyhow::bail!("{{{name}:{format}}}: the format is .N or .Ne"),
+        };
+        out.push_str(&text);
+        rest = &after[close + 1..];
+    }
+    ensure!(!rest.contains('}'), "a lone }} in the cell {cell:?}");
+    out.push_str(rest);
+    Ok(out)
 }
 
 /// When a row was measured; where that was not recorded, says so and names the commit that first documented it.
@@ -384,6 +523,45 @@ Caveat: one machine.
         assert!(render_results_page(dir.path()).is_ok());
     }
 
+    #[test]
+    fn cells_show_their_row_figures_and_blocks_copy_a_section_table() {
+        let figures = BTreeMap::from([("ratio".to_string(), 0.5731), ("mse".to_string(), 1.65e-4)]);
+        assert_eq!(
+            fill_figures("**{ratio:.3}** ({ratio}), {mse:.3e}", &figures).unwrap(),
+            "**0.573** (0.5731), 1.650e-4"
+        );
+        for (cell, needle) in [
+            ("{missing}", "does not record"),
+            ("{ratio", "unclosed"),
+            ("a } b", "lone"),
+            ("{ratio:x}", "format"),
+        ] {
+            let text = format!("{:#}", fill_figures(cell, &figures).unwrap_err());
+            assert!(text.contains(needle), "{cell}: {text}");
+        }
+
+        let dir = tempfile::tempdir().unwrap();
+        write(
+            dir.path(),
+            "10-claim.json",
+            r#"{"title": "Claim", "columns": ["dataset", "ratio"],
+                "rows": [{"cells": ["demo", "{ratio:.2}"], "figures": {"ratio": 0.573}}]}"#,
+        );
+        let document = "# Read me\n\n<!-- generated: results-page 10-claim.json -->\nstale\n<!-- end generated -->\n\nAfter.\n";
+        let filled = fill_generated_blocks(document, dir.path()).unwrap();
+        assert_eq!(
+            filled,
+            "# Read me\n\n<!-- generated: results-page 10-claim.json -->\n| dataset | ratio |\n|---|---|\n| demo | 0.57 |\n<!-- end generated -->\n\nAfter.\n"
+        );
+        assert_eq!(fill_generated_blocks(&filled, dir.path()).unwrap(), filled);
+        let unclosed = "<!-- generated: results-page 10-claim.json -->\n| old |\n";
+        assert!(format!(
+            "{:#}",
+            fill_generated_blocks(unclosed, dir.path()).unwrap_err()
+        )
+        .contains("not closed"));
+    }
+
     /// The committed page is exactly what its committed records give: a figure edited in one but not the other
     /// fails here.
     #[test]
@@ -402,5 +580,7 @@ Caveat: one machine.
              {first_difference:?}); regenerate it: cargo run -p g2r-train -- results-page --records docs/results \
              --out docs/results.md"
         );
+        let readme = docs.join("../README.md");
+        check_generated_blocks(&docs.join("results"), &[readme]).unwrap();
     }
 }

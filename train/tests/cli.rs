@@ -197,14 +197,19 @@ fn results_page_writes_the_page_and_check_fails_when_it_differs() {
         r#"{"title": "A", "columns": ["what"], "rows": [{"cells": ["x"]}]}"#,
     )
     .unwrap();
+    let readme_block = "<!-- generated: results-page 10-a.json -->\n<!-- end generated -->\n";
+    std::fs::write(d.join("README.md"), readme_block).unwrap();
     let records = d.join("records").to_string_lossy().into_owned();
     let page = d.join("results.md").to_string_lossy().into_owned();
+    let readme = d.join("README.md").to_string_lossy().into_owned();
     let write = [
         "results-page",
         "--records",
         records.as_str(),
         "--out",
         page.as_str(),
+        "--embed-in",
+        readme.as_str(),
     ];
     let check = [&write[..], &["--check"][..]].concat();
     // No page yet: the check names it.
@@ -224,4 +229,12 @@ fn results_page_writes_the_page_and_check_fails_when_it_differs() {
         !ok && line.contains("differs") && line.contains("results-page --records"),
         "{stderr}"
     );
+    // The README's block was filled with the record's table, and an edit to it fails the check too.
+    let (ok, stderr) = train_cli(&write);
+    assert!(ok, "{stderr}");
+    let filled = std::fs::read_to_string(d.join("README.md")).unwrap();
+    assert!(filled.contains("| what |\n|---|\n| x |\n"), "{filled}");
+    std::fs::write(d.join("README.md"), filled.replace("| x |", "| y |")).unwrap();
+    let (ok, stderr) = train_cli(&check);
+    assert!(!ok && error_line(&stderr).contains("README.md"), "{stderr}");
 }

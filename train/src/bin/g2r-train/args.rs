@@ -418,7 +418,8 @@ Measure on an idle machine; compare only figures from the same sitting."
         rounds: usize,
     },
     /// Write docs/results.md from the JSON result records in docs/results/ (one file per section, in file-name
-    /// order); with --check, write nothing and fail when the page differs from what the records give.
+    /// order) and refill the README's generated tables from them; with --check, write nothing and fail when the
+    /// page or a generated table differs from what the records give.
     ResultsPage {
         /// Directory of result records (`NN-name.json`).
         #[arg(long, default_value = "docs/results")]
@@ -426,6 +427,10 @@ Measure on an idle machine; compare only figures from the same sitting."
         /// The Markdown page written (or, with --check, compared).
         #[arg(long, default_value = "docs/results.md")]
         out: PathBuf,
+        /// Documents whose generated blocks (`<!-- generated: results-page NN-name.json -->` … `<!-- end
+        /// generated -->`) hold a record's table, refilled (or, with --check, compared) too.
+        #[arg(long = "embed-in", default_value = "README.md")]
+        embed_in: Vec<PathBuf>,
         /// Compare instead of writing: exit non-zero when --out is not exactly the generated page.
         #[arg(long)]
         check: bool,

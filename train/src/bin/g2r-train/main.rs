@@ -279,16 +279,12 @@ fn run(cli: Cli) -> Result<()> {
         Command::ResultsPage {
             records,
             out,
+            embed_in,
             check,
-        } => {
-            if check {
-                train::results_page::check_results_page(&records, &out)?;
-                println!("{} is what {} give", out.display(), records.display());
-            } else {
-                train::results_page::write_results_page(&records, &out)?;
-                println!("wrote {}", out.display());
-            }
-        }
+        } => println!(
+            "{}",
+            train::results_page::run_job(&records, &out, &embed_in, check)?
+        ),
     }
     Ok(())
 }
