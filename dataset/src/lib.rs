@@ -7,7 +7,7 @@
 //!   planner that reads them back.
 //!
 //! Beside them: the HTTP [`client`] of a served dataset (the server itself is the `g2r-dataset-server` crate),
-//! the binaries' allocator settings and logging, and test fixtures.
+//! the binaries' allocator settings and logging, the provenance written next to measurements, and test fixtures.
 
 pub mod science;
 
@@ -15,6 +15,7 @@ pub mod contract;
 
 pub mod client;
 pub mod malloc;
+pub mod provenance;
 pub mod testing;
 
 /// Initialise structured logging for the binaries (`RUST_LOG` overrides the default `info`), and route GDAL's own

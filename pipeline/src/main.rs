@@ -177,12 +177,24 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             let runner = pipeline::stages::pipeline(&manifest, progress.clone())?;
             let started = Instant::now();
             let force: Vec<&str> = force.iter().map(String::as_str).collect();
-            let ran = runner.run(until.as_deref(), &force)?;
+            let ran = runner.run_timed(until.as_deref(), &force)?;
             progress.finish_and_clear();
             if ran.is_empty() {
                 tracing::info!("everything up to date");
             } else {
-                tracing::info!(stages = ran.join(","), seconds = format!("{:.1}", started.elapsed().as_secs_f64()), out = %manifest.out_dir().display(), "pipeline run");
+                let seconds = started.elapsed().as_secs_f64();
+                let names: Vec<&str> = ran.iter().map(|stage| stage.name).collect();
+                tracing::info!(stages = names.join(","), seconds = format!("{seconds:.1}"), out = %manifest.out_dir().display(), "pipeline run");
+                // What this run measured, with where and when: beside the outputs, never inside the dataset.
+                let record = serde_json::json!({
+                    "stages": ran,
+                    "seconds": seconds,
+                    "provenance": dataset::provenance::Provenance::capture(),
+                });
+                dataset::contract::manifest::write_json_atomic(
+                    &manifest.out_dir().join("run-record.json"),
+                    &record,
+                )?;
             }
         }
         Command::ImportMetadata {

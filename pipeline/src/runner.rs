@@ -233,6 +233,15 @@ impl<'a> Runner<'a> {
 
     /// Run stale stages (and `force`d ones) in order, stopping after `until` if given. Returns the stages run.
     pub fn run(&self, until: Option<&str>, force: &[&str]) -> anyhow::Result<Vec<&'static str>> {
+        Ok(self
+            .run_timed(until, force)?
+            .into_iter()
+            .map(|stage| stage.name)
+            .collect())
+    }
+
+    /// [`Runner::run`], returning each stage run with its wall time and the process's peak memory after it.
+    pub fn run_timed(&self, until: Option<&str>, force: &[&str]) -> anyhow::Result<Vec<StageRun>> {
         self.hash_memo.clear();
         for name in until.into_iter().chain(force.iter().copied()) {
             if !self.stages.iter().any(|s| s.name == name) {
@@ -275,14 +284,19 @@ impl<'a> Runner<'a> {
                     },
                 );
                 write_json_atomic(&self.lock_path, &lock)?;
-                // Where time goes, per stage (logs only: no clock reaches an output).
+                // Where time goes, per stage (logs and the run record only: no clock reaches a stage output).
+                let timed = StageRun {
+                    name: stage.name,
+                    seconds: started.elapsed().as_secs_f64(),
+                    peak_rss_mib: peak_rss_mib(),
+                };
                 tracing::info!(
                     stage = stage.name,
-                    seconds = format!("{:.1}", started.elapsed().as_secs_f64()),
-                    peak_rss_mib = peak_rss_mib(),
+                    seconds = format!("{:.1}", timed.seconds),
+                    peak_rss_mib = timed.peak_rss_mib,
                     "stage done"
                 );
-                ran.push(stage.name);
+                ran.push(timed);
                 upstream_ran = true;
             }
             if until == Some(stage.name) {
@@ -340,6 +354,15 @@ impl<'a> Runner<'a> {
         }
         Ok(removed)
     }
+}
+
+/// One stage that ran, as `g2r-pipeline run` records it in `run-record.json`.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct StageRun {
+    pub name: &'static str,
+    pub seconds: f64,
+    /// The process's peak resident set after the stage (VmHWM, so at least every earlier stage's), MiB.
+    pub peak_rss_mib: Option<u64>,
 }
 
 /// The process's peak resident set so far (VmHWM), in MiB; `None` where /proc is not available.

@@ -554,9 +554,10 @@ pub fn run_job<B: TrainOps>(job: &ReportJob, device: &B::Device) -> Result<Repor
     })
 }
 
-/// Write `report.json`, `report.md` and one PNG per measured section into `out`.
+/// Write `report.json`, `report.md`, one PNG per measured section and the run's `provenance.json` into `out`.
 pub fn write(report: &Report, out: &Path) -> Result<()> {
     std::fs::create_dir_all(out)?;
+    dataset::provenance::Provenance::capture().write(&out.join("provenance.json"))?;
     dataset::contract::manifest::write_json_atomic(&out.join("report.json"), report)?;
     let mut text = markdown(report);
     let font = crate::plot::system_font();

@@ -185,6 +185,15 @@ fn fit_eval_and_infer_on_wgpu_agree_with_flex() {
         eval("wgpu", &tmp.path().join("eval-wgpu")),
     );
     let worst_eval = relative(eval_flex, eval_wgpu);
+    // Each eval says how it was produced, beside its metrics.
+    let provenance: dataset::provenance::Provenance = serde_json::from_str(
+        &std::fs::read_to_string(tmp.path().join("eval-wgpu/provenance.json")).unwrap(),
+    )
+    .unwrap();
+    assert!(
+        provenance.command.contains("eval") && provenance.command.contains("wgpu"),
+        "{provenance:?}"
+    );
 
     // infer on a DEM GeoTIFF.
     let dem = tmp.path().join("dem.tif");

@@ -268,7 +268,8 @@ pub struct EvalJob<'a> {
 }
 
 /// Load every run (before anything is written: a mistyped run directory leaves no empty output), fit the uniform
-/// baselines on train crops, evaluate, and write `metrics.json`, `metrics.md` and `panels/` into `job.out`.
+/// baselines on train crops, evaluate, and write `metrics.json`, `metrics.md`, `panels/` and the run's
+/// `provenance.json` into `job.out`.
 pub fn run_job<B: TrainOps>(job: &EvalJob, device: &B::Device) -> Result<EvalReport> {
     let truth = job.world.map(TruthMaps::open).transpose()?;
     let runs = load_ensemble::<B>(job.runs, job.checkpoint, false, device)?;
@@ -296,6 +297,7 @@ pub fn run_job<B: TrainOps>(job: &EvalJob, device: &B::Device) -> Result<EvalRep
         },
     )?;
     write_report(&report, job.out)?;
+    dataset::provenance::Provenance::capture().write(&job.out.join("provenance.json"))?;
     Ok(report)
 }
 

@@ -256,7 +256,7 @@ fn run(cli: Cli) -> Result<()> {
             rounds,
         } => {
             let (name, torch_device) = (backend.name(), backend.torch_device());
-            let json = match torch {
+            let measured = match torch {
                 Some(python) => {
                     anyhow::ensure!(
                         model == BrdfModel::M2,
@@ -265,16 +265,18 @@ fn run(cli: Cli) -> Result<()> {
                     let comparison = with_backend!(backend, B => train::bench::compare_with_torch::<B>(
                         &python, name, torch_device, batch, width, iters, rounds, &Default::default()
                     ))?;
-                    serde_json::to_string_pretty(&comparison)?
+                    serde_json::to_value(&comparison)?
                 }
                 None => {
                     let report: train::bench::BenchReport = with_backend!(backend, B => Ok::<_, anyhow::Error>(
                         train::bench::bench::<B>(name, model, batch, width, iters, &Default::default())
                     ))?;
-                    serde_json::to_string_pretty(&report)?
+                    serde_json::to_value(&report)?
                 }
             };
-            println!("{json}");
+            let provenance = dataset::provenance::Provenance::capture();
+            let record = serde_json::json!({ "bench": measured, "provenance": provenance });
+            println!("{}", serde_json::to_string_pretty(&record)?);
         }
         Command::ResultsPage {
             records,
