@@ -68,7 +68,7 @@ fn to_px(v: f64, (lo, hi): (i32, i32), p0: f32, p1: f32) -> f32 {
 }
 
 /// Draw the scatter; returns the image and whether labels were drawn (a font was found).
-pub fn render_scatter(plot: &Scatter, font: Option<&FontVec>) -> (RgbImage, bool) {
+pub fn draw_scatter(plot: &Scatter, font: Option<&FontVec>) -> (RgbImage, bool) {
     let mut img = RgbImage::from_pixel(WIDTH, HEIGHT, Rgb([255, 255, 255]));
     let (left, top, right, bottom) = AREA;
     let points: Vec<&Point> = plot
@@ -148,7 +148,7 @@ pub fn render_scatter(plot: &Scatter, font: Option<&FontVec>) -> (RgbImage, bool
 
 /// Render and write a scatter PNG atomically (temp name, then rename). Returns whether labels were drawn.
 pub fn write_scatter(plot: &Scatter, font: Option<&FontVec>, path: &Path) -> Result<bool> {
-    let (img, labelled) = render_scatter(plot, font);
+    let (img, labelled) = draw_scatter(plot, font);
     let tmp = path.with_extension("png.partial");
     img.save_with_format(&tmp, image::ImageFormat::Png)
         .with_context(|| format!("writing {}", tmp.display()))?;
@@ -189,7 +189,7 @@ mod tests {
             y_label: "y",
             points: &points,
         };
-        let (img, _) = render_scatter(&plot, None);
+        let (img, _) = draw_scatter(&plot, None);
         // Axes span x 1e1..1e3 and y 1e-4..1e-2 over the area 90..870 × 530..50 (y up).
         let at = |x: f64, y: f64| {
             let px = 90.0 + 780.0 * (x.log10() - 1.0) / 2.0;
@@ -209,7 +209,7 @@ mod tests {
             points: &points[..1],
             ..plot
         };
-        let (single, _) = render_scatter(&one, None);
+        let (single, _) = draw_scatter(&one, None);
         assert!(blue(&single) > 50);
         assert_eq!(blue(&img), 2 * blue(&single));
         let (px, py) = at(60.0, 1e-3);

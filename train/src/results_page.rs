@@ -94,14 +94,14 @@ struct Row {
 
 /// The Markdown page for the records in `dir` (the module docs give their form and order). Errors name the record
 /// file (or the directory) and what is wrong with it.
-pub fn render_results_page(dir: &Path) -> Result<String> {
+pub fn results_markdown(dir: &Path) -> Result<String> {
     let mut blocks = vec![HEADING.to_string(), GENERATED_NOTE.to_string()];
     for path in record_paths(dir)? {
         let text = std::fs::read_to_string(&path)
             .with_context(|| format!("{}: cannot read the result record", path.display()))?;
         let section: Section = serde_json::from_str(&text)
             .with_context(|| format!("{}: not a valid result record", path.display()))?;
-        let section_blocks = render_section(&section)
+        let section_blocks = section_blocks_of(&section)
             .with_context(|| format!("{}: the result record cannot be rendered", path.display()))?;
         blocks.extend(section_blocks);
     }
@@ -110,14 +110,14 @@ pub fn render_results_page(dir: &Path) -> Result<String> {
 
 /// Write the page for the records in `records` to `out` (atomically: a reader never sees half a page).
 pub fn write_results_page(records: &Path, out: &Path) -> Result<()> {
-    let page = render_results_page(records)?;
+    let page = results_markdown(records)?;
     dataset::contract::manifest::write_text_atomic(out, &page)
         .with_context(|| format!("{}: cannot write the results page", out.display()))
 }
 
 /// Fail, naming the command that fixes it, when `out` is not exactly the page the records in `records` give.
 pub fn check_results_page(records: &Path, out: &Path) -> Result<()> {
-    let page = render_results_page(records)?;
+    let page = results_markdown(records)?;
     let written = std::fs::read_to_string(out)
         .with_context(|| format!("{}: cannot read the results page", out.display()))?;
     ensure!(
@@ -175,7 +175,7 @@ pub fn fill_generated_blocks(text: &str, records: &Path) -> Result<String> {
                 .with_context(|| format!("{}: cannot read the result record", path.display()))?,
         )
         .with_context(|| format!("{}: not a valid result record", path.display()))?;
-        let table = render_table(&section)
+        let table = section_table(&section)
             .with_context(|| format!("{}: the result record cannot be rendered", path.display()))?;
         out.push_str(&table);
         out.push('\n');
@@ -257,7 +257,7 @@ fn record_paths(dir: &Path) -> Result<Vec<PathBuf>> {
 }
 
 /// A section's blocks: its heading, intro, table and notes (empty text and an empty table are left out).
-fn render_section(section: &Section) -> Result<Vec<String>> {
+fn section_blocks_of(section: &Section) -> Result<Vec<String>> {
     let title = section.title.trim();
     ensure!(
         !title.is_empty() && !title.contains('\n'),
@@ -275,7 +275,7 @@ fn render_section(section: &Section) -> Result<Vec<String>> {
     let mut blocks = vec![format!("## {title}")];
     push_text(&mut blocks, &section.intro);
     if !section.rows.is_empty() {
-        blocks.push(render_table(section)?);
+        blocks.push(section_table(section)?);
     }
     push_text(&mut blocks, &section.notes);
     Ok(blocks)
@@ -289,7 +289,7 @@ fn push_text(blocks: &mut Vec<String>, text: &str) {
 }
 
 /// The section's rows as one Markdown table, with the command and measured columns its rows call for.
-fn render_table(section: &Section) -> Result<String> {
+fn section_table(section: &Section) -> Result<String> {
     ensure!(!section.columns.is_empty(), "rows without columns");
     let with_command = section.rows.iter().any(|row| row.command.is_some());
     let with_measured = section
@@ -398,7 +398,7 @@ mod tests {
     }
 
     fn error_text(dir: &Path) -> String {
-        format!("{:#}", render_results_page(dir).unwrap_err())
+        format!("{:#}", results_markdown(dir).unwrap_err())
     }
 
     #[test]
@@ -466,7 +466,7 @@ Three rows.
 
 Caveat: one machine.
 ";
-        assert_eq!(render_results_page(dir.path()).unwrap(), expected);
+        assert_eq!(results_markdown(dir.path()).unwrap(), expected);
     }
 
     #[test]
@@ -520,7 +520,7 @@ Caveat: one machine.
             );
             std::fs::remove_file(dir.path().join(name)).unwrap();
         }
-        assert!(render_results_page(dir.path()).is_ok());
+        assert!(results_markdown(dir.path()).is_ok());
     }
 
     #[test]
@@ -567,7 +567,7 @@ Caveat: one machine.
     #[test]
     fn the_committed_page_is_what_its_records_give() {
         let docs = Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs");
-        let page = render_results_page(&docs.join("results")).unwrap();
+        let page = results_markdown(&docs.join("results")).unwrap();
         let committed = std::fs::read_to_string(docs.join("results.md")).unwrap();
         let first_difference = page
             .lines()

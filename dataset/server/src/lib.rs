@@ -379,7 +379,7 @@ async fn sample_preview(
     let row = row_of(&index, &id)?;
     let png = blocking(move || {
         let sample = index.read_full(&[row])?.pop().expect("one row");
-        Ok(preview::render_png(&sample, preview))
+        Ok(preview::preview_png(&sample, preview))
     })
     .await?
     .ok_or_else(|| {

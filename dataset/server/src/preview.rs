@@ -134,7 +134,7 @@ fn context_image(context: &ContextWindow, crop_gsd_m: f64) -> RgbImage {
 
 /// Encode the preview as PNG bytes; `None` when the sample lacks what the preview shows (a schema 1.1 sample has no
 /// context window).
-pub fn render_png(sample: &Sample, preview: Preview) -> Option<Vec<u8>> {
+pub fn preview_png(sample: &Sample, preview: Preview) -> Option<Vec<u8>> {
     let img = match preview {
         Preview::Dem => hillshade(sample),
         Preview::Image => stretched_image(sample),
@@ -198,7 +198,7 @@ mod tests {
         assert_eq!(img.get_pixel(5, 0).0, [90, 0, 0]); // first row invalid
         assert_eq!(img.get_pixel(0, 2).0[0], 0); // below the 2nd percentile
         assert_eq!(img.get_pixel(127, 127).0[0], 255);
-        let png = render_png(&sample_with_dem(|_, _| 0.0), Preview::Lit).unwrap();
+        let png = preview_png(&sample_with_dem(|_, _| 0.0), Preview::Lit).unwrap();
         assert_eq!(&png[1..4], b"PNG");
     }
 
@@ -239,10 +239,10 @@ mod tests {
         // A sample without a window has no context preview; with one, a PNG.
         let mut sample = sample_with_dem(|_, _| 0.0);
         sample.context = None;
-        assert_eq!(render_png(&sample, Preview::Context), None);
+        assert_eq!(preview_png(&sample, Preview::Context), None);
         sample.context = Some(context);
         assert_eq!(
-            &render_png(&sample, Preview::Context).unwrap()[1..4],
+            &preview_png(&sample, Preview::Context).unwrap()[1..4],
             b"PNG"
         );
     }
