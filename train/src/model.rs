@@ -51,6 +51,13 @@ pub struct UNetConfig {
     /// wall at this height and this place on the crater) is a few units of an MLP.
     #[config(default = false)]
     pub crop_level: bool,
+    /// Condition the decoder on the context (feature-wise linear modulation): after every up stage, each channel
+    /// is scaled by 1 + γ and shifted by β, where (γ, β) come from a linear map of the context features and, with
+    /// an elevation plane, the crop's mean absolute elevation. Joined channels can only add what the context says;
+    /// a scale lets the context change how the decoder reads the crop's own terrain (on a crater wall the same
+    /// elevation means another unit than on the plains: docs/crater-diagnosis.md). Needs a context input.
+    #[config(default = false)]
+    pub film: bool,
 }
 
 /// Hidden units of the crop-level branch ([`UNetConfig::crop_level`]).
@@ -61,6 +68,13 @@ const CROP_LEVEL_HIDDEN: usize = 32;
 pub struct CropLevel<B: Backend> {
     hidden: Linear<B>,
     out: Linear<B>,
+}
+
+/// The decoder's modulation ([`UNetConfig::film`]): one linear map per up stage, `[N, inputs]` → `[N, 2 C]`
+/// (γ then β for the stage's C channels).
+#[derive(Module, Debug)]
+pub struct Film<B: Backend> {
+    stages: Vec<Linear<B>>,
 }
 
 #[derive(Module, Debug)]
@@ -158,6 +172,7 @@ pub struct UNet<B: Backend> {
     head_hidden: Option<Conv2d<B>>,
     head: Conv2d<B>,
     level: Option<CropLevel<B>>,
+    film: Option<Film<B>>,
     pool: MaxPool2d,
 }
 
@@ -201,6 +216,18 @@ impl UNetConfig {
             !self.crop_level || self.in_channels >= 2,
             "the crop-level branch reads the absolute elevation plane (input plane 1)"
         );
+        assert!(
+            !self.film || self.context_channels > 0,
+            "the decoder's modulation reads the context features: the network needs a context input"
+        );
+        let film_inputs = self.context_features() + usize::from(self.in_channels >= 2);
+        let film = self.film.then(|| Film {
+            stages: widths
+                .iter()
+                .rev()
+                .map(|&c| LinearConfig::new(film_inputs, 2 * c).init(device))
+                .collect(),
+        });
         let level = self.crop_level.then(|| CropLevel {
             hidden: LinearConfig::new(1 + self.context_features(), CROP_LEVEL_HIDDEN).init(device),
             out: LinearConfig::new(CROP_LEVEL_HIDDEN, self.out_channels).init(device),
@@ -216,6 +243,7 @@ impl UNetConfig {
             // (`UNet::with_uniform_head`), and a checkpoint replaces it when a trained run is loaded.
             head: Conv2dConfig::new([head_in, self.out_channels], [1, 1]).init(device),
             level,
+            film,
             pool: MaxPool2dConfig::new([2, 2]).init(),
         }
     }
@@ -266,6 +294,17 @@ impl<B: Backend> UNet<B> {
                 device,
             )));
         }
+        // A zero modulation scales by 1 and shifts by 0: the decoder starts as without it.
+        if let Some(film) = self.film.as_mut() {
+            for stage in &mut film.stages {
+                let dims = stage.weight.dims();
+                stage.weight = burn::module::Param::from_tensor(Tensor::zeros(dims, device));
+                stage.bias = Some(burn::module::Param::from_tensor(Tensor::zeros(
+                    [dims[1]],
+                    device,
+                )));
+            }
+        }
         self
     }
 
@@ -276,15 +315,17 @@ impl<B: Backend> UNet<B> {
         B: TrainOps,
     {
         let mut skips = Vec::new();
-        // The crop's mean absolute elevation, `[N, 1]`, for the level branch.
-        let crop_elevation = self.level.as_ref().map(|_| {
-            let [n, _, _, _] = x.dims();
-            x.clone()
-                .narrow(1, 1, 1)
-                .mean_dim(3)
-                .mean_dim(2)
-                .reshape([n, 1])
-        });
+        // The crop's mean absolute elevation, `[N, 1]`, for the level branch and the decoder's modulation.
+        let [_, in_channels, _, _] = x.dims();
+        let crop_elevation = (self.level.is_some() || (self.film.is_some() && in_channels >= 2))
+            .then(|| {
+                let [n, _, _, _] = x.dims();
+                x.clone()
+                    .narrow(1, 1, 1)
+                    .mean_dim(3)
+                    .mean_dim(2)
+                    .reshape([n, 1])
+            });
         let mut x = x;
         for block in &self.down {
             let y = block.forward(x);
@@ -315,7 +356,21 @@ impl<B: Backend> UNet<B> {
             None => x,
         };
         x = self.bottleneck.forward(join(x));
-        for (conv, block) in self.up_convs.iter().zip(&self.up_blocks) {
+        // (γ, β) per up stage from the context features and the crop's level.
+        let modulation: Vec<Tensor<B, 2>> = match (&self.film, &features) {
+            (Some(film), Some(f)) => {
+                let inputs = match &crop_elevation {
+                    Some(elevation) => Tensor::cat(vec![f.clone(), elevation.clone()], 1),
+                    None => f.clone(),
+                };
+                film.stages
+                    .iter()
+                    .map(|stage| stage.forward(inputs.clone()))
+                    .collect()
+            }
+            _ => Vec::new(),
+        };
+        for (stage, (conv, block)) in self.up_convs.iter().zip(&self.up_blocks).enumerate() {
             let skip = skips.pop().expect("one skip per stage");
             let ([_, _, h, w], [_, _, coarse_h, coarse_w]) = (skip.dims(), x.dims());
             // Every stage halves exactly (128 → 8), so nearest ×2 is the interpolation to the skip's size.
@@ -326,6 +381,12 @@ impl<B: Backend> UNet<B> {
             // LeakyReLU(up convolution) joined with the skip, in one pass.
             let up = upsample_conv2d(conv, x);
             x = block.forward(join_channels(up, skip, ACTIVATION_SLOPE));
+            if let Some(gamma_beta) = modulation.get(stage) {
+                let [n, c, h, w] = x.dims();
+                let gamma = gamma_beta.clone().narrow(1, 0, c).reshape([n, c, 1, 1]);
+                let beta = gamma_beta.clone().narrow(1, c, c).reshape([n, c, 1, 1]);
+                x = x * (gamma.expand([n, c, h, w]) + 1.0) + beta.expand([n, c, h, w]);
+            }
         }
         let x = match &self.head_hidden {
             Some(hidden) => leaky_relu(conv2d(hidden, join(x)), ACTIVATION_SLOPE),
@@ -346,5 +407,64 @@ impl<B: Backend> UNet<B> {
             }
             _ => out,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::backend::{Autodiff, Flex};
+    use burn::tensor::Distribution;
+
+    type Ad = Autodiff<Flex>;
+
+    /// The modulation starts at no change (a zero map scales by 1 and shifts by 0), yet it trains: the loss's
+    /// gradient reaches its weights, and the same weights moved change the output.
+    #[test]
+    fn the_decoder_modulation_starts_as_identity_and_receives_gradients() {
+        let device = Default::default();
+        let config = UNetConfig::new(1)
+            .with_in_channels(2)
+            .with_context_channels(2)
+            .with_base_width(4)
+            .with_dropout(false);
+        let x = Tensor::<Ad, 4>::random([2, 2, 128, 128], Distribution::Normal(0.0, 1.0), &device);
+        let context =
+            Tensor::<Ad, 4>::random([2, 2, 32, 32], Distribution::Normal(0.0, 1.0), &device);
+        // A uniform head would hide the decoder: read its features through a head of ones.
+        let mut modulated = config
+            .with_film(true)
+            .init::<Ad>(&device)
+            .with_uniform_head(&[0.1], &device);
+        let dims = modulated.head.weight.dims();
+        modulated.head.weight = burn::module::Param::from_tensor(Tensor::ones(dims, &device));
+        let b = modulated.forward(x.clone(), Some(context.clone()));
+        // The same network without the modulation (cloned after the forward pass: Burn initialises parameters
+        // lazily, on first use, and a clone taken before would draw its own).
+        let mut plain = modulated.clone();
+        plain.film = None;
+        let a = plain.forward(x, Some(context));
+        let worst = (a - b.clone()).abs().max().into_scalar();
+        assert_eq!(
+            worst, 0.0,
+            "a zero modulation changed the output by {worst}"
+        );
+
+        let grads = b.powi_scalar(2).mean().backward();
+        let film = modulated.film.as_ref().expect("modulated");
+        let moved: f32 = film
+            .stages
+            .iter()
+            .map(|stage| {
+                stage
+                    .weight
+                    .grad(&grads)
+                    .expect("a gradient")
+                    .abs()
+                    .sum()
+                    .into_scalar()
+            })
+            .sum();
+        assert!(moved > 0.0, "no gradient reached the modulation");
     }
 }

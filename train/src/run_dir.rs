@@ -17,13 +17,13 @@ use crate::data::{InputNormalisation, StreamConfig, CONTEXT_CHANNELS};
 use crate::metrics::AggregateMetrics;
 use crate::model::{UNet, UNetConfig};
 
-/// The `config.json` format this build writes: version 6 since 2026-11-26 (version 5 lacks `crop_level`, which
-/// loads as false; version 4 also lacks `head_hidden`, which loads as 0: the paper's linear head; version 3 also lacks `context_absolute`, which loads as false; version 2 also lacks `steep_weight`, which loads as 1: every crop equally likely). Version 1 (files without a
+/// The `config.json` format this build writes: version 7 since 2026-11-26 (version 6 lacks `film`, which loads
+/// as false; version 5 also lacks `crop_level`, which loads as false; version 4 also lacks `head_hidden`, which loads as 0: the paper's linear head; version 3 also lacks `context_absolute`, which loads as false; version 2 also lacks `steep_weight`, which loads as 1: every crop equally likely). Version 1 (files without a
 /// `version` key) added fields one at a time, each absent in older files; those files load with the values
 /// every run had before the field existed (constant learning rate, relief input only, no context window). From
 /// version 2 on every field is written and required, and a new field means a new version with its conversion
 /// in `StoredFitConfig`.
-pub const FIT_CONFIG_VERSION: u32 = 6;
+pub const FIT_CONFIG_VERSION: u32 = 7;
 
 /// Everything that defines a run (saved as `config.json`; a resume must match it). The network's head always
 /// starts at the model's uniform least-squares fit ([`crate::model::UNet::with_uniform_head`]); version-1
@@ -60,6 +60,8 @@ pub struct FitConfig {
     pub head_hidden: usize,
     /// The per-crop level branch ([`UNetConfig::crop_level`]); needs `elevation_input`.
     pub crop_level: bool,
+    /// The decoder's modulation by the context ([`UNetConfig::film`]); needs `context_input`.
+    pub film: bool,
 }
 
 /// `config.json` as any version wrote it: the fields version 1 always had, and the later ones as options
@@ -84,6 +86,7 @@ struct StoredFitConfig {
     steep_weight: Option<f64>,
     head_hidden: Option<usize>,
     crop_level: Option<bool>,
+    film: Option<bool>,
 }
 
 /// A key that is in the file, whatever its value (`null` included): serde alone reads a missing `Option` field
@@ -108,7 +111,7 @@ impl TryFrom<StoredFitConfig> for FitConfig {
         let max_val_samples = stored
             .max_val_samples
             .ok_or_else(|| required("max_val_samples"))?;
-        let (lr_schedule, elevation_input, context_input, ema_decay, steep_weight, context_absolute, head_hidden, crop_level) = match version {
+        let (lr_schedule, elevation_input, context_input, ema_decay, steep_weight, context_absolute, head_hidden, crop_level, film) = match version {
             // Version 1: a field absent from the file did not exist when its run was written (and `ema_decay`
             // was left out when there was no average).
             1 => (
@@ -119,6 +122,7 @@ impl TryFrom<StoredFitConfig> for FitConfig {
                 1.0,
                 false,
                 0,
+                false,
                 false,
             ),
             // Versions 2 on write every field they know; version 2 runs drew every crop equally, and runs before
@@ -152,6 +156,11 @@ impl TryFrom<StoredFitConfig> for FitConfig {
                 } else {
                     stored.crop_level.ok_or_else(|| required("crop_level"))?
                 },
+                if version < 7 {
+                    false
+                } else {
+                    stored.film.ok_or_else(|| required("film"))?
+                },
             ),
             newer => {
                 return Err(format!(
@@ -176,6 +185,7 @@ impl TryFrom<StoredFitConfig> for FitConfig {
             steep_weight,
             head_hidden,
             crop_level,
+            film,
         })
     }
 }
@@ -194,6 +204,7 @@ impl FitConfig {
             .with_dropout(self.dropout)
             .with_head_hidden(self.head_hidden)
             .with_crop_level(self.crop_level)
+            .with_film(self.film)
     }
 }
 
@@ -624,7 +635,7 @@ mod schedule_tests {
     }
 
     #[test]
-    fn version_6_configs_round_trip_and_require_every_field() {
+    fn version_7_configs_round_trip_and_require_every_field() {
         let config = FitConfig {
             version: FIT_CONFIG_VERSION,
             model: BrdfModel::L3,
@@ -648,16 +659,17 @@ mod schedule_tests {
             steep_weight: 3.0,
             head_hidden: 32,
             crop_level: true,
+            film: true,
         };
         let json = serde_json::to_string(&config).unwrap();
-        assert!(json.contains(r#""version":6"#), "{json}");
+        assert!(json.contains(r#""version":7"#), "{json}");
         assert_eq!(serde_json::from_str::<FitConfig>(&json).unwrap(), config);
         let cut = json.replace(r#","context_input":true"#, "");
         let err = serde_json::from_str::<FitConfig>(&cut)
             .unwrap_err()
             .to_string();
         assert!(
-            err.contains("version 6") && err.contains("`context_input`"),
+            err.contains("version 7") && err.contains("`context_input`"),
             "{err}"
         );
         let cut = json.replace(r#","ema_decay":0.995"#, "");
@@ -665,7 +677,16 @@ mod schedule_tests {
             .unwrap_err()
             .to_string();
         assert!(err.contains("`ema_decay`"), "{err}");
-        let cut = json.replace(r#","crop_level":true"#, "");
+        let cut = json.replace(r#","film":true"#, "");
+        let err = serde_json::from_str::<FitConfig>(&cut)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("`film`"), "{err}");
+        // Version 6 wrote everything but `film`: its runs had no modulated decoder.
+        let v6 = cut.replace(r#""version":7"#, r#""version":6"#);
+        let loaded = serde_json::from_str::<FitConfig>(&v6).unwrap();
+        assert!(loaded.crop_level && !loaded.film);
+        let cut = v6.replace(r#","crop_level":true"#, "");
         let err = serde_json::from_str::<FitConfig>(&cut)
             .unwrap_err()
             .to_string();
@@ -706,12 +727,12 @@ mod schedule_tests {
         assert_eq!(loaded.steep_weight, 1.0);
         assert!(!loaded.context_absolute);
         assert_eq!(loaded.version, FIT_CONFIG_VERSION);
-        let newer = json.replace(r#""version":6"#, r#""version":7"#);
+        let newer = json.replace(r#""version":7"#, r#""version":8"#);
         let err = serde_json::from_str::<FitConfig>(&newer)
             .unwrap_err()
             .to_string();
         assert!(
-            err.contains("version 7") && err.contains("update g2r-train"),
+            err.contains("version 8") && err.contains("update g2r-train"),
             "{err}"
         );
     }

@@ -194,6 +194,9 @@ pub fn fit_replicated<B: TrainBackend>(
     if config.crop_level && !config.elevation_input {
         bail!("the crop-level branch reads the absolute elevation plane: the run needs --elevation-input");
     }
+    if config.film && !config.context_input {
+        bail!("the decoder's modulation reads the context features: the run needs --context-input");
+    }
     if devices.len() > 1 && config.dropout {
         bail!(
             "dropout masks come from the backend's one random generator, which {} replicas would draw from in \

@@ -43,6 +43,7 @@ fn m2_config() -> FitConfig {
         steep_weight: 1.0,
         head_hidden: 0,
         crop_level: false,
+        film: false,
         context_absolute: false,
     }
 }

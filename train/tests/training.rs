@@ -54,6 +54,7 @@ fn config(
         steep_weight: 1.0,
         head_hidden: 0,
         crop_level: false,
+        film: false,
         context_absolute: false,
     }
 }
@@ -213,6 +214,7 @@ fn stopping_and_resuming_gives_the_same_network_as_an_uninterrupted_run() {
         steep_weight: 1.0,
         head_hidden: 6,
         crop_level: true,
+        film: false,
         context_absolute: false,
         ..config(BrdfModel::M2, 2, 1e-3, 12, true)
     };

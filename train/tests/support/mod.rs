@@ -42,6 +42,7 @@ pub fn config() -> FitConfig {
         steep_weight: 1.0,
         head_hidden: 0,
         crop_level: false,
+        film: false,
         context_absolute: false,
     }
 }

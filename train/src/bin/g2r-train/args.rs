@@ -130,6 +130,12 @@ pub struct TrainArgs {
     /// says of its surroundings (which unit lies under a crater wall depends on both). Needs --elevation-input.
     #[arg(long, requires = "elevation_input")]
     pub crop_level: bool,
+    /// Modulate the decoder by the context: after every up stage each channel is scaled and shifted by amounts
+    /// computed from the context features (and, with --elevation-input, the crop's mean elevation), starting at
+    /// no change. Joined context channels can only add to what the crop says; a scale lets the context change
+    /// how the crop's own terrain is read. Needs --context-input.
+    #[arg(long, requires = "context_input")]
+    pub film: bool,
     /// Train data-parallel with this many replicas in this process, each taking its share of --batch (which
     /// N must divide), their gradients averaged after every backward pass (burn-collective): on cuda, GPUs
     /// 0..N-1; on flex, threads sharing the CPU. The steps are those of one replica, except that each replica
@@ -224,6 +230,7 @@ impl TrainArgs {
             steep_weight: self.steep_weight,
             head_hidden: self.head_hidden,
             crop_level: self.crop_level,
+            film: self.film,
         }
     }
 }
