@@ -419,7 +419,7 @@ mod tests {
     type Ad = Autodiff<Flex>;
 
     /// The modulation starts at no change (a zero map scales by 1 and shifts by 0), yet it trains: the loss's
-    /// gradient reaches its weights, and the same weights moved change the output.
+    /// gradient reaches its weights.
     #[test]
     fn the_decoder_modulation_starts_as_identity_and_receives_gradients() {
         let device = Default::default();

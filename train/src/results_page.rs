@@ -190,13 +190,23 @@ pub fn fill_generated_blocks(text: &str, records: &Path) -> Result<String> {
     Ok(out)
 }
 
+/// Each document of `documents` with its text as read and as its generated blocks should read.
+fn documents_filled(records: &Path, documents: &[PathBuf]) -> Result<Vec<(String, String)>> {
+    documents
+        .iter()
+        .map(|document| {
+            let text = std::fs::read_to_string(document)
+                .with_context(|| format!("{}: cannot read it", document.display()))?;
+            let filled = fill_generated_blocks(&text, records)
+                .with_context(|| format!("{}: its generated blocks", document.display()))?;
+            Ok((text, filled))
+        })
+        .collect()
+}
+
 /// Refill the generated blocks of each document in `documents` from the records in `records` (atomically).
 pub fn write_generated_blocks(records: &Path, documents: &[PathBuf]) -> Result<()> {
-    for document in documents {
-        let text = std::fs::read_to_string(document)
-            .with_context(|| format!("{}: cannot read it", document.display()))?;
-        let filled = fill_generated_blocks(&text, records)
-            .with_context(|| format!("{}: its generated blocks", document.display()))?;
+    for (document, (_, filled)) in documents.iter().zip(documents_filled(records, documents)?) {
         dataset::contract::manifest::write_text_atomic(document, &filled)
             .with_context(|| format!("{}: cannot write it", document.display()))?;
     }
@@ -205,11 +215,7 @@ pub fn write_generated_blocks(records: &Path, documents: &[PathBuf]) -> Result<(
 
 /// Fail, naming the command that fixes it, when a document's generated blocks differ from their records.
 pub fn check_generated_blocks(records: &Path, documents: &[PathBuf]) -> Result<()> {
-    for document in documents {
-        let text = std::fs::read_to_string(document)
-            .with_context(|| format!("{}: cannot read it", document.display()))?;
-        let filled = fill_generated_blocks(&text, records)
-            .with_context(|| format!("{}: its generated blocks", document.display()))?;
+    for (document, (text, filled)) in documents.iter().zip(documents_filled(records, documents)?) {
         ensure!(
             filled == text,
             "{}: a generated block differs from the records in {}: run `g2r-train results-page`",

@@ -131,44 +131,34 @@ impl IndexTable {
     /// The fields of the row whose `PRODUCT_ID` is `product_id` (the first such row), read by streaming the file.
     pub fn row(&self, product_id: &str) -> Result<Vec<String>, ImportError> {
         let id_column = self.column("PRODUCT_ID")?;
-        let found = match &self.layout {
+        match &self.layout {
             Layout::Fixed(columns) => {
                 let io = |source| ImportError::Io {
                     path: self.path.clone(),
                     source,
                 };
                 let file = std::fs::File::open(&self.path).map_err(io)?;
-                let mut found = None;
                 for line in BufReader::new(file).lines() {
-                    let line = line.map_err(io)?;
-                    if line.trim().is_empty() {
-                        continue;
-                    }
-                    let fields = fixed_fields(columns, &line);
+                    let fields = fixed_fields(columns, &line.map_err(io)?);
                     if fields.get(id_column).is_some_and(|v| v == product_id) {
-                        found = Some(fields);
-                        break;
+                        return Ok(fields);
                     }
                 }
-                found
             }
             Layout::Csv => {
-                let mut found = None;
                 for record in csv_reader(&self.path)?.records() {
-                    let record = record.map_err(|e| csv_error(&self.path, e))?;
-                    if record
-                        .get(id_column)
+                    let fields: Vec<String> = record
+                        .map_err(|e| csv_error(&self.path, e))?
+                        .iter()
                         .map(clean)
-                        .is_some_and(|v| v == product_id)
-                    {
-                        found = Some(record.iter().map(clean).collect());
-                        break;
+                        .collect();
+                    if fields.get(id_column).is_some_and(|v| v == product_id) {
+                        return Ok(fields);
                     }
                 }
-                found
             }
-        };
-        found.ok_or_else(|| ImportError::Invalid {
+        }
+        Err(ImportError::Invalid {
             path: self.path.clone(),
             problem: format!("no row with PRODUCT_ID {product_id}"),
         })

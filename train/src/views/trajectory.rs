@@ -73,8 +73,8 @@ pub fn parse_trajectory(text: &str) -> Result<Vec<Pose>> {
         .collect();
     let line_of = |record: usize| record_lines.get(record).copied().unwrap_or(0);
     let header_line = line_of(0);
+    let columns: Vec<String> = header.iter().map(str::to_lowercase).collect();
     let header = header.iter().collect::<Vec<_>>().join(",");
-    let columns: Vec<String> = header.split(',').map(str::to_lowercase).collect();
     let format = if columns == XYZ_QUAT {
         0
     } else if columns == LONLAT_YPR {
