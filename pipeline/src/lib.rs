@@ -1,9 +1,11 @@
 //! `pipeline`: the stages that turn a lunar DEM + orthoimages into DEM–image pair shards, and the synthetic
-//! lunar world that stands in for real LRO data here: [`manifest`] → [`stages`] run by [`runner`]; the world is in
+//! lunar world that stands in for real LRO data here: [`manifest`] → [`stages`] run by [`runner`], in one process or as
+//! [`partition`]s merged at the end; the world is in
 //! [`synth`].
 
 pub mod import;
 pub mod manifest;
+pub mod partition;
 /// Keyed ChaCha streams live in the data contract (the trainer's epoch planner uses them too).
 pub use dataset::contract::rng;
 pub mod runner;

@@ -75,6 +75,15 @@ enum Command {
         /// Re-run this stage even if it is up to date (repeatable); later stages follow.
         #[arg(long, value_parser = clap::builder::PossibleValuesParser::new(pipeline::stages::STAGES))]
         force: Vec<String>,
+        /// Run only partition I of N (0-based, e.g. `$SLURM_ARRAY_TASK_ID/4`): ingest through project over a run of
+        /// consecutive orthos balanced by footprint area, in OUT/partitions/N/I/ with its own lock. Nothing is
+        /// published until `--merge N` (docs/scale-out.md).
+        #[arg(long, value_name = "I/N", conflicts_with = "merge")]
+        partition: Option<pipeline::partition::Partition>,
+        /// Join the N finished partitions into OUT/stages/ and publish: the same bytes as one process builds. An
+        /// unfinished partition is an error naming it, and nothing is published.
+        #[arg(long, value_name = "N")]
+        merge: Option<usize>,
     },
     /// Write an orthoimage's acquisition metadata JSON from an ALE ISD or an LROC cumulative-index row.
     ///
@@ -113,8 +122,12 @@ enum Command {
     Status {
         /// Pipeline manifest (TOML).
         manifest: PathBuf,
+        /// The status of partition I of N instead (see `run --partition`).
+        #[arg(long, value_name = "I/N")]
+        partition: Option<pipeline::partition::Partition>,
     },
-    /// Remove every stage output, stray files under stages/, the published dataset and the lock of a manifest.
+    /// Remove every stage output, stray files under stages/, the published dataset, the partitions' outputs and the
+    /// lock of a manifest.
     Clean {
         /// Pipeline manifest (TOML).
         manifest: PathBuf,
@@ -164,8 +177,13 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             manifest,
             until,
             force,
+            partition,
+            merge,
         } => {
             let manifest = pipeline::manifest::PipelineManifest::load(&manifest)?;
+            if partition.is_some() && until.as_deref() == Some("publish") {
+                anyhow::bail!("--until publish: a partition stops after project; publish with --merge N once every partition is done");
+            }
             let progress = indicatif::ProgressBar::new(0);
             progress.set_style(
                 indicatif::ProgressStyle::with_template(
@@ -174,10 +192,47 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 .progress_chars("=> "),
             );
             progress.set_prefix("project");
-            let runner = pipeline::stages::pipeline(&manifest, progress.clone())?;
             let started = Instant::now();
+            let (runner, merged) = match (partition, merge) {
+                (Some(part), _) => (
+                    pipeline::stages::pipeline_scoped(
+                        &manifest,
+                        pipeline::stages::Scope::Partition(part),
+                        progress.clone(),
+                    )?,
+                    None,
+                ),
+                (None, Some(count)) => {
+                    let runner = pipeline::partition::merge(&manifest, count, progress.clone())?;
+                    let seconds = started.elapsed().as_secs_f64();
+                    tracing::info!(
+                        partitions = count,
+                        seconds = format!("{seconds:.1}"),
+                        "partitions merged"
+                    );
+                    (runner, Some(seconds))
+                }
+                (None, None) => (
+                    pipeline::stages::pipeline(&manifest, progress.clone())?,
+                    None,
+                ),
+            };
+            let record_path = match partition {
+                Some(part) => pipeline::partition::dir(&manifest, part).join("run-record.json"),
+                None => manifest.out_dir().join("run-record.json"),
+            };
             let force: Vec<&str> = force.iter().map(String::as_str).collect();
-            let ran = runner.run_timed(until.as_deref(), &force)?;
+            let mut ran = runner.run_timed(until.as_deref(), &force)?;
+            if let Some(seconds) = merged {
+                ran.insert(
+                    0,
+                    pipeline::runner::StageRun {
+                        name: "merge",
+                        seconds,
+                        peak_rss_mib: pipeline::runner::peak_rss_mib(),
+                    },
+                );
+            }
             progress.finish_and_clear();
             if ran.is_empty() {
                 tracing::info!("everything up to date");
@@ -191,10 +246,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                     "seconds": seconds,
                     "provenance": dataset::provenance::Provenance::capture(),
                 });
-                dataset::contract::manifest::write_json_atomic(
-                    &manifest.out_dir().join("run-record.json"),
-                    &record,
-                )?;
+                dataset::contract::manifest::write_json_atomic(&record_path, &record)?;
             }
         }
         Command::ImportMetadata {
@@ -224,13 +276,28 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             let meta = pipeline::import::import(source, &image, &product_id, &out, force)?;
             tracing::info!(out = %out.display(), product_id, start = meta.start_time_utc, roll_deg = format!("{:.3}", meta.roll_deg), "acquisition metadata written");
         }
-        Command::Status { manifest } => {
+        Command::Status {
+            manifest,
+            partition,
+        } => {
             let manifest = pipeline::manifest::PipelineManifest::load(&manifest)?;
-            let runner = pipeline::stages::pipeline(&manifest, indicatif::ProgressBar::hidden())?;
+            let scope = match partition {
+                Some(part) => pipeline::stages::Scope::Partition(part),
+                None => pipeline::stages::Scope::Whole,
+            };
+            let runner = pipeline::stages::pipeline_scoped(
+                &manifest,
+                scope,
+                indicatif::ProgressBar::hidden(),
+            )?;
             for (stage, status) in runner.status()? {
                 println!("{stage:>8}: {status}");
             }
-            for (path, bytes) in runner.stray_files(&manifest.stage_dir())? {
+            let stage_dir = match partition {
+                Some(part) => pipeline::partition::dir(&manifest, part).join("stages"),
+                None => manifest.stage_dir(),
+            };
+            for (path, bytes) in runner.stray_files(&stage_dir)? {
                 println!(
                     "   stray: {} ({bytes} B): no stage of this version writes it; `g2r-pipeline clean` removes it",
                     path.display()
@@ -245,10 +312,15 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 std::fs::remove_file(&path)?;
                 removed += 1;
             }
-            // Shards are listed by the published manifest, not by the runner: remove them with it.
-            let dataset_dir = manifest.dataset_dir();
-            if dataset_dir.exists() {
-                std::fs::remove_dir_all(&dataset_dir)?;
+            // Shards are listed by the published manifest, not by the runner: remove them with it. Partitions'
+            // outputs too (`run --partition`).
+            for dir in [
+                manifest.dataset_dir(),
+                manifest.out_dir().join("partitions"),
+            ] {
+                if dir.exists() {
+                    std::fs::remove_dir_all(&dir)?;
+                }
             }
             tracing::info!(files = removed, "cleaned");
         }

@@ -306,6 +306,33 @@ impl<'a> Runner<'a> {
         Ok(ran)
     }
 
+    /// Record `names` in the lock as run, from the files their outputs now hold: for outputs produced by other means
+    /// than the stage functions (a partitioned build's merge, [`crate::partition`]). The entries are exactly what
+    /// running the stages would record when the files hold the same bytes, so later stages and `status` see no
+    /// difference.
+    pub fn adopt(&self, names: &[&str]) -> anyhow::Result<()> {
+        self.hash_memo.clear();
+        let mut lock = self.load_lock()?;
+        for name in names {
+            let stage = self
+                .stages
+                .iter()
+                .find(|s| s.name == *name)
+                .ok_or_else(|| anyhow::anyhow!("unknown stage '{name}'"))?;
+            lock.stages.insert(
+                stage.name.to_string(),
+                LockEntry {
+                    code_version: stage.code_version.to_string(),
+                    params_blake3: params_hash(&stage.params),
+                    inputs: self.hashes(&stage.inputs)?,
+                    outputs: self.hashes(&stage.outputs)?,
+                },
+            );
+        }
+        write_json_atomic(&self.lock_path, &lock)
+            .map_err(|e| anyhow::anyhow!("{}: {e}", self.lock_path.display()))
+    }
+
     /// Files under `dir` that no stage declares as an output (nor its temporary), with their sizes, sorted: what an
     /// older version's stages wrote and this one no longer does. Nothing reads them, but they can be large.
     pub fn stray_files(&self, dir: &Path) -> anyhow::Result<Vec<(PathBuf, u64)>> {
@@ -366,7 +393,7 @@ pub struct StageRun {
 }
 
 /// The process's peak resident set so far (VmHWM), in MiB; `None` where /proc is not available.
-fn peak_rss_mib() -> Option<u64> {
+pub fn peak_rss_mib() -> Option<u64> {
     let status = std::fs::read_to_string("/proc/self/status").ok()?;
     let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
     let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;

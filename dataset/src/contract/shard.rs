@@ -182,6 +182,11 @@ impl ShardWriter {
         self
     }
 
+    /// Rows written but not yet encoded into a row group: [`Self::append_encoded_row_group`] needs none.
+    pub fn buffered_rows(&self) -> usize {
+        self.pending_rows
+    }
+
     fn parquet_err(&self, source: parquet::errors::ParquetError) -> ShardError {
         ShardError::Parquet {
             path: self.path.clone(),

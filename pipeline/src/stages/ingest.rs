@@ -53,8 +53,8 @@ pub fn metadata_files(ortho_dir: &Path) -> anyhow::Result<Vec<PathBuf>> {
     Ok(files)
 }
 
-/// Validate inputs and write `orthos.parquet`.
-pub fn run(dem_path: &Path, ortho_dir: &Path, out: &Path) -> anyhow::Result<()> {
+/// Validate the DEM and the orthos of `metadata` (their metadata files, in order) and write `orthos.parquet`.
+pub fn run(dem_path: &Path, metadata: &[PathBuf], out: &Path) -> anyhow::Result<()> {
     let (dem_ds, dem) = open_lunar(dem_path)?;
     let dem_band = dem_ds.rasterband(1)?;
     let (dem_x0, dem_y0, dem_x1, dem_y1) = dem.transform.bounds(dem.width, dem.height);
@@ -88,8 +88,8 @@ pub fn run(dem_path: &Path, ortho_dir: &Path, out: &Path) -> anyhow::Result<()> 
         bounds: (f64, f64, f64, f64),
     }
     let mut table = Vec::new();
-    for meta_path in metadata_files(ortho_dir)? {
-        let meta = AcquisitionMetadata::load(&meta_path)?;
+    for meta_path in metadata {
+        let meta = AcquisitionMetadata::load(meta_path)?;
         if let Some(previous) = table.iter().find(|r: &&Row| r.ortho_id == meta.ortho_id) {
             bail!(
                 "{}: ortho_id {} is already used by {}; ortho ids must be unique",

@@ -28,7 +28,8 @@ pub fn row_group_rows(rows_per_shard: usize) -> usize {
     rows_per_shard.min(dataset::contract::shard::ROW_GROUP_ROWS)
 }
 
-/// Outputs of each stage, under the manifest's output directory.
+/// Outputs of each stage, under the manifest's output directory (or a partition's, [`crate::partition`]).
+#[derive(Clone)]
 pub struct Layout {
     pub orthos: PathBuf,
     pub runs: PathBuf,
@@ -44,7 +45,12 @@ pub struct Layout {
 
 impl Layout {
     pub fn of(manifest: &PipelineManifest) -> Self {
-        let s = manifest.stage_dir();
+        Self::at(&manifest.stage_dir(), manifest.dataset_dir())
+    }
+
+    /// Stage outputs under `stage_dir`, the published dataset in `dataset`.
+    pub fn at(stage_dir: &std::path::Path, dataset: PathBuf) -> Self {
+        let s = stage_dir;
         Self {
             orthos: s.join("ingest/orthos.parquet"),
             runs: s.join("erode/runs.parquet"),
@@ -55,7 +61,7 @@ impl Layout {
                 .map(|split| s.join(format!("project/{}.parquet", split.name()))),
             rejections: s.join("project/rejections.json"),
             train_dem: s.join("project/train_dem.json"),
-            dataset: manifest.dataset_dir(),
+            dataset,
         }
     }
 }
@@ -76,26 +82,59 @@ impl LazyDem {
     }
 }
 
+/// Which share of a manifest's work a runner does.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Scope {
+    /// Every ortho, through publish: the single-process build.
+    Whole,
+    /// One partition's run of orthos, ingest through project, in its own directory and lock; publishing waits
+    /// for the merge of all partitions ([`crate::partition::merge`]).
+    Partition(crate::partition::Partition),
+}
+
 /// Declare the six stages of `manifest` to a runner.
 pub fn pipeline(
     manifest: &PipelineManifest,
     progress: indicatif::ProgressBar,
 ) -> anyhow::Result<Runner<'static>> {
+    pipeline_scoped(manifest, Scope::Whole, progress)
+}
+
+/// Declare the stages of `scope`'s share of `manifest` to a runner: all six for [`Scope::Whole`], ingest through
+/// project over the partition's orthos for [`Scope::Partition`].
+pub fn pipeline_scoped(
+    manifest: &PipelineManifest,
+    scope: Scope,
+    progress: indicatif::ProgressBar,
+) -> anyhow::Result<Runner<'static>> {
     let m = manifest.clone();
-    let layout = Layout::of(&m);
     let dem_path = m.resolve(&m.inputs.dem);
     let ortho_dir = m.resolve(&m.inputs.ortho_dir);
     if !dem_path.exists() {
         anyhow::bail!("{}: DEM not found; check inputs.dem in the manifest (paths are relative to the manifest)", dem_path.display());
     }
-    let metadata = ingest::metadata_files(&ortho_dir)?;
-    let images: Vec<PathBuf> = metadata
+    let mut metadata = ingest::metadata_files(&ortho_dir)?;
+    let mut images: Vec<PathBuf> = metadata
         .iter()
         .map(|p| -> anyhow::Result<PathBuf> {
             let meta = dataset::contract::acquisition::AcquisitionMetadata::load(p)?;
             Ok(p.with_file_name(meta.image_file))
         })
         .collect::<anyhow::Result<_>>()?;
+    let (layout, lock_path) = match scope {
+        Scope::Whole => (Layout::of(&m), m.out_dir().join("pipeline.lock.json")),
+        Scope::Partition(part) => {
+            let orthos =
+                crate::partition::plan(&dem_path, &images, part.count)?.swap_remove(part.index);
+            metadata = metadata[orthos.clone()].to_vec();
+            images = images[orthos].to_vec();
+            let dir = crate::partition::dir(&m, part);
+            (
+                Layout::at(&dir.join("stages"), m.dataset_dir()),
+                dir.join("pipeline.lock.json"),
+            )
+        }
+    };
     let dem = std::sync::Arc::new(LazyDem {
         path: dem_path.clone(),
         cell: Default::default(),
@@ -105,10 +144,8 @@ pub fn pipeline(
     let crop_half_m =
         |dem: &Raster| dataset::contract::schema::DEM_PX as f64 / 2.0 * dem.transform.gsd_m();
     let seed = m.dataset.seed;
-    let out_dir = m.out_dir();
-    let lock_path = out_dir.join("pipeline.lock.json");
 
-    let (od, l, dem_input) = (ortho_dir.clone(), Layout::of(&m), dem_path.clone());
+    let (md, l, dem_input) = (metadata.clone(), layout.clone(), dem_path.clone());
     let ingest = Stage {
         name: "ingest",
         code_version: "1",
@@ -118,10 +155,10 @@ pub fn pipeline(
             .collect(),
         params: serde_json::json!({}),
         outputs: vec![layout.orthos.clone()],
-        run: Box::new(move |out| ingest::run(&dem_path, &od, &out.paths[0]).context("ingest")),
+        run: Box::new(move |out| ingest::run(&dem_path, &md, &out.paths[0]).context("ingest")),
         check: None,
     };
-    let (od, l2, dem2) = (ortho_dir.clone(), Layout::of(&m), dem.clone());
+    let (od, l2, dem2) = (ortho_dir.clone(), layout.clone(), dem.clone());
     let erode = Stage {
         name: "erode",
         code_version: "1",
@@ -136,7 +173,7 @@ pub fn pipeline(
         }),
         check: None,
     };
-    let (l3, dem3, coverage) = (Layout::of(&m), dem.clone(), m.sample.coverage);
+    let (l3, dem3, coverage) = (layout.clone(), dem.clone(), m.sample.coverage);
     let sample = Stage {
         name: "sample",
         code_version: "1",
@@ -154,7 +191,7 @@ pub fn pipeline(
         }),
         check: None,
     };
-    let (l4, dem4, sp) = (Layout::of(&m), dem.clone(), m.split.clone());
+    let (l4, dem4, sp) = (layout.clone(), dem.clone(), m.split.clone());
     let split = Stage {
         name: "split",
         // 3: assigns sampled positions (before projection) instead of projected samples.
@@ -178,7 +215,7 @@ pub fn pipeline(
     };
     let (od, l5, dem5, pp, prov) = (
         ortho_dir.clone(),
-        Layout::of(&m),
+        layout.clone(),
         dem.clone(),
         m.project.clone(),
         provenance.clone(),
@@ -189,7 +226,8 @@ pub fn pipeline(
         name: "project",
         // 2: projects assigned positions only, into one file per split. 3: every sample carries its context
         // window (schema 1.2). 4: context cells average blocks of pixels (dataset::contract::context), not single pixels.
-        code_version: "4",
+        // 5: the train DEM statistic is summed per ortho (partitions merge to the same bits).
+        code_version: "5",
         // Everything projection reads: assigned positions, the DEM, and each ortho's image and metadata.
         inputs: [
             layout.assignment.clone(),
@@ -230,7 +268,7 @@ pub fn pipeline(
         }),
         check: None,
     };
-    let (l6, dem6, m6, lock6) = (Layout::of(&m), dem.clone(), m.clone(), lock_path.clone());
+    let (l6, dem6, m6, lock6) = (layout.clone(), dem.clone(), m.clone(), lock_path.clone());
     let check_dir = layout.dataset.clone();
     let publish = Stage {
         name: "publish",
@@ -312,10 +350,14 @@ pub fn pipeline(
             manifest.verify(&check_dir).into_iter().next()
         })),
     };
+    let mut stages = vec![ingest, erode, sample, split, project];
+    if scope == Scope::Whole {
+        stages.push(publish);
+    }
     Ok(Runner {
         root: m.base_dir.clone(),
         lock_path,
-        stages: vec![ingest, erode, sample, split, project, publish],
+        stages,
         hash_memo: Default::default(),
     })
 }

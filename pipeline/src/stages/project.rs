@@ -42,7 +42,9 @@ fn default_context_gsd_m() -> f64 {
 }
 
 /// Why a crop was not published. Every rejection is counted by reason.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, serde::Serialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, serde::Serialize, serde::Deserialize,
+)]
 #[serde(rename_all = "snake_case")]
 pub enum Rejection {
     /// Crop + apron reaches outside the DEM.
@@ -254,19 +256,61 @@ pub struct ProjectOutputs<'p> {
 
 /// Sum of squared deviations of train crops' heights from each crop's own mean: the dataset's DEM normalisation
 /// statistic (std = √(sum / values)), gathered here so that publishing needs no tensor decode.
-#[derive(Debug, Default, serde::Serialize, serde::Deserialize)]
+///
+/// Summed per ortho, then the orthos' sums in ortho order: a partitioned build (each partition a run of whole
+/// orthos, `crate::partition`) merges its partitions' per-ortho sums into the same bits as one process does.
+#[derive(Debug, Default, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct TrainDemStatistic {
+    pub squared_deviation_sum_m2: f64,
+    pub values: u64,
+    /// Each ortho's own sum, in the order they were added.
+    pub per_ortho: Vec<OrthoDemSum>,
+}
+
+/// One ortho's share of [`TrainDemStatistic`].
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct OrthoDemSum {
+    pub ortho_id: String,
     pub squared_deviation_sum_m2: f64,
     pub values: u64,
 }
 
 impl TrainDemStatistic {
-    fn add(&mut self, dem_m: &[f32]) {
+    fn add(&mut self, ortho_id: &str, dem_m: &[f32]) {
         let interior = crop_interior(dem_m);
         let n = (CROP_PX * CROP_PX) as f64;
         let mean = interior.clone().sum::<f64>() / n;
-        self.squared_deviation_sum_m2 += interior.map(|h| (h - mean) * (h - mean)).sum::<f64>();
-        self.values += (CROP_PX * CROP_PX) as u64;
+        let deviation: f64 = interior.map(|h| (h - mean) * (h - mean)).sum();
+        if self.per_ortho.last().is_none_or(|o| o.ortho_id != ortho_id) {
+            self.per_ortho.push(OrthoDemSum {
+                ortho_id: ortho_id.to_string(),
+                squared_deviation_sum_m2: 0.0,
+                values: 0,
+            });
+        }
+        let ortho = self.per_ortho.last_mut().expect("pushed above");
+        ortho.squared_deviation_sum_m2 += deviation;
+        ortho.values += (CROP_PX * CROP_PX) as u64;
+    }
+
+    /// The totals from the per-ortho sums, folded in order.
+    fn total(mut self) -> Self {
+        self.squared_deviation_sum_m2 = 0.0;
+        self.values = 0;
+        for ortho in &self.per_ortho {
+            self.squared_deviation_sum_m2 += ortho.squared_deviation_sum_m2;
+            self.values += ortho.values;
+        }
+        self
+    }
+
+    /// Several statistics (of disjoint, consecutive runs of orthos) as one: what one process would have summed.
+    pub fn concat(parts: impl IntoIterator<Item = Self>) -> Self {
+        Self {
+            per_ortho: parts.into_iter().flat_map(|p| p.per_ortho).collect(),
+            ..Default::default()
+        }
+        .total()
     }
 
     pub fn std_m(&self) -> f64 {
@@ -342,7 +386,7 @@ pub fn run(
                 let mut by_split: [Vec<Sample>; 3] = Default::default();
                 for (k, sample) in chunk {
                     if Split::ALL[k] == Split::Train {
-                        train_dem.add(&sample.dem_m);
+                        train_dem.add(&sample.ortho_id, &sample.dem_m);
                     }
                     by_split[k].push(sample);
                 }
@@ -355,7 +399,7 @@ pub fn run(
             for writer in writers {
                 writer.close()?;
             }
-            Ok(train_dem)
+            Ok(train_dem.total())
         });
         // One ortho after another, each with its positions (and their split and tile) in assignment order.
         let wanted: Vec<(&super::ingest::OrthoRecord, Vec<usize>)> = orthos

@@ -129,13 +129,24 @@ pub fn run(
     )?;
     dataset::contract::manifest::write_json_atomic(
         summary_out,
-        &serde_json::json!({
-            "dropped_straddling_splits": dropped,
-            "tile_size_m": params.tile_size_m,
-            "guard_band_m": params.guard_band_m,
-        }),
+        &SplitSummary {
+            dropped_straddling_splits: dropped,
+            guard_band_m: params.guard_band_m,
+            tile_size_m: params.tile_size_m,
+        },
     )?;
     Ok(())
+}
+
+/// What the split stage reports besides the assignment (`split/summary.json`; publish copies it into the
+/// dataset's summary).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SplitSummary {
+    /// Sampled positions whose footprint touches tiles of two splits: never projected.
+    pub dropped_straddling_splits: u64,
+    pub guard_band_m: f64,
+    pub tile_size_m: f64,
 }
 
 /// Map coordinates of the crop centred at DEM grid corner (col, row): where the project stage puts `center_x/y`.

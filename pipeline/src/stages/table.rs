@@ -1,7 +1,9 @@
 //! Small Parquet tables for stage outputs (zstd, one file each), readable by pyarrow/polars unaided.
 
 use std::fs::File;
-use std::path::Path;
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
 use std::sync::Arc;
 
 use arrow::array::{ArrayRef, Float64Array, RecordBatch, StringArray, UInt32Array, UInt64Array};
@@ -42,14 +44,39 @@ pub fn write_table(path: &Path, columns: Vec<(&str, Col)>) -> anyhow::Result<()>
             ),
         })
         .unzip();
-    let batch = RecordBatch::try_new(Arc::new(Schema::new(fields)), arrays)?;
+    write_batch(
+        path,
+        &RecordBatch::try_new(Arc::new(Schema::new(fields)), arrays)?,
+    )
+}
+
+/// Write one record batch as a stage table: the same bytes [`write_table`] gives for the same columns.
+pub fn write_batch(path: &Path, batch: &RecordBatch) -> anyhow::Result<()> {
     let props = WriterProperties::builder()
         .set_compression(Compression::ZSTD(ZstdLevel::try_new(3)?))
         .build();
     let mut writer = ArrowWriter::try_new(File::create(path)?, batch.schema(), Some(props))?;
-    writer.write(&batch)?;
+    writer.write(batch)?;
     writer.close()?;
     Ok(())
+}
+
+/// Several stage tables with one schema (consecutive parts of one table) written as that one table.
+pub fn concat_tables(parts: &[PathBuf], out: &Path) -> anyhow::Result<()> {
+    let first = parts
+        .first()
+        .ok_or_else(|| anyhow::anyhow!("no stage tables to concatenate into {}", out.display()))?;
+    let schema = ParquetRecordBatchReaderBuilder::try_new(File::open(first)?)?
+        .schema()
+        .clone();
+    let mut batches = Vec::new();
+    for part in parts {
+        batches.extend(
+            read_table(part)
+                .with_context(|| format!("{}: unreadable stage table", part.display()))?,
+        );
+    }
+    write_batch(out, &arrow::compute::concat_batches(&schema, &batches)?)
 }
 
 /// Read a whole stage table.
