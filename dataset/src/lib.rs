@@ -7,6 +7,7 @@
 //!   planner that reads them back.
 //!
 //! Beside them: the HTTP [`client`] of a served dataset (the server itself is the `g2r-dataset-server` crate),
+//! published datasets in object [`storage`] (S3 and the like),
 //! the binaries' allocator settings and logging, the provenance written next to measurements, and test fixtures.
 
 pub mod science;
@@ -16,6 +17,7 @@ pub mod contract;
 pub mod client;
 pub mod malloc;
 pub mod provenance;
+pub mod storage;
 pub mod testing;
 
 /// Initialise structured logging for the binaries (`RUST_LOG` overrides the default `info`), and route GDAL's own

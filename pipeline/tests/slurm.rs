@@ -1,6 +1,6 @@
 //! The pipeline as a Slurm job array, with the scripts users submit (docs/slurm/): a one-node cluster from Debian's
-//! packages on 127.0.0.1 runs the demo manifest as a 4-task map array plus the publish job, and every published
-//! byte equals the single-process build's. A cancelled map task cancels the publish (nothing published), and
+//! packages on 127.0.0.1 runs the demo manifest as a 4-, 2- and 1-task map array plus the publish job, and every
+//! published byte equals the single-process build's. A cancelled map task cancels the publish (nothing published), and
 //! submitting again resumes to the same bytes.
 //!
 //! Needs `slurmctld`, `slurmd` and the client commands (`.ci/setup` installs them). The daemons run in the
@@ -240,16 +240,28 @@ fn a_slurm_array_publishes_the_same_bytes_and_a_failed_task_publishes_nothing() 
     assert!(reference.contains_key("manifest.json"));
 
     let cluster = Cluster::start(&root.join("slurm"));
-    // Four partitions, two at a time on the node's two CPUs.
-    let manifest = build_dir(root, &world, "array");
-    let (map, publish) = cluster.submit(&root.join("array"), &manifest, 4, &["--cpus-per-task=1"]);
-    cluster.wait(&[&map, &publish]);
-    assert!(
-        cluster.state(&publish).starts_with("JobState=COMPLETED"),
-        "{}",
-        cluster.state(&publish)
-    );
-    assert_same(&reference, &root.join("array"), "4-task array");
+    // Four, two and one partitions, two tasks at a time on the node's two CPUs.
+    for partitions in [4, 2, 1] {
+        let name = format!("array-{partitions}");
+        let manifest = build_dir(root, &world, &name);
+        let (map, publish) = cluster.submit(
+            &root.join(&name),
+            &manifest,
+            partitions,
+            &["--cpus-per-task=1"],
+        );
+        cluster.wait(&[&map, &publish]);
+        assert!(
+            cluster.state(&publish).starts_with("JobState=COMPLETED"),
+            "{}",
+            cluster.state(&publish)
+        );
+        assert_same(
+            &reference,
+            &root.join(&name),
+            &format!("{partitions}-task array"),
+        );
+    }
 
     // One map task cancelled before it ran: the publish job is cancelled (not left pending) and nothing is
     // published; submitting again finishes that partition only and publishes the same bytes.

@@ -1,4 +1,4 @@
-//! Streaming training data: a [`SampleSource`] (local shards now; an HTTP source can implement the same trait),
+//! Streaming training data: a [`SampleSource`] (local shards, a dataset server over HTTP, or object storage),
 //! the epoch order from [`dataset::contract::planner`], dihedral augmentation, and a background thread that prefetches host
 //! batches while the device computes.
 
@@ -30,6 +30,28 @@ pub trait SampleSource: Send + Sync {
     fn read_row_group(&self, group: &RowGroupRef) -> Result<Vec<Sample>>;
 }
 
+/// Every row group of `split`'s shards (in the manifest's shard order), from each shard's row-group sizes.
+fn row_group_refs(
+    manifest: &DatasetManifest,
+    split: Split,
+    sizes: impl Fn(&str) -> Result<Vec<usize>>,
+) -> Result<Vec<RowGroupRef>> {
+    let mut groups = Vec::new();
+    for shard in manifest.split_shards(split) {
+        groups.extend(
+            sizes(shard)?
+                .into_iter()
+                .enumerate()
+                .map(|(row_group, rows)| RowGroupRef {
+                    shard: shard.to_string(),
+                    row_group,
+                    rows,
+                }),
+        );
+    }
+    Ok(groups)
+}
+
 /// A published dataset directory (`manifest.json` + shards).
 pub struct LocalSource {
     dir: PathBuf,
@@ -56,21 +78,11 @@ impl SampleSource for LocalSource {
     }
 
     fn row_groups(&self, split: Split) -> Result<Vec<RowGroupRef>> {
-        let mut groups = Vec::new();
-        for shard in self.manifest.split_shards(split) {
-            let sizes = dataset::contract::shard::row_group_sizes(&self.dir.join(shard))?;
-            groups.extend(
-                sizes
-                    .into_iter()
-                    .enumerate()
-                    .map(|(row_group, rows)| RowGroupRef {
-                        shard: shard.to_string(),
-                        row_group,
-                        rows,
-                    }),
-            );
-        }
-        Ok(groups)
+        row_group_refs(&self.manifest, split, |shard| {
+            Ok(dataset::contract::shard::row_group_sizes(
+                &self.dir.join(shard),
+            )?)
+        })
     }
 
     fn read_row_group(&self, group: &RowGroupRef) -> Result<Vec<Sample>> {
@@ -156,10 +168,68 @@ impl SampleSource for HttpSource {
     }
 }
 
-/// `--data`: an `http://` URL of `g2r-dataset serve`, or a published dataset directory.
+/// A published dataset in object storage (`s3://bucket/prefix`, [`dataset::storage`]): the manifest is one GET,
+/// each shard's footer two ranged GETs (once, then kept), each row group one ranged GET of its column chunks.
+/// Rows decode as from local files, so the same (seed, epoch) gives the same batches.
+pub struct ObjectStoreSource {
+    dir: Arc<dataset::storage::RemoteDir>,
+    manifest: DatasetManifest,
+    shards: std::sync::Mutex<BTreeMap<String, dataset::contract::shard::ShardFile>>,
+}
+
+impl ObjectStoreSource {
+    pub fn open(url: &str) -> Result<Self> {
+        let dir = Arc::new(dataset::storage::RemoteDir::open(url)?);
+        let manifest = dataset::storage::remote_manifest(&dir)?;
+        Ok(Self {
+            dir,
+            manifest,
+            shards: Default::default(),
+        })
+    }
+
+    /// The shard's footer, read on first use.
+    fn shard(&self, name: &str) -> Result<dataset::contract::shard::ShardFile> {
+        if let Some(shard) = self.shards.lock().expect("shard cache poisoned").get(name) {
+            return Ok(shard.clone());
+        }
+        let object = dataset::storage::RemoteObject::open(self.dir.clone(), name)?;
+        let shard = dataset::contract::shard::ShardFile::open_remote(object)?;
+        self.shards
+            .lock()
+            .expect("shard cache poisoned")
+            .insert(name.to_string(), shard.clone());
+        Ok(shard)
+    }
+}
+
+impl SampleSource for ObjectStoreSource {
+    fn describe(&self) -> String {
+        self.dir.url().to_string()
+    }
+
+    fn manifest(&self) -> &DatasetManifest {
+        &self.manifest
+    }
+
+    fn row_groups(&self, split: Split) -> Result<Vec<RowGroupRef>> {
+        row_group_refs(&self.manifest, split, |shard| {
+            Ok(self.shard(shard)?.row_group_sizes())
+        })
+    }
+
+    fn read_row_group(&self, group: &RowGroupRef) -> Result<Vec<Sample>> {
+        Ok(self.shard(&group.shard)?.read_row_group(group.row_group)?)
+    }
+}
+
+/// `--data`: an `http://` URL of `g2r-dataset serve`, an object-storage URL (`s3://bucket/prefix`, `gs://`, `az://`,
+/// `file://`) of a published dataset, or a published dataset directory.
 pub fn open_source(data: &str) -> Result<Arc<dyn SampleSource>> {
     if data.starts_with("http://") || data.starts_with("https://") {
         Ok(Arc::new(HttpSource::open(data)?))
+    } else if dataset::storage::is_url(data) {
+        Ok(Arc::new(ObjectStoreSource::open(data)?))
     } else {
         Ok(Arc::new(LocalSource::open(Path::new(data))?))
     }

@@ -27,8 +27,19 @@ enum Command {
     },
     /// Check every shard listed in DIR/manifest.json against its size and blake3; exit 1 on any mismatch.
     Verify {
-        /// Published dataset directory (holds manifest.json and the shards).
+        /// Published dataset directory (holds manifest.json and the shards), or its object-storage URL
+        /// (`s3://bucket/prefix`; S3 settings from AWS_* variables, e.g. AWS_ENDPOINT_URL, AWS_ALLOW_HTTP=true).
+        dir: String,
+    },
+    /// Copy a published dataset to object storage (`s3://bucket/prefix`, `gs://`, `az://`, `file://`): verified
+    /// first, every shard and document uploaded, then manifest.json last with a conditional put, so a reader
+    /// never sees a half-published dataset and a published one is never overwritten. `g2r-train fit --data URL`
+    /// then trains from it with ranged reads.
+    Upload {
+        /// Published dataset directory.
         dir: PathBuf,
+        /// Destination prefix; must not hold a manifest.json yet.
+        url: String,
     },
     /// Verify every shard against manifest.json, then (re)write the dataset card (README.md) and croissant.json.
     /// Refuses (exit 1, nothing written) when any shard does not match.
@@ -96,21 +107,33 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             }
         }
         Command::Verify { dir } => {
-            let manifest =
-                dataset::contract::manifest::DatasetManifest::load(&dir.join("manifest.json"))?;
-            let problems = manifest.verify(&dir);
+            let (shards, problems) = if dataset::storage::is_url(&dir) {
+                let remote = dataset::storage::RemoteDir::open(&dir)?;
+                let shards = dataset::storage::remote_manifest(&remote)?.shards.len();
+                (shards, dataset::storage::verify_remote(&remote)?)
+            } else {
+                let dir = PathBuf::from(&dir);
+                let manifest =
+                    dataset::contract::manifest::DatasetManifest::load(&dir.join("manifest.json"))?;
+                (manifest.shards.len(), manifest.verify(&dir))
+            };
             for p in &problems {
                 eprintln!("{p}");
             }
             if !problems.is_empty() {
-                eprintln!(
-                    "{} of {} shards failed verification",
-                    problems.len(),
-                    manifest.shards.len()
-                );
+                eprintln!("{} of {shards} shards failed verification", problems.len());
                 return Ok(ExitCode::FAILURE);
             }
-            println!("all {} shards match manifest.json", manifest.shards.len());
+            println!("all {shards} shards match manifest.json");
+        }
+        Command::Upload { dir, url } => {
+            let remote = dataset::storage::RemoteDir::open(&url)?;
+            let bytes = dataset::storage::upload_dataset(&dir, &remote)?;
+            tracing::info!(
+                url,
+                mib = bytes >> 20,
+                "dataset uploaded; manifest.json written last"
+            );
         }
         Command::Publish { dir } => {
             let manifest =

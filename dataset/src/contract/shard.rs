@@ -437,11 +437,74 @@ impl EncodedRowGroups {
 }
 
 /// An open shard with its footer parsed once: random reads of row groups or single rows touch only the needed
-/// column chunks, and a server can hold one per shard instead of re-reading footers per request.
+/// column chunks, and a server can hold one per shard instead of re-reading footers per request. A local file, or
+/// an object in object storage ([`crate::storage`]) read with one ranged GET per row group.
 #[derive(Clone)]
 pub struct ShardFile {
+    /// The file's path, or the object's URL (for messages).
     path: PathBuf,
     metadata: ArrowReaderMetadata,
+    remote: Option<crate::storage::RemoteObject>,
+}
+
+/// Where a reader takes a shard's bytes from: the local file, or one row group's bytes fetched ahead.
+pub enum ShardBytes {
+    File(File),
+    /// Bytes `offset..offset + bytes.len()` of a file of `len` bytes.
+    Fetched {
+        offset: u64,
+        bytes: bytes::Bytes,
+        len: u64,
+    },
+}
+
+impl ShardBytes {
+    fn slice(&self, start: u64, length: u64) -> parquet::errors::Result<bytes::Bytes> {
+        match self {
+            ShardBytes::Fetched { offset, bytes, .. }
+                if start >= *offset && start + length <= offset + bytes.len() as u64 =>
+            {
+                let from = (start - offset) as usize;
+                Ok(bytes.slice(from..from + length as usize))
+            }
+            _ => Err(parquet::errors::ParquetError::General(format!(
+                "bytes {start}..{} lie outside the fetched row group",
+                start + length
+            ))),
+        }
+    }
+}
+
+impl parquet::file::reader::Length for ShardBytes {
+    fn len(&self) -> u64 {
+        match self {
+            ShardBytes::File(file) => parquet::file::reader::Length::len(file),
+            ShardBytes::Fetched { len, .. } => *len,
+        }
+    }
+}
+
+impl parquet::file::reader::ChunkReader for ShardBytes {
+    type T = Box<dyn std::io::Read + Send>;
+
+    fn get_read(&self, start: u64) -> parquet::errors::Result<Self::T> {
+        use bytes::Buf;
+        match self {
+            ShardBytes::File(file) => Ok(Box::new(file.get_read(start)?)),
+            ShardBytes::Fetched { offset, bytes, .. } => {
+                let rest =
+                    bytes.len() as u64 - start.saturating_sub(*offset).min(bytes.len() as u64);
+                Ok(Box::new(self.slice(start, rest)?.reader()))
+            }
+        }
+    }
+
+    fn get_bytes(&self, start: u64, length: usize) -> parquet::errors::Result<bytes::Bytes> {
+        match self {
+            ShardBytes::File(file) => file.get_bytes(start, length),
+            ShardBytes::Fetched { .. } => self.slice(start, length as u64),
+        }
+    }
 }
 
 impl ShardFile {
@@ -464,6 +527,26 @@ impl ShardFile {
                     source,
                 }
             })?;
+        Self::checked(path.to_path_buf(), metadata, None)
+    }
+
+    /// Open a shard in object storage: its footer is read with two ranged GETs (the length, then the metadata).
+    pub fn open_remote(object: crate::storage::RemoteObject) -> Result<Self, ShardError> {
+        let path = PathBuf::from(object.url());
+        let metadata = ArrowReaderMetadata::load(&object, ArrowReaderOptions::default()).map_err(
+            |source| ShardError::Parquet {
+                path: path.clone(),
+                source,
+            },
+        )?;
+        Self::checked(path, metadata, Some(object))
+    }
+
+    fn checked(
+        path: PathBuf,
+        metadata: ArrowReaderMetadata,
+        remote: Option<crate::storage::RemoteObject>,
+    ) -> Result<Self, ShardError> {
         let found = metadata
             .schema()
             .metadata()
@@ -471,14 +554,12 @@ impl ShardFile {
             .cloned()
             .unwrap_or_else(|| "none".into());
         if found.split('.').next() != SCHEMA_VERSION.split('.').next() {
-            return Err(ShardError::SchemaVersion {
-                path: path.to_path_buf(),
-                found,
-            });
+            return Err(ShardError::SchemaVersion { path, found });
         }
         Ok(Self {
-            path: path.to_path_buf(),
+            path,
             metadata,
+            remote,
         })
     }
 
@@ -503,13 +584,40 @@ impl ShardFile {
         }
     }
 
-    fn builder(&self) -> Result<ParquetRecordBatchReaderBuilder<File>, ShardError> {
-        let file = File::open(&self.path).map_err(|source| ShardError::Io {
-            path: self.path.clone(),
-            source,
-        })?;
+    /// A reader of the whole file (local) or of `row_group` (remote: its column chunks fetched in one GET).
+    fn builder(
+        &self,
+        row_group: Option<usize>,
+    ) -> Result<ParquetRecordBatchReaderBuilder<ShardBytes>, ShardError> {
+        let bytes = match (&self.remote, row_group) {
+            (None, _) => {
+                ShardBytes::File(File::open(&self.path).map_err(|source| ShardError::Io {
+                    path: self.path.clone(),
+                    source,
+                })?)
+            }
+            (Some(object), Some(group)) => {
+                let columns = self.metadata.metadata().row_group(group).columns();
+                let start = columns.iter().map(|c| c.byte_range().0).min().unwrap_or(0);
+                let end = columns
+                    .iter()
+                    .map(|c| c.byte_range().0 + c.byte_range().1)
+                    .max()
+                    .unwrap_or(0);
+                ShardBytes::Fetched {
+                    offset: start,
+                    bytes: object.fetch(start..end).map_err(|e| self.parquet_err(e))?,
+                    len: parquet::file::reader::Length::len(object),
+                }
+            }
+            (Some(_), None) => {
+                return Err(self.parquet_err(parquet::errors::ParquetError::General(
+                    "a remote shard is read one row group at a time".into(),
+                )))
+            }
+        };
         Ok(ParquetRecordBatchReaderBuilder::new_with_metadata(
-            file,
+            bytes,
             self.metadata.clone(),
         ))
     }
@@ -530,7 +638,7 @@ impl ShardFile {
             });
         };
         let mut builder = self
-            .builder()?
+            .builder(Some(row_group))?
             .with_row_groups(vec![row_group])
             .with_batch_size(ROW_GROUP_ROWS);
         if let Some(rows) = rows {
@@ -650,7 +758,7 @@ pub struct SamplePositions {
 /// (sample_id, center_x, center_y) of every row, reading only those three columns.
 pub fn read_sample_positions(path: &Path) -> Result<SamplePositions, ShardError> {
     use arrow::array::{Array, Float64Array, StringArray};
-    let builder = ShardFile::open(path)?.builder()?;
+    let builder = ShardFile::open(path)?.builder(None)?;
     let mask = parquet::arrow::ProjectionMask::columns(
         builder.parquet_schema(),
         ["sample_id", "center_x", "center_y"],

@@ -1,0 +1,283 @@
+//! Published datasets in object storage: `s3://bucket/prefix` (and whatever else arrow-rs `object_store` serves:
+//! `gs://`, `az://`, `file://`, `memory://`), next to local directories.
+//!
+//! Synchronous on purpose: the callers (upload, verify, the trainer's sample source) are blocking code on their own
+//! threads, so each [`RemoteDir`] owns a small Tokio runtime and each call blocks on its request. S3 settings come
+//! from the environment as the AWS tools read them (`AWS_ENDPOINT_URL` or `AWS_ENDPOINT`, `AWS_REGION`,
+//! `AWS_ACCESS_KEY_ID`, `AWS_SECRET_ACCESS_KEY`, `AWS_ALLOW_HTTP=true` for a plain-HTTP endpoint).
+
+use std::ops::Range;
+use std::sync::Arc;
+
+use anyhow::{bail, Context, Result};
+use object_store::path::Path as ObjectPath;
+use object_store::{ObjectStore, ObjectStoreExt, PutMode, PutOptions, PutPayload};
+
+/// Whether `location` names object storage rather than a local path.
+pub fn is_url(location: &str) -> bool {
+    [
+        "s3://",
+        "s3a://",
+        "gs://",
+        "az://",
+        "abfs://",
+        "abfss://",
+        "file://",
+        "memory://",
+    ]
+    .iter()
+    .any(|scheme| location.starts_with(scheme))
+}
+
+/// A "directory" in object storage: every object under one prefix.
+pub struct RemoteDir {
+    url: String,
+    store: Arc<dyn ObjectStore>,
+    prefix: ObjectPath,
+    runtime: tokio::runtime::Runtime,
+}
+
+impl RemoteDir {
+    /// Open the prefix `url` names; contacts nothing until the first request.
+    pub fn open(url: &str) -> Result<Self> {
+        let parsed = url::Url::parse(url).with_context(|| format!("{url}: not a URL"))?;
+        let (store, prefix): (Arc<dyn ObjectStore>, ObjectPath) = match parsed.scheme() {
+            "s3" | "s3a" => {
+                let store = object_store::aws::AmazonS3Builder::from_env()
+                    .with_url(url)
+                    .build()
+                    .with_context(|| {
+                        format!("{url}: cannot configure S3 (AWS_* environment variables)")
+                    })?;
+                let prefix = ObjectPath::from_url_path(parsed.path())
+                    .with_context(|| format!("{url}: bad object path"))?;
+                (Arc::new(store), prefix)
+            }
+            _ => {
+                let (store, prefix) = object_store::parse_url(&parsed)
+                    .with_context(|| format!("{url}: unsupported object-store URL"))?;
+                (Arc::from(store), prefix)
+            }
+        };
+        // One worker thread: requests come one at a time from each caller's thread (`block_on` from several
+        // threads at once is what the trainer's prefetcher does), and the store's HTTP client is shared.
+        let runtime = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(1)
+            .enable_all()
+            .build()
+            .context("starting the object-store runtime")?;
+        Ok(Self {
+            url: url.trim_end_matches('/').to_string(),
+            store,
+            prefix,
+            runtime,
+        })
+    }
+
+    /// The URL of `name` under this prefix, for messages.
+    pub fn url_of(&self, name: &str) -> String {
+        format!("{}/{name}", self.url)
+    }
+
+    pub fn url(&self) -> &str {
+        &self.url
+    }
+
+    fn path(&self, name: &str) -> ObjectPath {
+        self.prefix.clone().join(name)
+    }
+
+    /// The whole object `name`.
+    pub fn get(&self, name: &str) -> Result<Vec<u8>> {
+        let path = self.path(name);
+        let bytes = self
+            .runtime
+            .block_on(async { self.store.get(&path).await?.bytes().await })
+            .with_context(|| format!("{}: cannot read", self.url_of(name)))?;
+        Ok(bytes.to_vec())
+    }
+
+    /// Bytes `range` of object `name` (one ranged GET).
+    pub fn get_range(&self, name: &str, range: Range<u64>) -> Result<bytes::Bytes> {
+        let path = self.path(name);
+        self.runtime
+            .block_on(self.store.get_range(&path, range.clone()))
+            .with_context(|| {
+                format!(
+                    "{}: cannot read bytes {}..{}",
+                    self.url_of(name),
+                    range.start,
+                    range.end
+                )
+            })
+    }
+
+    /// The size of object `name`, in bytes.
+    pub fn size(&self, name: &str) -> Result<u64> {
+        let path = self.path(name);
+        Ok(self
+            .runtime
+            .block_on(self.store.head(&path))
+            .with_context(|| format!("{}: not found or unreadable", self.url_of(name)))?
+            .size)
+    }
+
+    /// Write object `name`, replacing any.
+    pub fn put(&self, name: &str, bytes: Vec<u8>) -> Result<()> {
+        let path = self.path(name);
+        self.runtime
+            .block_on(self.store.put(&path, PutPayload::from(bytes)))
+            .with_context(|| format!("{}: the store refused the write", self.url_of(name)))?;
+        Ok(())
+    }
+
+    /// Write object `name` only if none exists (a conditional put: S3's `If-None-Match: *`); an existing object is
+    /// an error, whoever wrote it, so two publishers never both believe they published.
+    pub fn put_new(&self, name: &str, bytes: Vec<u8>) -> Result<()> {
+        let path = self.path(name);
+        let options = PutOptions {
+            mode: PutMode::Create,
+            ..Default::default()
+        };
+        match self
+            .runtime
+            .block_on(self.store.put_opts(&path, PutPayload::from(bytes), options))
+        {
+            Ok(_) => Ok(()),
+            Err(object_store::Error::AlreadyExists { .. }) => bail!(
+                "{}: already exists; publish to a new prefix (a published dataset is never overwritten)",
+                self.url_of(name)
+            ),
+            Err(e) => Err(e).with_context(|| format!("{}: the store refused the write", self.url_of(name))),
+        }
+    }
+}
+
+/// The files of a published dataset besides its shards, uploaded when present; `manifest.json` goes last.
+const DATASET_DOCUMENTS: [&str; 4] = ["README.md", "croissant.json", "summary.json", "map.png"];
+
+/// Copy the published dataset in `dir` to `remote`: verify it against its manifest, refuse a destination that
+/// already holds a manifest, upload every shard and document, then `manifest.json` last with a conditional put.
+/// A reader that finds the manifest finds every shard it lists; a failure before that leaves no manifest, and
+/// uploading again replaces the partial objects. Returns the bytes uploaded.
+pub fn upload_dataset(dir: &std::path::Path, remote: &RemoteDir) -> Result<u64> {
+    let manifest = crate::contract::manifest::DatasetManifest::load_dir(dir)?;
+    if let Some(problem) = manifest.verify(dir).into_iter().next() {
+        bail!("{problem}; the local dataset does not match its manifest, so nothing was uploaded (re-run publish)");
+    }
+    if remote.size("manifest.json").is_ok() {
+        bail!(
+            "{}: a dataset is already published there; choose a new prefix (a published dataset is never overwritten)",
+            remote.url_of("manifest.json")
+        );
+    }
+    let names = manifest
+        .shards
+        .iter()
+        .map(|shard| shard.path.clone())
+        .chain(
+            DATASET_DOCUMENTS
+                .iter()
+                .filter(|name| dir.join(name).exists())
+                .map(|name| name.to_string()),
+        );
+    let mut uploaded = 0;
+    for name in names {
+        let bytes = std::fs::read(dir.join(&name))
+            .with_context(|| format!("{}: cannot read", dir.join(&name).display()))?;
+        uploaded += bytes.len() as u64;
+        remote.put(&name, bytes)?;
+    }
+    let text = std::fs::read(dir.join("manifest.json"))?;
+    uploaded += text.len() as u64;
+    remote.put_new("manifest.json", text)?;
+    Ok(uploaded)
+}
+
+/// The published manifest at `remote`.
+pub fn remote_manifest(remote: &RemoteDir) -> Result<crate::contract::manifest::DatasetManifest> {
+    let text = String::from_utf8(remote.get("manifest.json")?)
+        .with_context(|| format!("{}: not UTF-8", remote.url_of("manifest.json")))?;
+    Ok(crate::contract::manifest::DatasetManifest::parse(
+        &text,
+        std::path::Path::new(&remote.url_of("manifest.json")),
+    )?)
+}
+
+/// Check every shard the manifest at `remote` lists against its size and blake3 (each shard is read once);
+/// the problems found, one line each.
+pub fn verify_remote(remote: &RemoteDir) -> Result<Vec<String>> {
+    let manifest = remote_manifest(remote)?;
+    let mut problems = Vec::new();
+    for shard in &manifest.shards {
+        let url = remote.url_of(&shard.path);
+        match remote.size(&shard.path) {
+            Err(_) => problems.push(format!("{url}: missing")),
+            Ok(size) if size != shard.bytes => problems.push(format!(
+                "{url}: {size} bytes, manifest says {} (truncated?)",
+                shard.bytes
+            )),
+            Ok(_) => {
+                let hash = blake3::hash(&remote.get(&shard.path)?).to_hex().to_string();
+                if hash != shard.blake3 {
+                    problems.push(format!(
+                        "{url}: blake3 {hash}, manifest says {}",
+                        shard.blake3
+                    ));
+                }
+            }
+        }
+    }
+    Ok(problems)
+}
+
+/// One object read by byte ranges, as Parquet's reader asks for them: the footer of a remote shard is a suffix
+/// read (`ArrowReaderMetadata::load` asks for the last 8 bytes, then the metadata before them).
+#[derive(Clone)]
+pub struct RemoteObject {
+    dir: Arc<RemoteDir>,
+    name: String,
+    len: u64,
+}
+
+impl RemoteObject {
+    /// Object `name` under `dir`; one HEAD request for its size.
+    pub fn open(dir: Arc<RemoteDir>, name: &str) -> Result<Self> {
+        let len = dir.size(name)?;
+        Ok(Self {
+            dir,
+            name: name.to_string(),
+            len,
+        })
+    }
+
+    pub fn url(&self) -> String {
+        self.dir.url_of(&self.name)
+    }
+
+    /// Bytes `range` in one ranged GET.
+    pub fn fetch(&self, range: Range<u64>) -> parquet::errors::Result<bytes::Bytes> {
+        self.dir
+            .get_range(&self.name, range)
+            .map_err(|e| parquet::errors::ParquetError::External(format!("{e:#}").into()))
+    }
+}
+
+impl parquet::file::reader::Length for RemoteObject {
+    fn len(&self) -> u64 {
+        self.len
+    }
+}
+
+impl parquet::file::reader::ChunkReader for RemoteObject {
+    type T = bytes::buf::Reader<bytes::Bytes>;
+
+    fn get_read(&self, start: u64) -> parquet::errors::Result<Self::T> {
+        use bytes::Buf;
+        Ok(self.fetch(start..self.len)?.reader())
+    }
+
+    fn get_bytes(&self, start: u64, length: usize) -> parquet::errors::Result<bytes::Bytes> {
+        self.fetch(start..start + length as u64)
+    }
+}
