@@ -241,8 +241,9 @@ pub enum Command {
     Models,
     /// Train one model; writes config.json, metrics.jsonl (one line per epoch), best/ and last/ checkpoints.
     Fit {
-        /// Published dataset directory (contains manifest.json), or the URL of `g2r-dataset serve`
-        /// (http://127.0.0.1:8080): both give the same batches.
+        /// Published dataset directory (contains manifest.json), the URL of `g2r-dataset serve`
+        /// (http://127.0.0.1:8080), or an object-storage prefix it was uploaded to (s3://bucket/prefix, with AWS_*
+        /// settings from the environment; `g2r-dataset upload`): all give the same batches.
         #[arg(long)]
         data: String,
         /// Run directory.
