@@ -1,7 +1,7 @@
 //! Training straight from object storage: a published dataset uploaded to an S3 server on 127.0.0.1 (moto), verified
 //! there, and a short `g2r-train fit --data s3://…` whose `metrics.jsonl` equals the local-folder run's byte for
 //! byte. A second upload to the same prefix is refused (the manifest is a conditional put), and an upload the
-//! bucket refuses leaves no manifest.
+//! bucket refuses leaves no manifest and succeeds when run again.
 //!
 //! Needs `moto[server]` in the project's Python (`.ci/setup` installs it into .venv). The server is started on a free
 //! loopback port and stopped by PID.
@@ -200,6 +200,10 @@ fn a_dataset_in_s3_verifies_and_trains_to_the_same_metrics_as_local_files() {
     let refused = format!("{:#}", upload_dataset(&local, &missing).unwrap_err());
     assert!(refused.contains("s3://no-such-bucket/x/"), "{refused}");
     assert!(missing.size("manifest.json").is_err());
+    // Once the bucket exists, uploading again publishes it whole.
+    assert_eq!(moto.request("PUT", "/no-such-bucket"), 200);
+    upload_dataset(&local, &missing).unwrap();
+    assert_eq!(verify_remote(&missing).unwrap(), Vec::<String>::new());
 
     // The same fit from local files and from the bucket.
     let env = moto.env();
