@@ -200,7 +200,7 @@ fn run_partition(manifest_path: &Path, part: &str, until: Option<&str>) -> Vec<&
 /// Merge `count` partitions and publish; the error as one line.
 fn merge(manifest_path: &Path, count: usize) -> Result<Vec<&'static str>, String> {
     let m = PipelineManifest::load(manifest_path).unwrap();
-    pipeline::partition::merge(&m, count, indicatif::ProgressBar::hidden())
+    pipeline::stages::merge::merge(&m, count, indicatif::ProgressBar::hidden())
         .and_then(|runner| runner.run(None, &[]))
         .map_err(|e| format!("{e:#}"))
 }

@@ -203,7 +203,8 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                     None,
                 ),
                 (None, Some(count)) => {
-                    let runner = pipeline::partition::merge(&manifest, count, progress.clone())?;
+                    let runner =
+                        pipeline::stages::merge::merge(&manifest, count, progress.clone())?;
                     let seconds = started.elapsed().as_secs_f64();
                     tracing::info!(
                         partitions = count,

@@ -1,10 +1,11 @@
 //! Pipeline stages (docs/design.md, Pipeline stages), in data-flow order: [`ingest`] → [`erode`] → [`sample`] → [`split`] →
-//! [`project`] → [`publish`]. Split runs on the sampled footprints, before projection: assignment needs only a
+//! [`project`] → ([`merge`] of a partitioned build's partitions →) [`publish`]. Split runs on the sampled footprints, before projection: assignment needs only a
 //! crop's centre and size, and crops straddling two splits (17 % on tycho-full) are then never projected. [`pipeline`] declares them to the [`crate::runner`] with their inputs, params and
 //! outputs; each module holds the algorithm (tested on its own) and the stage function that does the file IO.
 
 pub mod erode;
 pub mod ingest;
+pub mod merge;
 pub mod project;
 pub mod publish;
 pub mod sample;
@@ -88,7 +89,7 @@ pub enum Scope {
     /// Every ortho, through publish: the single-process build.
     Whole,
     /// One partition's run of orthos, ingest through project, in its own directory and lock; publishing waits
-    /// for the merge of all partitions ([`crate::partition::merge`]).
+    /// for the merge of all partitions ([`merge`]).
     Partition(crate::partition::Partition),
 }
 
