@@ -281,3 +281,68 @@ impl parquet::file::reader::ChunkReader for RemoteObject {
         self.fetch(start..start + length as u64)
     }
 }
+
+/// Where a shard reader ([`crate::contract::shard::ShardFile`]) takes its bytes from: the local file, or one row
+/// group's bytes fetched ahead from object storage.
+pub enum ShardBytes {
+    File(std::fs::File),
+    /// Bytes `offset..offset + bytes.len()` of a file of `len` bytes.
+    Fetched {
+        offset: u64,
+        bytes: bytes::Bytes,
+        len: u64,
+    },
+}
+
+impl ShardBytes {
+    fn slice(&self, start: u64, length: u64) -> parquet::errors::Result<bytes::Bytes> {
+        match self {
+            ShardBytes::Fetched { offset, bytes, .. }
+                if start >= *offset && start + length <= offset + bytes.len() as u64 =>
+            {
+                let from = (start - offset) as usize;
+                Ok(bytes.slice(from..from + length as usize))
+            }
+            _ => Err(parquet::errors::ParquetError::General(format!(
+                "bytes {start}..{} lie outside the fetched row group",
+                start + length
+            ))),
+        }
+    }
+}
+
+impl parquet::file::reader::Length for ShardBytes {
+    fn len(&self) -> u64 {
+        match self {
+            ShardBytes::File(file) => parquet::file::reader::Length::len(file),
+            ShardBytes::Fetched { len, .. } => *len,
+        }
+    }
+}
+
+impl parquet::file::reader::ChunkReader for ShardBytes {
+    type T = Box<dyn std::io::Read + Send>;
+
+    fn get_read(&self, start: u64) -> parquet::errors::Result<Self::T> {
+        use bytes::Buf;
+        match self {
+            ShardBytes::File(file) => Ok(Box::new(parquet::file::reader::ChunkReader::get_read(
+                file, start,
+            )?)),
+            ShardBytes::Fetched { offset, bytes, .. } => {
+                let rest =
+                    bytes.len() as u64 - start.saturating_sub(*offset).min(bytes.len() as u64);
+                Ok(Box::new(self.slice(start, rest)?.reader()))
+            }
+        }
+    }
+
+    fn get_bytes(&self, start: u64, length: usize) -> parquet::errors::Result<bytes::Bytes> {
+        match self {
+            ShardBytes::File(file) => {
+                parquet::file::reader::ChunkReader::get_bytes(file, start, length)
+            }
+            ShardBytes::Fetched { .. } => self.slice(start, length as u64),
+        }
+    }
+}

@@ -23,6 +23,7 @@ use crate::contract::schema::{
     SchemaError, FLOAT_TENSOR_COLUMNS, SCHEMA_VERSION, TENSOR_COLUMNS,
 };
 use crate::science::raster::tmp_path;
+use crate::storage::ShardBytes;
 
 /// Rows per row group: ~256 samples ≈ 40 MB uncompressed, one HTTP range read for random access.
 pub const ROW_GROUP_ROWS: usize = 256;
@@ -445,66 +446,6 @@ pub struct ShardFile {
     path: PathBuf,
     metadata: ArrowReaderMetadata,
     remote: Option<crate::storage::RemoteObject>,
-}
-
-/// Where a reader takes a shard's bytes from: the local file, or one row group's bytes fetched ahead.
-pub enum ShardBytes {
-    File(File),
-    /// Bytes `offset..offset + bytes.len()` of a file of `len` bytes.
-    Fetched {
-        offset: u64,
-        bytes: bytes::Bytes,
-        len: u64,
-    },
-}
-
-impl ShardBytes {
-    fn slice(&self, start: u64, length: u64) -> parquet::errors::Result<bytes::Bytes> {
-        match self {
-            ShardBytes::Fetched { offset, bytes, .. }
-                if start >= *offset && start + length <= offset + bytes.len() as u64 =>
-            {
-                let from = (start - offset) as usize;
-                Ok(bytes.slice(from..from + length as usize))
-            }
-            _ => Err(parquet::errors::ParquetError::General(format!(
-                "bytes {start}..{} lie outside the fetched row group",
-                start + length
-            ))),
-        }
-    }
-}
-
-impl parquet::file::reader::Length for ShardBytes {
-    fn len(&self) -> u64 {
-        match self {
-            ShardBytes::File(file) => parquet::file::reader::Length::len(file),
-            ShardBytes::Fetched { len, .. } => *len,
-        }
-    }
-}
-
-impl parquet::file::reader::ChunkReader for ShardBytes {
-    type T = Box<dyn std::io::Read + Send>;
-
-    fn get_read(&self, start: u64) -> parquet::errors::Result<Self::T> {
-        use bytes::Buf;
-        match self {
-            ShardBytes::File(file) => Ok(Box::new(file.get_read(start)?)),
-            ShardBytes::Fetched { offset, bytes, .. } => {
-                let rest =
-                    bytes.len() as u64 - start.saturating_sub(*offset).min(bytes.len() as u64);
-                Ok(Box::new(self.slice(start, rest)?.reader()))
-            }
-        }
-    }
-
-    fn get_bytes(&self, start: u64, length: usize) -> parquet::errors::Result<bytes::Bytes> {
-        match self {
-            ShardBytes::File(file) => file.get_bytes(start, length),
-            ShardBytes::Fetched { .. } => self.slice(start, length as u64),
-        }
-    }
 }
 
 impl ShardFile {
