@@ -27,6 +27,16 @@ pub struct Scatter<'a> {
     pub x_label: &'a str,
     pub y_label: &'a str,
     pub points: &'a [Point],
+    /// How the y axis maps values: log decades for quantities spanning orders of magnitude (times, MSEs), linear
+    /// for ratios that stay within one (an error against a baseline's).
+    pub y_axis: Axis,
+}
+
+/// A plot axis' scale.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Axis {
+    Log,
+    Linear,
 }
 
 /// Fonts tried in order (Debian/Ubuntu paths).
@@ -67,6 +77,47 @@ fn to_px(v: f64, (lo, hi): (i32, i32), p0: f32, p1: f32) -> f32 {
     p0 + (p1 - p0) * t as f32
 }
 
+/// Ticks of a linear axis covering the values: a 1, 2 or 5 × 10^k step giving about five intervals, the range
+/// widened to whole steps (and by one step where a value would sit on the frame). Returns (ticks, decimals).
+fn linear_ticks(values: impl Iterator<Item = f64>) -> (Vec<f64>, usize) {
+    let (min, max) = values.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| {
+        (a.min(v), b.max(v))
+    });
+    let span = if max > min {
+        max - min
+    } else {
+        min.abs().max(1.0)
+    };
+    let raw = span / 5.0;
+    let magnitude = 10f64.powf(raw.log10().floor());
+    let step = [1.0, 2.0, 5.0, 10.0]
+        .into_iter()
+        .map(|m| m * magnitude)
+        .find(|s| *s >= raw)
+        .unwrap_or(10.0 * magnitude);
+    // A value within rounding of a tick counts as on it (0.1 × 11 is not 1.1 in binary).
+    let on_tick = |q: f64| (q - q.round()).abs() < 1e-9;
+    let (q_lo, q_hi) = (min / step, max / step);
+    let lo = if on_tick(q_lo) {
+        q_lo.round() - 1.0
+    } else {
+        q_lo.floor()
+    };
+    let hi = if on_tick(q_hi) {
+        q_hi.round() + 1.0
+    } else {
+        q_hi.ceil()
+    };
+    let ticks = (lo as i64..=hi as i64).map(|k| k as f64 * step).collect();
+    let decimals = (-step.log10().floor()).max(0.0) as usize;
+    (ticks, decimals)
+}
+
+/// Pixel position of a value on a linear axis from `lo` to `hi` over pixels `[p0, p1]`.
+fn to_px_linear(v: f64, (lo, hi): (f64, f64), p0: f32, p1: f32) -> f32 {
+    p0 + (p1 - p0) * ((v - lo) / (hi - lo)) as f32
+}
+
 /// Draw the scatter; returns the image and whether labels were drawn (a font was found).
 pub fn draw_scatter(plot: &Scatter, font: Option<&FontVec>) -> (RgbImage, bool) {
     let mut img = RgbImage::from_pixel(WIDTH, HEIGHT, Rgb([255, 255, 255]));
@@ -98,13 +149,32 @@ pub fn draw_scatter(plot: &Scatter, font: Option<&FontVec>) -> (RgbImage, bool) 
             (x as i32 - w as i32 / 2, bottom as i32 + 6)
         });
     }
-    for d in yd.0..=yd.1 {
-        // y grows upward: the top of the area is the highest decade.
-        let y = to_px(10f64.powi(d), yd, bottom, top);
+    // y grows upward: the top of the area is the axis' highest value.
+    let y_ticks: Vec<(f64, String)> = match plot.y_axis {
+        Axis::Log => (yd.0..=yd.1)
+            .map(|d| (10f64.powi(d), format!("1e{d}")))
+            .collect(),
+        Axis::Linear => {
+            let (ticks, decimals) = linear_ticks(points.iter().map(|p| p.y));
+            ticks
+                .into_iter()
+                .map(|v| (v, format!("{v:.decimals$}")))
+                .collect()
+        }
+    };
+    let y_range = (y_ticks[0].0, y_ticks[y_ticks.len() - 1].0);
+    let y_px = |v: f64| match plot.y_axis {
+        Axis::Log => to_px(v, yd, bottom, top),
+        Axis::Linear => to_px_linear(v, y_range, bottom, top),
+    };
+    for (value, text) in &y_ticks {
+        let y = y_px(*value);
         draw_line_segment_mut(&mut img, (left, y), (right, y), GRID);
-        tick_label(&mut img, d, &|w, h| {
-            (left as i32 - w as i32 - 6, y as i32 - h as i32 / 2)
-        });
+        if let Some(f) = font {
+            let (w, h) = text_size(small, f, text);
+            let (x, y) = (left as i32 - w as i32 - 6, y as i32 - h as i32 / 2);
+            draw_text_mut(&mut img, INK, x, y, small, f, text);
+        }
     }
     draw_hollow_rect_mut(
         &mut img,
@@ -112,7 +182,7 @@ pub fn draw_scatter(plot: &Scatter, font: Option<&FontVec>) -> (RgbImage, bool) 
         INK,
     );
     for p in &points {
-        let (x, y) = (to_px(p.x, xd, left, right), to_px(p.y, yd, bottom, top));
+        let (x, y) = (to_px(p.x, xd, left, right), y_px(p.y));
         draw_filled_circle_mut(&mut img, (x.round() as i32, y.round() as i32), 5, POINT);
         if let Some(f) = font {
             draw_text_mut(
@@ -188,6 +258,7 @@ mod tests {
             x_label: "x",
             y_label: "y",
             points: &points,
+            y_axis: Axis::Log,
         };
         let (img, _) = draw_scatter(&plot, None);
         // Axes span x 1e1..1e3 and y 1e-4..1e-2 over the area 90..870 × 530..50 (y up).
@@ -214,6 +285,57 @@ mod tests {
         assert_eq!(blue(&img), 2 * blue(&single));
         let (px, py) = at(60.0, 1e-3);
         assert!(!is_blue(img.get_pixel(px, py)));
+    }
+
+    #[test]
+    fn a_linear_y_axis_puts_points_at_their_value_between_whole_ticks() {
+        let points = vec![
+            Point {
+                label: "a".into(),
+                x: 10.0,
+                y: 0.62,
+            },
+            Point {
+                label: "b".into(),
+                x: 100.0,
+                y: 1.1,
+            },
+        ];
+        let plot = Scatter {
+            title: "t",
+            x_label: "x",
+            y_label: "y",
+            points: &points,
+            y_axis: Axis::Linear,
+        };
+        let (img, _) = draw_scatter(&plot, None);
+        // Span 0.48 → raw step 0.096 → step 0.1; 0.62 lies above the tick 0.6, and 1.1 on a tick, which gets one
+        // more step of room: the axis runs 0.6..1.2.
+        let (ticks, decimals) = linear_ticks([0.62, 1.1].into_iter());
+        assert_eq!(decimals, 1);
+        assert!((ticks[0] - 0.6).abs() < 1e-12 && (ticks[ticks.len() - 1] - 1.2).abs() < 1e-12);
+        for (x, y) in [(10.0_f64, 0.62_f64), (100.0, 1.1)] {
+            let px = 90.0 + 780.0 * (f64::log10(x) - 1.0);
+            let py = 530.0 - 480.0 * (y - 0.6) / 0.6;
+            let (px, py) = (px.round() as u32, py.round() as u32);
+            assert!(
+                is_blue(img.get_pixel(px, py)),
+                "no point at ({px}, {py}) for y {y}"
+            );
+        }
+    }
+
+    #[test]
+    fn linear_ticks_take_a_one_two_five_step_and_cover_the_values() {
+        let (ticks, decimals) = linear_ticks([3.0, 47.0].into_iter());
+        assert_eq!(decimals, 0);
+        assert_eq!(ticks, vec![0.0, 10.0, 20.0, 30.0, 40.0, 50.0]);
+        // A value exactly on a step gets one more step of room, so no point sits on the frame.
+        let (ticks, _) = linear_ticks([0.5, 1.0].into_iter());
+        assert!(
+            ticks[0] < 0.5 - 1e-9 && ticks[ticks.len() - 1] > 1.0 + 1e-9,
+            "{ticks:?}"
+        );
     }
 
     #[test]

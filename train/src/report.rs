@@ -28,7 +28,7 @@ use crate::data::{for_each_sample_group, InputNormalisation, SampleSource};
 use crate::inference::{infer_params, render_maps, seam_score, InferOptions};
 use crate::kernels::TrainOps;
 use crate::model::UNet;
-use crate::plot::{write_scatter, Point, Scatter};
+use crate::plot::{write_scatter, Axis, Point, Scatter};
 use crate::run_dir::{load_trained, Checkpoint};
 
 #[derive(Debug, Clone, serde::Serialize)]
@@ -572,6 +572,7 @@ pub fn write(report: &Report, out: &Path) -> Result<()> {
             x_label,
             y_label,
             points: &points,
+            y_axis: Axis::Log,
         };
         write_scatter(&plot, font.as_ref(), &out.join(file))?;
         text.push_str(&format!("\n![{title}]({file})\n"));

@@ -36,6 +36,12 @@
 //!   its row lacks is an error, and a cell holds no other braces. Rows converted this way show numbers that
 //!   cannot differ from their record; older rows still quote theirs in the cell text.
 //!
+//! A section may also carry a `plot`: `{"file": "speed-vs-error.png", "title": …, "x": FIGURE, "x_label": …,
+//! "y": FIGURE, "y_label": …}` (x on a log axis; y linear unless `"y_log": true`). Every row recording both figures
+//! is a point, labelled by the row's `point` (a short string, required on such rows). `results-page` draws the
+//! PNG into the records directory and the page shows it after the section's table; `--check` asks only that it
+//! exists, since its pixels depend on the system font.
+//!
 //! [`write_generated_blocks`] copies sections into other documents (the README's headline table): a block opened
 //! by `<!-- generated: results-page SECTION.json -->` and closed by `<!-- end generated -->` holds that section's
 //! table, and the same test that guards the page guards those blocks.
@@ -49,6 +55,8 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{ensure, Context, Result};
 use serde::Deserialize;
+
+use crate::plot::{write_scatter, Axis, Point, Scatter};
 
 /// The page's heading: fixed, as is the note under it (the records hold the sections, not the frame).
 const HEADING: &str = "# Results and measured figures";
@@ -74,6 +82,25 @@ struct Section {
     rows: Vec<Row>,
     #[serde(default)]
     notes: String,
+    /// A scatter of two of the rows' figures, drawn beside the records and shown after the table.
+    #[serde(default)]
+    plot: Option<PlotSpec>,
+}
+
+/// A section's plot: one point per row that records both figures, labelled by the row's `point`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct PlotSpec {
+    /// PNG file name, written into the records directory.
+    file: String,
+    title: String,
+    /// Figure names: x on a log axis; y on a linear one unless `y_log`.
+    x: String,
+    x_label: String,
+    y: String,
+    y_label: String,
+    #[serde(default)]
+    y_log: bool,
 }
 
 /// One measured row: its figures, how they were produced and when.
@@ -90,34 +117,144 @@ struct Row {
     /// Named numbers for tools (the page shows the cells); names are checked, values are JSON numbers.
     #[serde(default)]
     figures: BTreeMap<String, f64>,
+    /// The row's label in its section's plot (short: it is drawn beside the point).
+    #[serde(default)]
+    point: Option<String>,
 }
 
 /// The Markdown page for the records in `dir` (the module docs give their form and order). Errors name the record
 /// file (or the directory) and what is wrong with it.
 pub fn results_markdown(dir: &Path) -> Result<String> {
+    Ok(results_page_of(dir)?.0)
+}
+
+/// The page for the records in `dir` and the plots it shows (the page sits beside the directory and links each
+/// plot as `DIR_NAME/FILE`).
+fn results_page_of(dir: &Path) -> Result<(String, Vec<PagePlot>)> {
+    let link_dir = dir
+        .file_name()
+        .and_then(|name| name.to_str())
+        .unwrap_or("results");
     let mut blocks = vec![HEADING.to_string(), GENERATED_NOTE.to_string()];
+    let mut plots = Vec::new();
     for path in record_paths(dir)? {
         let text = std::fs::read_to_string(&path)
             .with_context(|| format!("{}: cannot read the result record", path.display()))?;
         let section: Section = serde_json::from_str(&text)
             .with_context(|| format!("{}: not a valid result record", path.display()))?;
-        let section_blocks = section_blocks_of(&section)
+        let section_blocks = section_blocks_of(&section, link_dir)
             .with_context(|| format!("{}: the result record cannot be rendered", path.display()))?;
         blocks.extend(section_blocks);
+        if let Some(plot) =
+            page_plot(&section).with_context(|| format!("{}: the record's plot", path.display()))?
+        {
+            plots.push(plot);
+        }
     }
-    Ok(blocks.join("\n\n") + "\n")
+    Ok((blocks.join("\n\n") + "\n", plots))
 }
 
-/// Write the page for the records in `records` to `out` (atomically: a reader never sees half a page).
+/// A plot as drawn: where it goes and its points.
+struct PagePlot {
+    file: String,
+    title: String,
+    x_label: String,
+    y_label: String,
+    y_axis: Axis,
+    points: Vec<Point>,
+}
+
+/// The section's plot with a point for every row recording both of its figures; None without a plot.
+fn page_plot(section: &Section) -> Result<Option<PagePlot>> {
+    let Some(spec) = &section.plot else {
+        return Ok(None);
+    };
+    let file_ok = spec.file.ends_with(".png")
+        && !spec.file.contains(['/', '\\'])
+        && !spec.file.starts_with('.');
+    ensure!(
+        file_ok,
+        "plot file {:?}: a plain PNG file name (written beside the records)",
+        spec.file
+    );
+    let mut points = Vec::new();
+    for (index, row) in section.rows.iter().enumerate() {
+        let (Some(x), Some(y)) = (row.figures.get(&spec.x), row.figures.get(&spec.y)) else {
+            continue;
+        };
+        let label = row.point.clone().with_context(|| {
+            format!(
+                "row {} records {} and {}, so it is a point of the plot, and needs a \"point\" label",
+                index + 1,
+                spec.x,
+                spec.y
+            )
+        })?;
+        ensure!(
+            *x > 0.0 && x.is_finite() && y.is_finite() && (!spec.y_log || *y > 0.0),
+            "row {}: ({x}, {y}) cannot be drawn on the plot's axes (log x needs x > 0)",
+            index + 1
+        );
+        points.push(Point {
+            label,
+            x: *x,
+            y: *y,
+        });
+    }
+    ensure!(
+        !points.is_empty(),
+        "no row records both {} and {}",
+        spec.x,
+        spec.y
+    );
+    Ok(Some(PagePlot {
+        file: spec.file.clone(),
+        title: spec.title.clone(),
+        x_label: spec.x_label.clone(),
+        y_label: spec.y_label.clone(),
+        y_axis: if spec.y_log { Axis::Log } else { Axis::Linear },
+        points,
+    }))
+}
+
+/// Write the page for the records in `records` to `out`, and its plots into `records` (each atomically: a reader
+/// never sees half a page or half a plot).
 pub fn write_results_page(records: &Path, out: &Path) -> Result<()> {
-    let page = results_markdown(records)?;
+    let (page, plots) = results_page_of(records)?;
+    let font = crate::plot::system_font();
+    for plot in &plots {
+        let path = records.join(&plot.file);
+        let scatter = Scatter {
+            title: &plot.title,
+            x_label: &plot.x_label,
+            y_label: &plot.y_label,
+            points: &plot.points,
+            y_axis: plot.y_axis,
+        };
+        let labelled = write_scatter(&scatter, font.as_ref(), &path)
+            .with_context(|| format!("{}: cannot write the plot", path.display()))?;
+        if !labelled {
+            tracing::warn!(plot = %path.display(), "no system font found: the plot is drawn without its labels");
+        }
+    }
     dataset::contract::manifest::write_text_atomic(out, &page)
         .with_context(|| format!("{}: cannot write the results page", out.display()))
 }
 
-/// Fail, naming the command that fixes it, when `out` is not exactly the page the records in `records` give.
+/// Fail, naming the command that fixes it, when `out` is not exactly the page the records in `records` give, or
+/// a plot it shows is missing. (A plot's pixels depend on the system font, so they are not compared.)
 pub fn check_results_page(records: &Path, out: &Path) -> Result<()> {
-    let page = results_markdown(records)?;
+    let (page, plots) = results_page_of(records)?;
+    for plot in &plots {
+        let path = records.join(&plot.file);
+        ensure!(
+            path.is_file(),
+            "{}: the plot the page shows is missing: run `g2r-train results-page --records {} --out {}`",
+            path.display(),
+            records.display(),
+            out.display()
+        );
+    }
     let written = std::fs::read_to_string(out)
         .with_context(|| format!("{}: cannot read the results page", out.display()))?;
     ensure!(
@@ -263,7 +400,7 @@ fn record_paths(dir: &Path) -> Result<Vec<PathBuf>> {
 }
 
 /// A section's blocks: its heading, intro, table and notes (empty text and an empty table are left out).
-fn section_blocks_of(section: &Section) -> Result<Vec<String>> {
+fn section_blocks_of(section: &Section, link_dir: &str) -> Result<Vec<String>> {
     let title = section.title.trim();
     ensure!(
         !title.is_empty() && !title.contains('\n'),
@@ -282,6 +419,9 @@ fn section_blocks_of(section: &Section) -> Result<Vec<String>> {
     push_text(&mut blocks, &section.intro);
     if !section.rows.is_empty() {
         blocks.push(section_table(section)?);
+    }
+    if let Some(plot) = &section.plot {
+        blocks.push(format!("![{}]({link_dir}/{})", plot.title, plot.file));
     }
     push_text(&mut blocks, &section.notes);
     Ok(blocks)
@@ -566,6 +706,52 @@ Caveat: one machine.
             fill_generated_blocks(unclosed, dir.path()).unwrap_err()
         )
         .contains("not closed"));
+    }
+
+    #[test]
+    fn a_plot_draws_one_point_per_row_with_both_figures_and_the_page_links_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let records = dir.path().join("results");
+        std::fs::create_dir(&records).unwrap();
+        let record = |second_point: &str| {
+            format!(
+                r#"{{"title": "Speed", "columns": ["run"],
+                    "rows": [
+                        {{"cells": ["a"], "figures": {{"cpu_h": 0.5, "ratio": 1.1}}, "point": "a"}},
+                        {{"cells": ["b"], "figures": {{"cpu_h": 2.0, "ratio": 0.8}}{second_point}}},
+                        {{"cells": ["c"], "figures": {{"ratio": 0.7}}}}
+                    ],
+                    "plot": {{"file": "speed.png", "title": "Error against time", "x": "cpu_h",
+                              "x_label": "CPU hours", "y": "ratio", "y_label": "ratio"}}}}"#
+            )
+        };
+        write(&records, "10-speed.json", &record(""));
+        let text = error_text(&records);
+        assert!(
+            text.contains("10-speed.json") && text.contains("row 2") && text.contains("\"point\""),
+            "{text}"
+        );
+
+        write(&records, "10-speed.json", &record(r#", "point": "b""#));
+        let (page, plots) = results_page_of(&records).unwrap();
+        assert!(
+            page.contains("![Error against time](results/speed.png)"),
+            "{page}"
+        );
+        let points: Vec<(f64, f64)> = plots[0].points.iter().map(|p| (p.x, p.y)).collect();
+        assert_eq!(points, vec![(0.5, 1.1), (2.0, 0.8)]);
+        assert_eq!(plots[0].y_axis, Axis::Linear);
+
+        let out = dir.path().join("results.md");
+        assert!(
+            format!("{:#}", check_results_page(&records, &out).unwrap_err()).contains("speed.png")
+        );
+        write_results_page(&records, &out).unwrap();
+        let png = image::open(records.join("speed.png")).unwrap();
+        assert_eq!((png.width(), png.height()), (900, 600));
+        check_results_page(&records, &out).unwrap();
+        // The drawn PNG is no record: the page reads the same with it in the directory.
+        assert_eq!(results_markdown(&records).unwrap(), page);
     }
 
     /// The committed page is exactly what its committed records give: a figure edited in one but not the other
