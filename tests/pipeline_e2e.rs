@@ -188,21 +188,42 @@ fn build_dir(dir: &Path, name: &str) -> PathBuf {
     manifest(&build, 8.0)
 }
 
+/// Run one partition as `g2r-pipeline run --partition` does; its run record lands in the partition's directory.
 fn run_partition(manifest_path: &Path, part: &str, until: Option<&str>) -> Vec<&'static str> {
     let m = PipelineManifest::load(manifest_path).unwrap();
-    let scope = pipeline::stages::Scope::Partition(part.parse().unwrap());
-    pipeline::stages::pipeline_scoped(&m, scope, indicatif::ProgressBar::hidden())
-        .unwrap()
-        .run(until, &[])
-        .unwrap()
+    let part: pipeline::partition::Partition = part.parse().unwrap();
+    let outcome = pipeline::jobs::run(
+        &m,
+        pipeline::jobs::RunScope::Partition(part),
+        until,
+        &[],
+        indicatif::ProgressBar::hidden(),
+    )
+    .unwrap();
+    if !outcome.stages.is_empty() {
+        assert_eq!(
+            outcome.record,
+            Some(pipeline::partition::dir(&m, part).join("run-record.json"))
+        );
+    }
+    outcome.stages.iter().map(|stage| stage.name).collect()
 }
 
-/// Merge `count` partitions and publish; the error as one line.
+/// Merge `count` partitions and publish as `run --merge` does (the merge is the run record's first stage); the
+/// error as one line.
 fn merge(manifest_path: &Path, count: usize) -> Result<Vec<&'static str>, String> {
     let m = PipelineManifest::load(manifest_path).unwrap();
-    pipeline::stages::merge::merge(&m, count, indicatif::ProgressBar::hidden())
-        .and_then(|runner| runner.run(None, &[]))
-        .map_err(|e| format!("{e:#}"))
+    let outcome = pipeline::jobs::run(
+        &m,
+        pipeline::jobs::RunScope::Merge(count),
+        None,
+        &[],
+        indicatif::ProgressBar::hidden(),
+    )
+    .map_err(|e| format!("{e:#}"))?;
+    assert_eq!(outcome.stages[0].name, "merge");
+    assert_eq!(outcome.record, Some(m.out_dir().join("run-record.json")));
+    Ok(outcome.stages[1..].iter().map(|stage| stage.name).collect())
 }
 
 #[test]

@@ -4,9 +4,8 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Instant;
 
-use anyhow::Context;
 use clap::{Parser, Subcommand};
-use pipeline::synth::{config, WorldConfig};
+use pipeline::jobs::RunScope;
 
 /// Keep freed tensor-sized buffers (~17 MB per column per row group) in glibc's heap instead of a fresh mmap each
 /// time: the page faults, zeroing and mmap-lock contention between threads dominated system time. Measured on
@@ -150,28 +149,16 @@ fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Synth {
             preset,
-            config: config_path,
+            config,
             seed,
             out,
             force,
         } => {
-            let (text, source) = match &config_path {
-                Some(p) => (std::fs::read_to_string(p).with_context(|| format!("reading world config {}", p.display()))?, p.display().to_string()),
-                None => (
-                    config::preset(&preset).ok_or_else(|| anyhow::anyhow!("unknown preset '{preset}': use demo or tycho-full, or --config FILE"))?.to_string(),
-                    format!("preset {preset}"),
-                ),
-            };
-            let world = WorldConfig::from_toml(&text).map_err(|e| {
-                anyhow::anyhow!(
-                    "{source}: invalid world config: {}",
-                    pipeline::manifest::toml_error_line(&text, &e)
-                )
-            })?;
+            let world = pipeline::jobs::world_config(&preset, config.as_deref())?;
             let started = Instant::now();
             let dir = pipeline::synth::generate(&world, seed, &out, force)?;
-            let bytes: u64 = walk_bytes(&dir);
-            tracing::info!(out = %dir.display(), seconds = format!("{:.1}", started.elapsed().as_secs_f64()), mib = bytes / (1 << 20), "world written");
+            let mib = pipeline::jobs::tree_bytes(&dir) / (1 << 20);
+            tracing::info!(out = %dir.display(), seconds = format!("{:.1}", started.elapsed().as_secs_f64()), mib, "world written");
         }
         Command::Run {
             manifest,
@@ -181,9 +168,11 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             merge,
         } => {
             let manifest = pipeline::manifest::PipelineManifest::load(&manifest)?;
-            if partition.is_some() && until.as_deref() == Some("publish") {
-                anyhow::bail!("--until publish: a partition stops after project; publish with --merge N once every partition is done");
-            }
+            let scope = match (partition, merge) {
+                (Some(part), _) => RunScope::Partition(part),
+                (None, Some(count)) => RunScope::Merge(count),
+                (None, None) => RunScope::Whole,
+            };
             let progress = indicatif::ProgressBar::new(0);
             progress.set_style(
                 indicatif::ProgressStyle::with_template(
@@ -192,62 +181,15 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 .progress_chars("=> "),
             );
             progress.set_prefix("project");
-            let started = Instant::now();
-            let (runner, merged) = match (partition, merge) {
-                (Some(part), _) => (
-                    pipeline::stages::pipeline_scoped(
-                        &manifest,
-                        pipeline::stages::Scope::Partition(part),
-                        progress.clone(),
-                    )?,
-                    None,
-                ),
-                (None, Some(count)) => {
-                    let runner =
-                        pipeline::stages::merge::merge(&manifest, count, progress.clone())?;
-                    let seconds = started.elapsed().as_secs_f64();
-                    tracing::info!(
-                        partitions = count,
-                        seconds = format!("{seconds:.1}"),
-                        "partitions merged"
-                    );
-                    (runner, Some(seconds))
-                }
-                (None, None) => (
-                    pipeline::stages::pipeline(&manifest, progress.clone())?,
-                    None,
-                ),
-            };
-            let record_path = match partition {
-                Some(part) => pipeline::partition::dir(&manifest, part).join("run-record.json"),
-                None => manifest.out_dir().join("run-record.json"),
-            };
             let force: Vec<&str> = force.iter().map(String::as_str).collect();
-            let mut ran = runner.run_timed(until.as_deref(), &force)?;
-            if let Some(seconds) = merged {
-                ran.insert(
-                    0,
-                    pipeline::runner::StageRun {
-                        name: "merge",
-                        seconds,
-                        peak_rss_mib: pipeline::runner::peak_rss_mib(),
-                    },
-                );
-            }
+            let outcome =
+                pipeline::jobs::run(&manifest, scope, until.as_deref(), &force, progress.clone())?;
             progress.finish_and_clear();
-            if ran.is_empty() {
+            if outcome.stages.is_empty() {
                 tracing::info!("everything up to date");
             } else {
-                let seconds = started.elapsed().as_secs_f64();
-                let names: Vec<&str> = ran.iter().map(|stage| stage.name).collect();
-                tracing::info!(stages = names.join(","), seconds = format!("{seconds:.1}"), out = %manifest.out_dir().display(), "pipeline run");
-                // What this run measured, with where and when: beside the outputs, never inside the dataset.
-                let record = serde_json::json!({
-                    "stages": ran,
-                    "seconds": seconds,
-                    "provenance": dataset::provenance::Provenance::capture(),
-                });
-                dataset::contract::manifest::write_json_atomic(&record_path, &record)?;
+                let names: Vec<&str> = outcome.stages.iter().map(|stage| stage.name).collect();
+                tracing::info!(stages = names.join(","), seconds = format!("{:.1}", outcome.seconds), out = %manifest.out_dir().display(), "pipeline run");
             }
         }
         Command::ImportMetadata {
@@ -282,66 +224,15 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             partition,
         } => {
             let manifest = pipeline::manifest::PipelineManifest::load(&manifest)?;
-            let scope = match partition {
-                Some(part) => pipeline::stages::Scope::Partition(part),
-                None => pipeline::stages::Scope::Whole,
-            };
-            let runner = pipeline::stages::pipeline_scoped(
-                &manifest,
-                scope,
-                indicatif::ProgressBar::hidden(),
-            )?;
-            for (stage, status) in runner.status()? {
-                println!("{stage:>8}: {status}");
-            }
-            let stage_dir = match partition {
-                Some(part) => pipeline::partition::dir(&manifest, part).join("stages"),
-                None => manifest.stage_dir(),
-            };
-            for (path, bytes) in runner.stray_files(&stage_dir)? {
-                println!(
-                    "   stray: {} ({bytes} B): no stage of this version writes it; `g2r-pipeline clean` removes it",
-                    path.display()
-                );
+            for line in pipeline::jobs::status_lines(&manifest, partition)? {
+                println!("{line}");
             }
         }
         Command::Clean { manifest } => {
             let manifest = pipeline::manifest::PipelineManifest::load(&manifest)?;
-            let runner = pipeline::stages::pipeline(&manifest, indicatif::ProgressBar::hidden())?;
-            let mut removed = runner.clean()?;
-            for (path, _) in runner.stray_files(&manifest.stage_dir())? {
-                std::fs::remove_file(&path)?;
-                removed += 1;
-            }
-            // Shards are listed by the published manifest, not by the runner: remove them with it. Partitions'
-            // outputs too (`run --partition`).
-            for dir in [
-                manifest.dataset_dir(),
-                manifest.out_dir().join("partitions"),
-            ] {
-                if dir.exists() {
-                    std::fs::remove_dir_all(&dir)?;
-                }
-            }
+            let removed = pipeline::jobs::clean(&manifest)?;
             tracing::info!(files = removed, "cleaned");
         }
     }
     Ok(())
-}
-
-fn walk_bytes(dir: &std::path::Path) -> u64 {
-    std::fs::read_dir(dir)
-        .map(|entries| {
-            entries
-                .flatten()
-                .map(|e| {
-                    if e.path().is_dir() {
-                        walk_bytes(&e.path())
-                    } else {
-                        e.metadata().map(|m| m.len()).unwrap_or(0)
-                    }
-                })
-                .sum()
-        })
-        .unwrap_or(0)
 }
