@@ -1,0 +1,211 @@
+//! How a crop's heights become the network's input planes (relief, elevation, context), fitted on the train
+//! split and saved with a run so evaluation and inference feed the network what training did.
+
+use anyhow::{bail, Result};
+use dataset::contract::schema::{Sample, CONTEXT_PX};
+
+use super::{crop_interior_m, SampleSource};
+
+/// How a crop's heights become the network's input planes; saved with a run (`normalisation.json`) so that
+/// evaluation and inference on a new DEM feed the network exactly what training did.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct InputNormalisation {
+    /// Train-split DEM std: the relief plane is (height − crop mean) / this (docs/design.md, Data contract).
+    pub dem_std_m: f64,
+    /// Absolute-elevation plane, (height − mean) / std over train crops, when the run uses one. The relief plane
+    /// hides where a crop sits (crater floor, mare plain or rim), and at the crop scale that explains much of the
+    /// albedo (`--elevation-input`); runs written before it existed have none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub elevation: Option<ElevationNormalisation>,
+    /// Context input, when the run uses one (`--context-input`): the sample's wide coarse DEM window
+    /// (`dataset::contract::context`) relative to the crop's mean height, so the network sees whether the crop lies in a
+    /// crater, on its wall or on a plain kilometres across.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub context: Option<ContextNormalisation>,
+}
+
+/// The context window's cell size (the one the training data was cut with; inference cuts the same) and the std
+/// its heights relative to the crop mean are divided by.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ContextNormalisation {
+    pub gsd_m: f64,
+    pub std_m: f64,
+    /// Also feed the window's absolute heights, normalised as the elevation plane is (`--context-absolute`).
+    /// Relative heights show where the crop lies in the terrain; absolute ones show how high that terrain
+    /// stands, which on a crater wall is what tells the unit under it (docs/crater-diagnosis.md). Runs written
+    /// before it existed have none.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub absolute: bool,
+}
+
+/// Planes of the relative context input: relative height, then a mask (1 where the cell has DEM). An absolute
+/// context adds its plane between the two.
+pub const CONTEXT_CHANNELS: usize = 2;
+
+impl ContextNormalisation {
+    /// From train samples' context windows: their common cell size, and the pooled std of every finite cell's
+    /// height relative to its crop's mean.
+    pub fn of_samples<'a>(samples: impl IntoIterator<Item = &'a Sample>) -> Result<Self> {
+        let (mut gsd_m, mut n, mut sum_sq) = (None::<f64>, 0usize, 0f64);
+        for s in samples {
+            let Some(context) = &s.context else {
+                bail!(
+                    "sample {} has no context window: the dataset predates schema 1.2; re-run `g2r-pipeline run` to publish one with context_dem",
+                    s.sample_id
+                );
+            };
+            match gsd_m {
+                Some(g) if g != context.gsd_m => bail!(
+                    "samples' context windows have different cell sizes ({g} m and {} m at {})",
+                    context.gsd_m,
+                    s.sample_id
+                ),
+                _ => gsd_m = Some(context.gsd_m),
+            }
+            let mean = crop_mean(&crop_interior_m(s));
+            for &z in context.heights_m.iter().filter(|z| z.is_finite()) {
+                n += 1;
+                sum_sq += (z as f64 - mean).powi(2);
+            }
+        }
+        let (Some(gsd_m), true) = (gsd_m, n >= 2) else {
+            bail!("no finite context heights to normalise the context input with");
+        };
+        let std_m = (sum_sq / n as f64).sqrt();
+        if std_m <= 0.0 {
+            bail!("every context window is flat at its crop's height: the context input would divide by zero");
+        }
+        Ok(Self {
+            gsd_m,
+            std_m,
+            absolute: false,
+        })
+    }
+}
+
+/// Mean of the finite heights (0 when there are none).
+fn crop_mean(heights_m: &[f64]) -> f64 {
+    let finite = heights_m.iter().filter(|z| z.is_finite());
+    let count = finite.clone().count();
+    finite.sum::<f64>() / count.max(1) as f64
+}
+
+/// Mean and std of absolute heights over train crops' pixels.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ElevationNormalisation {
+    pub mean_m: f64,
+    pub std_m: f64,
+}
+
+impl ElevationNormalisation {
+    /// Pooled mean and std of the crops' heights (`crops` of `CROP_PX²` each; non-finite heights skipped).
+    pub fn of_crops<'a>(crops: impl IntoIterator<Item = &'a [f64]>) -> Result<Self> {
+        let (mut n, mut sum, mut sum_sq) = (0usize, 0f64, 0f64);
+        for crop in crops {
+            for &z in crop.iter().filter(|z| z.is_finite()) {
+                n += 1;
+                sum += z;
+                sum_sq += z * z;
+            }
+        }
+        if n < 2 {
+            bail!("no finite heights to normalise the elevation input with");
+        }
+        let mean_m = sum / n as f64;
+        // Heights are ~−1e3 m with ~1e2 m spread: the one-pass form loses ~1e-10 relative here, far below need.
+        let std_m = ((sum_sq / n as f64 - mean_m * mean_m).max(0.0)).sqrt();
+        if std_m <= 0.0 {
+            bail!("train crops all have the same height: the elevation input would divide by zero");
+        }
+        Ok(Self { mean_m, std_m })
+    }
+}
+
+impl InputNormalisation {
+    /// Relief only (the paper's input).
+    pub fn relief(dem_std_m: f64) -> Self {
+        Self {
+            dem_std_m,
+            elevation: None,
+            context: None,
+        }
+    }
+
+    pub fn channels(&self) -> usize {
+        1 + usize::from(self.elevation.is_some())
+    }
+
+    /// Refuse a dataset that cannot feed this input: a context input needs schema 1.2 or later (`context_dem`).
+    pub fn check_dataset(&self, source: &dyn SampleSource) -> Result<()> {
+        let version = &source.manifest().schema_version;
+        let minor = version
+            .split('.')
+            .nth(1)
+            .and_then(|m| m.parse::<u32>().ok());
+        if self.context.is_some() && minor.is_none_or(|m| m < 2) {
+            bail!(
+                "{}: dataset schema {version} has no context windows, but the run feeds one (--context-input): re-run `g2r-pipeline run` to publish schema 1.2",
+                source.describe()
+            );
+        }
+        Ok(())
+    }
+
+    /// Context planes per sample (0 without a context input).
+    pub fn context_channels(&self) -> usize {
+        self.context
+            .map_or(0, |c| CONTEXT_CHANNELS + usize::from(c.absolute))
+    }
+
+    /// Append one crop's planes (`CROP_PX²` heights, row-major, metres) channel after channel. A non-finite height
+    /// (a DEM hole at inference) is fed as the crop's mean height in every plane: a function of the crop alone,
+    /// so the same terrain gives the same input whatever the DEM's extent.
+    pub fn push_planes(&self, heights_m: &[f64], out: &mut Vec<f64>) {
+        let mean = crop_mean(heights_m);
+        let filled = |z: f64| if z.is_finite() { z } else { mean };
+        out.extend(
+            heights_m
+                .iter()
+                .map(|&z| (filled(z) - mean) / self.dem_std_m),
+        );
+        if let Some(e) = self.elevation {
+            out.extend(heights_m.iter().map(|&z| (filled(z) - e.mean_m) / e.std_m));
+        }
+    }
+
+    /// Append one crop's context planes (`CONTEXT_PX²` each): the window's heights minus the crop's mean height
+    /// (`heights_m`, as in [`Self::push_planes`]) over the context std, 0 where a cell has no DEM; with an
+    /// absolute context, the window's heights normalised as the elevation plane, 0 where no DEM; then the mask.
+    /// Panics when the run has no context input.
+    pub fn push_context(&self, heights_m: &[f64], context_m: &[f32], out: &mut Vec<f64>) {
+        let c = self
+            .context
+            .expect("push_context on a run without context input");
+        assert_eq!(
+            context_m.len(),
+            CONTEXT_PX * CONTEXT_PX,
+            "context window size"
+        );
+        let mean = crop_mean(heights_m);
+        out.extend(context_m.iter().map(|&z| {
+            if z.is_finite() {
+                (z as f64 - mean) / c.std_m
+            } else {
+                0.0
+            }
+        }));
+        if c.absolute {
+            let e = self
+                .elevation
+                .expect("an absolute context is normalised as the elevation plane (checked when a run starts)");
+            out.extend(context_m.iter().map(|&z| {
+                if z.is_finite() {
+                    (z as f64 - e.mean_m) / e.std_m
+                } else {
+                    0.0
+                }
+            }));
+        }
+        out.extend(context_m.iter().map(|z| f64::from(u8::from(z.is_finite()))));
+    }
+}

@@ -1,0 +1,227 @@
+//! Where training samples come from: published shards on disk, a dataset server over HTTP, or object storage.
+//! Every source returns the same rows for the same row-group references, so an epoch is the same from any.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use anyhow::{bail, Context, Result};
+use dataset::contract::manifest::DatasetManifest;
+use dataset::contract::planner::RowGroupRef;
+use dataset::contract::schema::{Sample, Split};
+
+/// Where samples come from. Implementations must return identical rows for identical references, so the same
+/// (seed, epoch) gives the same batches from any source.
+pub trait SampleSource: Send + Sync {
+    /// For messages: a path or URL.
+    fn describe(&self) -> String;
+    fn manifest(&self) -> &DatasetManifest;
+    /// Row groups of one split, in a fixed order (shard name, then row-group index).
+    fn row_groups(&self, split: Split) -> Result<Vec<RowGroupRef>>;
+    fn read_row_group(&self, group: &RowGroupRef) -> Result<Vec<Sample>>;
+}
+
+/// Every row group of `split`'s shards (in the manifest's shard order), from each shard's row-group sizes.
+fn row_group_refs(
+    manifest: &DatasetManifest,
+    split: Split,
+    sizes: impl Fn(&str) -> Result<Vec<usize>>,
+) -> Result<Vec<RowGroupRef>> {
+    let mut groups = Vec::new();
+    for shard in manifest.split_shards(split) {
+        groups.extend(
+            sizes(shard)?
+                .into_iter()
+                .enumerate()
+                .map(|(row_group, rows)| RowGroupRef {
+                    shard: shard.to_string(),
+                    row_group,
+                    rows,
+                }),
+        );
+    }
+    Ok(groups)
+}
+
+/// A published dataset directory (`manifest.json` + shards).
+pub struct LocalSource {
+    dir: PathBuf,
+    manifest: DatasetManifest,
+}
+
+impl LocalSource {
+    pub fn open(dir: &Path) -> Result<Self> {
+        let manifest = DatasetManifest::load_dir(dir)?;
+        Ok(Self {
+            dir: dir.to_path_buf(),
+            manifest,
+        })
+    }
+}
+
+impl SampleSource for LocalSource {
+    fn describe(&self) -> String {
+        self.dir.display().to_string()
+    }
+
+    fn manifest(&self) -> &DatasetManifest {
+        &self.manifest
+    }
+
+    fn row_groups(&self, split: Split) -> Result<Vec<RowGroupRef>> {
+        row_group_refs(&self.manifest, split, |shard| {
+            Ok(dataset::contract::shard::row_group_sizes(
+                &self.dir.join(shard),
+            )?)
+        })
+    }
+
+    fn read_row_group(&self, group: &RowGroupRef) -> Result<Vec<Sample>> {
+        Ok(dataset::contract::shard::read_row_group(
+            &self.dir.join(&group.shard),
+            group.row_group,
+        )?)
+    }
+}
+
+/// A dataset served by `g2r-dataset serve`: the manifest, row-group lists and row groups (Arrow IPC) come over
+/// HTTP, so the planner runs here on the same row-group list as [`LocalSource`] and yields the same batches.
+pub struct HttpSource {
+    client: dataset::client::HttpClient,
+    manifest: DatasetManifest,
+}
+
+impl HttpSource {
+    pub fn open(url: &str) -> Result<Self> {
+        let client = dataset::client::HttpClient::new(url)?;
+        let response = client.get_ok("/v1/manifest", &[])?;
+        let origin = PathBuf::from(format!("{}/v1/manifest", client.base_url()));
+        let manifest = DatasetManifest::parse(&response.text(), &origin)?;
+        Ok(Self { client, manifest })
+    }
+}
+
+impl SampleSource for HttpSource {
+    fn describe(&self) -> String {
+        self.client.base_url().to_string()
+    }
+
+    fn manifest(&self) -> &DatasetManifest {
+        &self.manifest
+    }
+
+    fn row_groups(&self, split: Split) -> Result<Vec<RowGroupRef>> {
+        #[derive(serde::Deserialize)]
+        struct Listed {
+            shard: String,
+            row_group: usize,
+            rows: usize,
+        }
+        #[derive(serde::Deserialize)]
+        struct Answer {
+            row_groups: Vec<Listed>,
+        }
+        let answer: Answer = self
+            .client
+            .get_json(&format!("/v1/row-groups?split={split}"))?;
+        Ok(answer
+            .row_groups
+            .into_iter()
+            .map(|g| RowGroupRef {
+                shard: g.shard,
+                row_group: g.row_group,
+                rows: g.rows,
+            })
+            .collect())
+    }
+
+    fn read_row_group(&self, group: &RowGroupRef) -> Result<Vec<Sample>> {
+        let path = format!("/v1/shards/{}/row-groups/{}", group.shard, group.row_group);
+        let response = self
+            .client
+            .get_ok(&path, &[("Accept", dataset::client::ARROW_STREAM)])?;
+        let samples = dataset::contract::shard::samples_from_ipc_stream(&response.body)
+            .with_context(|| {
+                format!(
+                    "{}{path}: not an Arrow IPC stream of samples",
+                    self.client.base_url()
+                )
+            })?;
+        if samples.len() != group.rows {
+            bail!(
+                "{}{path}: {} rows, the row-group list said {}",
+                self.client.base_url(),
+                samples.len(),
+                group.rows
+            );
+        }
+        Ok(samples)
+    }
+}
+
+/// A published dataset in object storage (`s3://bucket/prefix`, [`dataset::storage`]): the manifest is one GET,
+/// each shard's footer two ranged GETs (once, then kept), each row group one ranged GET of its column chunks.
+/// Rows decode as from local files, so the same (seed, epoch) gives the same batches.
+pub struct ObjectStoreSource {
+    dir: Arc<dataset::storage::RemoteDir>,
+    manifest: DatasetManifest,
+    shards: std::sync::Mutex<BTreeMap<String, dataset::contract::shard::ShardFile>>,
+}
+
+impl ObjectStoreSource {
+    pub fn open(url: &str) -> Result<Self> {
+        let dir = Arc::new(dataset::storage::RemoteDir::open(url)?);
+        let manifest = dataset::storage::remote_manifest(&dir)?;
+        Ok(Self {
+            dir,
+            manifest,
+            shards: Default::default(),
+        })
+    }
+
+    /// The shard's footer, read on first use.
+    fn shard(&self, name: &str) -> Result<dataset::contract::shard::ShardFile> {
+        if let Some(shard) = self.shards.lock().expect("shard cache poisoned").get(name) {
+            return Ok(shard.clone());
+        }
+        let object = dataset::storage::RemoteObject::open(self.dir.clone(), name)?;
+        let shard = dataset::contract::shard::ShardFile::open_remote(object)?;
+        self.shards
+            .lock()
+            .expect("shard cache poisoned")
+            .insert(name.to_string(), shard.clone());
+        Ok(shard)
+    }
+}
+
+impl SampleSource for ObjectStoreSource {
+    fn describe(&self) -> String {
+        self.dir.url().to_string()
+    }
+
+    fn manifest(&self) -> &DatasetManifest {
+        &self.manifest
+    }
+
+    fn row_groups(&self, split: Split) -> Result<Vec<RowGroupRef>> {
+        row_group_refs(&self.manifest, split, |shard| {
+            Ok(self.shard(shard)?.row_group_sizes())
+        })
+    }
+
+    fn read_row_group(&self, group: &RowGroupRef) -> Result<Vec<Sample>> {
+        Ok(self.shard(&group.shard)?.read_row_group(group.row_group)?)
+    }
+}
+
+/// `--data`: an `http://` URL of `g2r-dataset serve`, an object-storage URL (`s3://bucket/prefix`, `gs://`, `az://`,
+/// `file://`) of a published dataset, or a published dataset directory.
+pub fn open_source(data: &str) -> Result<Arc<dyn SampleSource>> {
+    if data.starts_with("http://") || data.starts_with("https://") {
+        Ok(Arc::new(HttpSource::open(data)?))
+    } else if dataset::storage::is_url(data) {
+        Ok(Arc::new(ObjectStoreSource::open(data)?))
+    } else {
+        Ok(Arc::new(LocalSource::open(Path::new(data))?))
+    }
+}
