@@ -18,7 +18,9 @@ fn the_shipped_model_loads_and_infers_scales_near_its_uniform_start() {
     let trained = load_trained::<Flex>(&shipped(), Checkpoint::Auto, &Default::default())
         .expect("the shipped run loads");
     assert_eq!(trained.config.model, BrdfModel::H1);
-    assert_eq!(trained.checkpoint, "last/ema.mpk", "the default checkpoint");
+    // The raw network at the end of training: it scored better on validation than the weight average
+    // (train/shipped/README.md), so only it ships, and `auto` finds it.
+    assert_eq!(trained.checkpoint, "last/model.mpk", "the default checkpoint");
     let options = InferOptions {
         overlap: DEFAULT_OVERLAP,
         batch_size: 4,
@@ -41,7 +43,7 @@ fn the_shipped_model_loads_and_infers_scales_near_its_uniform_start() {
     assert!(scales.iter().all(|s| s.is_finite()), "finite everywhere");
     // H1 multiplies the Moon-wide Hapke I/F. The run started from the uniform fit (1.25 on tycho-full); its world's
     // maria and highlands differ by 1.5x in albedo and fresh material brightens by up to 1.6x, so a trained map
-    // stays within a factor 2.5 of that start on average (this low, smooth plain gets about 0.86: mare-like).
+    // stays within a factor 2.5 of that start on average (this low, smooth plain gets about 0.83: mare-like).
     let mean = scales.iter().sum::<f64>() / scales.len() as f64;
     assert!((0.5..3.1).contains(&mean), "mean scale {mean}");
     assert!(
