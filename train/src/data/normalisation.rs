@@ -209,3 +209,161 @@ impl InputNormalisation {
         out.extend(context_m.iter().map(|z| f64::from(u8::from(z.is_finite()))));
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use dataset::contract::schema::{CONTEXT_PX, DEM_PX};
+
+    #[test]
+    fn planes_are_relief_then_elevation_and_a_hole_is_fed_at_the_crop_mean() {
+        let input = InputNormalisation {
+            dem_std_m: 2.0,
+            elevation: Some(ElevationNormalisation {
+                mean_m: 10.0,
+                std_m: 4.0,
+            }),
+            context: None,
+        };
+        // Crop mean over the finite heights: (10 + 12 + 20) / 3 = 14.
+        let mut out = Vec::new();
+        input.push_planes(&[10.0, 12.0, f64::NAN, 20.0], &mut out);
+        assert_eq!(out, vec![-2.0, -1.0, 0.0, 3.0, 0.0, 0.5, 1.0, 2.5]);
+        assert_eq!(input.channels(), 2);
+
+        let mut relief = Vec::new();
+        InputNormalisation::relief(2.0).push_planes(&[10.0, 12.0, f64::NAN, 20.0], &mut relief);
+        assert_eq!(relief, out[..4]);
+        assert_eq!(InputNormalisation::relief(2.0).channels(), 1);
+    }
+
+    #[test]
+    fn elevation_statistics_pool_every_finite_height_of_every_crop() {
+        // Heights 1, 2, 3, 5: mean 2.75, population variance (3.0625 + 0.5625 + 0.0625 + 5.0625) / 4 = 2.1875.
+        let crops = [vec![1.0, 2.0, f64::NAN, 3.0], vec![5.0, f64::INFINITY]];
+        let e = ElevationNormalisation::of_crops(crops.iter().map(Vec::as_slice)).unwrap();
+        assert_eq!(e.mean_m, 2.75);
+        assert!((e.std_m - 2.1875f64.sqrt()).abs() < 1e-15);
+        // Lunar-scale heights keep their precision in the one-pass form.
+        let far = [vec![-1201.0, -1199.0]];
+        let e = ElevationNormalisation::of_crops(far.iter().map(Vec::as_slice)).unwrap();
+        assert_eq!((e.mean_m, e.std_m), (-1200.0, 1.0));
+
+        let flat = [vec![3.0, 3.0]];
+        let err = ElevationNormalisation::of_crops(flat.iter().map(Vec::as_slice)).unwrap_err();
+        assert!(err.to_string().contains("same height"), "{err}");
+        let empty: [Vec<f64>; 0] = [];
+        assert!(ElevationNormalisation::of_crops(empty.iter().map(Vec::as_slice)).is_err());
+    }
+
+    /// A sample whose crop heights are all `crop_m` and whose context is `context_m` (cells beyond those given
+    /// are NaN: off the DEM).
+    fn sample_with_context(crop_m: f32, context_m: &[f32], gsd_m: f64) -> Sample {
+        let mut s = dataset::testing::synthetic_sample(0);
+        s.dem_m = vec![crop_m; DEM_PX * DEM_PX];
+        let mut heights_m = vec![f32::NAN; CONTEXT_PX * CONTEXT_PX];
+        heights_m[..context_m.len()].copy_from_slice(context_m);
+        s.context = Some(dataset::contract::schema::ContextWindow { gsd_m, heights_m });
+        s
+    }
+
+    #[test]
+    fn context_planes_are_height_above_the_crop_mean_then_the_mask() {
+        let input = InputNormalisation {
+            context: Some(ContextNormalisation {
+                gsd_m: 512.0,
+                std_m: 4.0,
+                absolute: false,
+            }),
+            ..InputNormalisation::relief(2.0)
+        };
+        let mut context = vec![f32::NAN; CONTEXT_PX * CONTEXT_PX];
+        context[..3].copy_from_slice(&[-1190.0, -1210.0, -1202.0]);
+        // Crop mean over the finite heights: (−1200 − 1204) / 2 = −1202.
+        let mut out = Vec::new();
+        input.push_context(&[-1200.0, f64::NAN, -1204.0], &context, &mut out);
+        let n = CONTEXT_PX * CONTEXT_PX;
+        assert_eq!(out.len(), 2 * n);
+        assert_eq!(out[..4], [3.0, -2.0, 0.0, 0.0]);
+        assert!(out[3..n].iter().all(|&v| v == 0.0), "holes are fed as 0");
+        assert_eq!(out[n..n + 4], [1.0, 1.0, 1.0, 0.0]);
+        assert_eq!(out[n..].iter().sum::<f64>(), 3.0);
+        assert_eq!((input.channels(), input.context_channels()), (1, 2));
+        assert_eq!(InputNormalisation::relief(2.0).context_channels(), 0);
+        // Written without the absolute flag, as runs before it were (their normalisation.json stays the same).
+        let json = serde_json::to_string(&input.context).unwrap();
+        assert_eq!(json, r#"{"gsd_m":512.0,"std_m":4.0}"#);
+        assert_eq!(
+            serde_json::from_str::<Option<ContextNormalisation>>(&json).unwrap(),
+            input.context
+        );
+    }
+
+    #[test]
+    fn an_absolute_context_adds_the_window_normalised_as_the_elevation_plane() {
+        let input = InputNormalisation {
+            elevation: Some(ElevationNormalisation {
+                mean_m: -1200.0,
+                std_m: 5.0,
+            }),
+            context: Some(ContextNormalisation {
+                gsd_m: 512.0,
+                std_m: 4.0,
+                absolute: true,
+            }),
+            ..InputNormalisation::relief(2.0)
+        };
+        let mut context = vec![f32::NAN; CONTEXT_PX * CONTEXT_PX];
+        context[..3].copy_from_slice(&[-1190.0, -1210.0, -1202.0]);
+        let mut out = Vec::new();
+        input.push_context(&[-1200.0, f64::NAN, -1204.0], &context, &mut out);
+        let n = CONTEXT_PX * CONTEXT_PX;
+        assert_eq!(out.len(), 3 * n);
+        assert_eq!(input.context_channels(), 3);
+        // Relative plane as without the flag; then (z + 1200) / 5; then the mask.
+        assert_eq!(out[..3], [3.0, -2.0, 0.0]);
+        assert_eq!(out[n..n + 4], [2.0, -2.0, -0.4, 0.0]);
+        assert!(
+            out[n + 3..2 * n].iter().all(|&v| v == 0.0),
+            "holes are fed as 0"
+        );
+        assert_eq!(out[2 * n..2 * n + 4], [1.0, 1.0, 1.0, 0.0]);
+        // The same terrain raised by 50 m: the relative plane is unchanged, the absolute one moves by 50 / 5.
+        let raised: Vec<f32> = context.iter().map(|z| z + 50.0).collect();
+        let mut moved = Vec::new();
+        input.push_context(&[-1150.0, f64::NAN, -1154.0], &raised, &mut moved);
+        assert_eq!(moved[..n], out[..n]);
+        assert_eq!(moved[n..n + 3], [12.0, 8.0, 9.6]);
+        let json = serde_json::to_string(&input.context).unwrap();
+        assert!(json.contains(r#""absolute":true"#), "{json}");
+    }
+
+    #[test]
+    fn context_statistics_pool_cells_relative_to_their_own_crop() {
+        // Crop at −1000 with cells −1003, −997; crop at −2000 with cell −1996: deviations −3, 3, 4 → std √(34/3).
+        let samples = [
+            sample_with_context(-1000.0, &[-1003.0, -997.0], 512.0),
+            sample_with_context(-2000.0, &[-1996.0], 512.0),
+        ];
+        let c = ContextNormalisation::of_samples(&samples).unwrap();
+        assert_eq!(c.gsd_m, 512.0);
+        assert!(
+            (c.std_m - (34.0f64 / 3.0).sqrt()).abs() < 1e-12,
+            "{}",
+            c.std_m
+        );
+
+        let mixed = [
+            samples[0].clone(),
+            sample_with_context(-1000.0, &[-990.0], 256.0),
+        ];
+        let err = ContextNormalisation::of_samples(&mixed).unwrap_err();
+        assert!(err.to_string().contains("cell sizes"), "{err}");
+        let mut old = samples[0].clone();
+        old.context = None;
+        let err = ContextNormalisation::of_samples(&[old]).unwrap_err();
+        assert!(err.to_string().contains("schema 1.2"), "{err}");
+        let flat = [sample_with_context(-1000.0, &[-1000.0, -1000.0], 512.0)];
+        assert!(ContextNormalisation::of_samples(&flat).is_err());
+    }
+}
