@@ -198,7 +198,7 @@ pub fn draw_scatter(plot: &Scatter, font: Option<&FontVec>) -> (RgbImage, bool) 
     }
     if let Some(f) = font {
         let big = PxScale::from(20.0);
-        draw_text_mut(&mut img, INK, left as i32, 14, big, f, plot.title);
+        draw_text_mut(&mut img, INK, left as i32, 4, big, f, plot.title);
         let (w, _) = text_size(small, f, plot.x_label);
         let x_mid = ((left + right) / 2.0) as i32 - w as i32 / 2;
         draw_text_mut(
