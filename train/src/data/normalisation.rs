@@ -267,6 +267,21 @@ mod tests {
         s
     }
 
+    /// A context window whose first three cells are −1190, −1210 and −1202 m; the rest are holes.
+    fn context_window() -> Vec<f32> {
+        let mut context = vec![f32::NAN; CONTEXT_PX * CONTEXT_PX];
+        context[..3].copy_from_slice(&[-1190.0, -1210.0, -1202.0]);
+        context
+    }
+
+    /// The context planes `input` makes of [`context_window`] around a crop of −1200, a hole and −1204 m; and the
+    /// cells per plane.
+    fn context_planes(input: &InputNormalisation) -> (Vec<f64>, usize) {
+        let mut out = Vec::new();
+        input.push_context(&[-1200.0, f64::NAN, -1204.0], &context_window(), &mut out);
+        (out, CONTEXT_PX * CONTEXT_PX)
+    }
+
     #[test]
     fn context_planes_are_height_above_the_crop_mean_then_the_mask() {
         let input = InputNormalisation {
@@ -277,12 +292,8 @@ mod tests {
             }),
             ..InputNormalisation::relief(2.0)
         };
-        let mut context = vec![f32::NAN; CONTEXT_PX * CONTEXT_PX];
-        context[..3].copy_from_slice(&[-1190.0, -1210.0, -1202.0]);
         // Crop mean over the finite heights: (−1200 − 1204) / 2 = −1202.
-        let mut out = Vec::new();
-        input.push_context(&[-1200.0, f64::NAN, -1204.0], &context, &mut out);
-        let n = CONTEXT_PX * CONTEXT_PX;
+        let (out, n) = context_planes(&input);
         assert_eq!(out.len(), 2 * n);
         assert_eq!(out[..4], [3.0, -2.0, 0.0, 0.0]);
         assert!(out[3..n].iter().all(|&v| v == 0.0), "holes are fed as 0");
@@ -313,11 +324,7 @@ mod tests {
             }),
             ..InputNormalisation::relief(2.0)
         };
-        let mut context = vec![f32::NAN; CONTEXT_PX * CONTEXT_PX];
-        context[..3].copy_from_slice(&[-1190.0, -1210.0, -1202.0]);
-        let mut out = Vec::new();
-        input.push_context(&[-1200.0, f64::NAN, -1204.0], &context, &mut out);
-        let n = CONTEXT_PX * CONTEXT_PX;
+        let (out, n) = context_planes(&input);
         assert_eq!(out.len(), 3 * n);
         assert_eq!(input.context_channels(), 3);
         // Relative plane as without the flag; then (z + 1200) / 5; then the mask.
@@ -329,7 +336,7 @@ mod tests {
         );
         assert_eq!(out[2 * n..2 * n + 4], [1.0, 1.0, 1.0, 0.0]);
         // The same terrain raised by 50 m: the relative plane is unchanged, the absolute one moves by 50 / 5.
-        let raised: Vec<f32> = context.iter().map(|z| z + 50.0).collect();
+        let raised: Vec<f32> = context_window().iter().map(|z| z + 50.0).collect();
         let mut moved = Vec::new();
         input.push_context(&[-1150.0, f64::NAN, -1154.0], &raised, &mut moved);
         assert_eq!(moved[..n], out[..n]);
