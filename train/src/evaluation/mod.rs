@@ -13,12 +13,14 @@
 //!   could go, so the gap to it is the part of the error a DEM-driven model can still remove.
 
 mod methods;
+mod model_choice;
 mod model_form;
 mod panels;
 mod tables;
 mod truth;
 
 pub use methods::*;
+pub use model_choice::*;
 pub use model_form::*;
 pub use panels::*;
 pub use tables::*;
@@ -197,23 +199,46 @@ struct ScoredImage {
     image: PerImage,
 }
 
-/// Score one crop's renderings against its ground truth, every method on the same pixels: where all of them are
-/// defined.
+/// Score one crop's renderings against its ground truth ([`image_scores`]) and match its features.
 fn score_image(
     sample: &Sample,
     renderings: Vec<(&'static str, Vec<f64>)>,
     matcher: &FeatureMatcher,
     truth_maps: Option<&TruthMaps>,
 ) -> ScoredImage {
+    let (image, truth, valid) = image_scores(sample, &renderings, truth_maps);
+    let match_distances = renderings
+        .iter()
+        .map(|(name, rendered)| {
+            (
+                *name,
+                matcher.match_distances(&truth, rendered, &valid, CROP_PX),
+            )
+        })
+        .collect();
+    ScoredImage {
+        renderings,
+        match_distances,
+        image,
+    }
+}
+
+/// One crop's metrics and brightness level under every rendering, all on the same pixels (where the ground truth
+/// and every rendering are defined), with the crop's ground and light. Returns the ground truth and that shared
+/// mask too.
+pub(crate) fn image_scores<N: AsRef<str>>(
+    sample: &Sample,
+    renderings: &[(N, Vec<f64>)],
+    truth_maps: Option<&TruthMaps>,
+) -> (PerImage, Vec<f64>, Vec<bool>) {
     let (truth, mut valid) = truth_and_valid(sample);
-    for (_, r) in &renderings {
+    for (_, r) in renderings {
         for (v, x) in valid.iter_mut().zip(r) {
             *v &= x.is_finite();
         }
     }
     let mut metrics = BTreeMap::new();
     let mut level = BTreeMap::new();
-    let mut match_distances = Vec::new();
     let mean_over_valid = |x: &[f64]| {
         let (sum, n) = x
             .iter()
@@ -223,14 +248,11 @@ fn score_image(
         sum / n.max(1) as f64
     };
     let truth_mean = mean_over_valid(&truth);
-    for (name, rendered) in &renderings {
+    for (name, rendered) in renderings {
+        let name = name.as_ref();
         if truth_mean > 0.0 {
             level.insert(name.to_string(), mean_over_valid(rendered) / truth_mean);
         }
-        match_distances.push((
-            *name,
-            matcher.match_distances(&truth, rendered, &valid, CROP_PX),
-        ));
         if let Some(m) = image_metrics(rendered, &truth, &valid, CROP_PX) {
             metrics.insert(name.to_string(), m);
         }
@@ -248,11 +270,7 @@ fn score_image(
         level,
         metrics,
     };
-    ScoredImage {
-        renderings,
-        match_distances,
-        image,
-    }
+    (image, truth, valid)
 }
 
 /// `g2r-train eval` as data: which runs, on which data, with which options, into which directory.

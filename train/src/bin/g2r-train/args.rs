@@ -301,6 +301,36 @@ pub enum Command {
         #[arg(long)]
         symmetry_mean: bool,
     },
+    /// Which BRDF model each kind of ground needs, with no network in the way: per crop, each candidate's
+    /// model-form oracle (the best coefficients for the true material at every pixel: the model's floor) and its
+    /// uniform fit, grouped by terrain class and unit; per ground, the cheapest candidate whose floor is within
+    /// --tolerance of the best. Needs a synthetic world (--world). Writes model-choice.json and model-choice.md.
+    ModelChoice {
+        /// Dataset directory or server URL.
+        #[arg(long)]
+        data: String,
+        /// Choose on validation; score test once, after.
+        #[arg(long, default_value = "val")]
+        split: dataset::contract::schema::Split,
+        /// Synthetic world directory (its truth/ maps).
+        #[arg(long)]
+        world: PathBuf,
+        /// Candidate models, comma-separated (default: two cosine polynomials, the Lommel-Seeliger family's best
+        /// and the one-scale Hapke the trainer ships). Cost: parameter maps, then whether it evaluates Hapke.
+        #[arg(long, value_delimiter = ',', default_value = "m1,m2,l3,h1")]
+        models: Vec<BrdfModel>,
+        /// How far above the best floor a cheaper model may be and still be chosen (0.05 = 5 %).
+        #[arg(long, default_value_t = 0.05)]
+        tolerance: f64,
+        /// Images, spread evenly over the split (default: all).
+        #[arg(long)]
+        max_samples: Option<usize>,
+        /// Train crops (spread evenly) for each candidate's uniform fit.
+        #[arg(long, default_value_t = 256)]
+        calibration_samples: usize,
+        #[arg(long)]
+        out: PathBuf,
+    },
     /// BRDF parameter maps for a whole DEM: overlapping crops blended seamlessly, written as a GeoTIFF on the
     /// DEM's exact grid (same CRS and geotransform; one band per parameter, LeakyReLU applied; NaN nodata).
     Infer {

@@ -94,6 +94,34 @@ fn run(cli: Cli) -> Result<()> {
                 out.display()
             );
         }
+        Command::ModelChoice {
+            data,
+            split,
+            world,
+            models,
+            tolerance,
+            max_samples,
+            calibration_samples,
+            out,
+        } => {
+            let source = open_source(&data)?;
+            let truth = train::evaluation::TruthMaps::open(&world)?;
+            let options = train::evaluation::ModelChoiceOptions {
+                split,
+                max_samples,
+                calibration_samples,
+                candidates: models,
+                tolerance,
+            };
+            let report = train::evaluation::model_choice(source.as_ref(), &truth, &options)?;
+            train::evaluation::write_model_choice(&report, &out)?;
+            dataset::provenance::Provenance::capture().write(&out.join("provenance.json"))?;
+            print!("{}", train::evaluation::model_choice_markdown(&report));
+            println!(
+                "\nwrote {}/model-choice.json and model-choice.md",
+                out.display()
+            );
+        }
         Command::Infer {
             runs,
             dem,
