@@ -38,6 +38,7 @@ fn help_lists_every_command() {
         "render",
         "bench",
         "models",
+        "model-choice",
         "results-page",
     ] {
         assert!(
@@ -168,6 +169,18 @@ fn bad_inputs_fail_with_one_line_naming_the_file_and_the_fix() {
             ],
             vec!["--ema", "outside [0, 1)"],
         ),
+        (
+            vec![
+                "model-choice".into(),
+                "--data".into(),
+                path("data"),
+                "--world".into(),
+                path("no-world"),
+                "--out".into(),
+                path("choice"),
+            ],
+            vec!["no-world", "hapke_params.tif", "g2r-pipeline synth"],
+        ),
     ];
     for (args, needles) in cases {
         let args: Vec<&str> = args.iter().map(String::as_str).collect();
@@ -182,7 +195,7 @@ fn bad_inputs_fail_with_one_line_naming_the_file_and_the_fix() {
         }
     }
     // Nothing finished-looking was left behind.
-    for name in ["p.tif", "views", "run/best", "no-run"] {
+    for name in ["p.tif", "views", "run/best", "no-run", "choice"] {
         assert!(!Path::new(&path(name)).exists(), "{name} exists");
     }
 }

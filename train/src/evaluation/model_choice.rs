@@ -419,6 +419,13 @@ mod tests {
         // The nested family: M2 holds M1 (its constant term 0), so its floor is no higher.
         assert!(sse("form_m2") <= sse("form_m1"), "{:?}", all.sse);
         assert_eq!((all.best.as_str(), all.chosen.as_str()), ("h1", "h1"));
+        // M6's half-angle terms have no form oracle: refused, naming the model and the flag.
+        let m6 = ModelChoiceOptions {
+            candidates: vec![BrdfModel::M6],
+            ..options
+        };
+        let err = format!("{:#}", model_choice(&source, &truth, &m6).unwrap_err());
+        assert!(err.contains("m6") && err.contains("--models"), "{err}");
         let md = model_choice_markdown(&report);
         assert!(md.contains("| all | 6 |") && md.contains("**h1**"), "{md}");
     }
