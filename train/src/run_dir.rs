@@ -17,16 +17,18 @@ use crate::data::{InputNormalisation, StreamConfig, CONTEXT_CHANNELS};
 use crate::metrics::AggregateMetrics;
 use crate::model::{UNet, UNetConfig};
 
-/// The `config.json` format this build writes: version 7 since 2026-11-26 (version 6 lacks `film`, which loads
+/// The `config.json` format this build writes: version 8 since 2026-11-27 (version 7 lacks `nonnegative_start`,
+/// which loads as false: the head started at the unconstrained fit; version 6 also lacks `film`, which loads
 /// as false; version 5 also lacks `crop_level`, which loads as false; version 4 also lacks `head_hidden`, which loads as 0: the paper's linear head; version 3 also lacks `context_absolute`, which loads as false; version 2 also lacks `steep_weight`, which loads as 1: every crop equally likely). Version 1 (files without a
 /// `version` key) added fields one at a time, each absent in older files; those files load with the values
 /// every run had before the field existed (constant learning rate, relief input only, no context window). From
 /// version 2 on every field is written and required, and a new field means a new version with its conversion
 /// in `StoredFitConfig`.
-pub const FIT_CONFIG_VERSION: u32 = 7;
+pub const FIT_CONFIG_VERSION: u32 = 8;
 
-/// Everything that defines a run (saved as `config.json`; a resume must match it). The network's head always
-/// starts at the model's uniform least-squares fit ([`crate::model::UNet::with_uniform_head`]); version-1
+/// Everything that defines a run (saved as `config.json`; a resume must match it). The network's head starts
+/// at the model's uniform least-squares fit ([`crate::model::UNet::with_uniform_head`]), unconstrained or
+/// non-negative (`nonnegative_start`); version-1
 /// files also record a `head_init`, which only mattered when their run started and is not read.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(try_from = "StoredFitConfig")]
@@ -62,6 +64,9 @@ pub struct FitConfig {
     pub crop_level: bool,
     /// The decoder's modulation by the context ([`UNetConfig::film`]); needs `context_input`.
     pub film: bool,
+    /// Start the head at the non-negative least-squares uniform fit
+    /// ([`crate::calibration::Calibration::model_uniform_nonnegative`]) rather than the unconstrained one.
+    pub nonnegative_start: bool,
 }
 
 /// `config.json` as any version wrote it: the fields version 1 always had, and the later ones as options
@@ -87,6 +92,7 @@ struct StoredFitConfig {
     head_hidden: Option<usize>,
     crop_level: Option<bool>,
     film: Option<bool>,
+    nonnegative_start: Option<bool>,
 }
 
 /// A key that is in the file, whatever its value (`null` included): serde alone reads a missing `Option` field
@@ -111,7 +117,7 @@ impl TryFrom<StoredFitConfig> for FitConfig {
         let max_val_samples = stored
             .max_val_samples
             .ok_or_else(|| required("max_val_samples"))?;
-        let (lr_schedule, elevation_input, context_input, ema_decay, steep_weight, context_absolute, head_hidden, crop_level, film) = match version {
+        let (lr_schedule, elevation_input, context_input, ema_decay, steep_weight, context_absolute, head_hidden, crop_level, film, nonnegative_start) = match version {
             // Version 1: a field absent from the file did not exist when its run was written (and `ema_decay`
             // was left out when there was no average).
             1 => (
@@ -122,6 +128,7 @@ impl TryFrom<StoredFitConfig> for FitConfig {
                 1.0,
                 false,
                 0,
+                false,
                 false,
                 false,
             ),
@@ -161,6 +168,13 @@ impl TryFrom<StoredFitConfig> for FitConfig {
                 } else {
                     stored.film.ok_or_else(|| required("film"))?
                 },
+                if version < 8 {
+                    false
+                } else {
+                    stored
+                        .nonnegative_start
+                        .ok_or_else(|| required("nonnegative_start"))?
+                },
             ),
             newer => {
                 return Err(format!(
@@ -186,6 +200,7 @@ impl TryFrom<StoredFitConfig> for FitConfig {
             head_hidden,
             crop_level,
             film,
+            nonnegative_start,
         })
     }
 }
@@ -635,7 +650,7 @@ mod schedule_tests {
     }
 
     #[test]
-    fn version_7_configs_round_trip_and_require_every_field() {
+    fn current_configs_round_trip_and_require_every_field() {
         let config = FitConfig {
             version: FIT_CONFIG_VERSION,
             model: BrdfModel::L3,
@@ -660,16 +675,17 @@ mod schedule_tests {
             head_hidden: 32,
             crop_level: true,
             film: true,
+            nonnegative_start: true,
         };
         let json = serde_json::to_string(&config).unwrap();
-        assert!(json.contains(r#""version":7"#), "{json}");
+        assert!(json.contains(r#""version":8"#), "{json}");
         assert_eq!(serde_json::from_str::<FitConfig>(&json).unwrap(), config);
         let cut = json.replace(r#","context_input":true"#, "");
         let err = serde_json::from_str::<FitConfig>(&cut)
             .unwrap_err()
             .to_string();
         assert!(
-            err.contains("version 7") && err.contains("`context_input`"),
+            err.contains("version 8") && err.contains("`context_input`"),
             "{err}"
         );
         let cut = json.replace(r#","ema_decay":0.995"#, "");
@@ -677,7 +693,16 @@ mod schedule_tests {
             .unwrap_err()
             .to_string();
         assert!(err.contains("`ema_decay`"), "{err}");
-        let cut = json.replace(r#","film":true"#, "");
+        let cut = json.replace(r#","nonnegative_start":true"#, "");
+        let err = serde_json::from_str::<FitConfig>(&cut)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("`nonnegative_start`"), "{err}");
+        // Version 7 wrote everything but `nonnegative_start`: its heads started at the unconstrained fit.
+        let v7 = cut.replace(r#""version":8"#, r#""version":7"#);
+        let loaded = serde_json::from_str::<FitConfig>(&v7).unwrap();
+        assert!(loaded.film && !loaded.nonnegative_start);
+        let cut = v7.replace(r#","film":true"#, "");
         let err = serde_json::from_str::<FitConfig>(&cut)
             .unwrap_err()
             .to_string();
@@ -727,12 +752,12 @@ mod schedule_tests {
         assert_eq!(loaded.steep_weight, 1.0);
         assert!(!loaded.context_absolute);
         assert_eq!(loaded.version, FIT_CONFIG_VERSION);
-        let newer = json.replace(r#""version":7"#, r#""version":8"#);
+        let newer = json.replace(r#""version":8"#, r#""version":9"#);
         let err = serde_json::from_str::<FitConfig>(&newer)
             .unwrap_err()
             .to_string();
         assert!(
-            err.contains("version 8") && err.contains("update g2r-train"),
+            err.contains("version 9") && err.contains("update g2r-train"),
             "{err}"
         );
     }

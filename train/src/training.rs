@@ -286,9 +286,13 @@ pub fn fit_replicated<B: TrainBackend>(
         let net = net_config.init::<B>(device);
         let _ = net.num_params(); // materialise the lazily initialised weights now, in a fixed order
         let fit = crate::calibration::calibrate(&*source, UNIFORM_INIT_SAMPLES, config.model)?;
-        tracing::info!(coefficients = ?fit.model_uniform, samples = fit.samples, "head = uniform fit");
-        let raw: Vec<f64> = fit
-            .model_uniform
+        let start = if config.nonnegative_start {
+            &fit.model_uniform_nonnegative
+        } else {
+            &fit.model_uniform
+        };
+        tracing::info!(coefficients = ?start, nonnegative = config.nonnegative_start, samples = fit.samples, "head = uniform fit");
+        let raw: Vec<f64> = start
             .iter()
             .map(|&c| dataset::science::brdf::inverse_leaky_relu(c))
             .collect();

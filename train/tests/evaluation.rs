@@ -44,6 +44,7 @@ fn m2_config() -> FitConfig {
         head_hidden: 0,
         crop_level: false,
         film: false,
+        nonnegative_start: false,
         context_absolute: false,
     }
 }

@@ -55,6 +55,7 @@ fn config(
         head_hidden: 0,
         crop_level: false,
         film: false,
+        nonnegative_start: false,
         context_absolute: false,
     }
 }
@@ -215,6 +216,7 @@ fn stopping_and_resuming_gives_the_same_network_as_an_uninterrupted_run() {
         head_hidden: 6,
         crop_level: true,
         film: false,
+        nonnegative_start: false,
         context_absolute: false,
         ..config(BrdfModel::M2, 2, 1e-3, 12, true)
     };

@@ -43,6 +43,7 @@ pub fn config() -> FitConfig {
         head_hidden: 0,
         crop_level: false,
         film: false,
+        nonnegative_start: false,
         context_absolute: false,
     }
 }

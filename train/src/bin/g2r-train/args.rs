@@ -136,6 +136,12 @@ pub struct TrainArgs {
     /// how the crop's own terrain is read. Needs --context-input.
     #[arg(long, requires = "context_input")]
     pub film: bool,
+    /// Start the head at the best uniform fit with every coefficient ≥ 0 (non-negative least squares) rather
+    /// than the unconstrained one. The parameters pass through a LeakyReLU, so a negative start sits where
+    /// gradients are 100× smaller; H3's three nearly collinear terms fit as large cancelling coefficients
+    /// (two negative) when unconstrained.
+    #[arg(long)]
+    pub nonnegative_start: bool,
     /// Train data-parallel with this many replicas in this process, each taking its share of --batch (which
     /// N must divide), their gradients averaged after every backward pass (burn-collective): on cuda, GPUs
     /// 0..N-1; on flex, threads sharing the CPU. The steps are those of one replica, except that each replica
@@ -231,6 +237,7 @@ impl TrainArgs {
             head_hidden: self.head_hidden,
             crop_level: self.crop_level,
             film: self.film,
+            nonnegative_start: self.nonnegative_start,
         }
     }
 }
