@@ -289,7 +289,7 @@ fn every_endpoint_answers_with_its_documented_shape() {
         Some(dataset::client::ARROW_STREAM)
     );
     assert_eq!(
-        dataset::contract::shard::samples_from_ipc_stream(&ipc.body).unwrap(),
+        dataset::contract::wire::samples_from_ipc_stream(&ipc.body).unwrap(),
         f.samples["train"][256..300]
     );
 
@@ -322,7 +322,7 @@ fn epoch_stream_serves_rows_in_the_planners_order() {
             )
             .unwrap()
             .body;
-        let streamed = dataset::contract::shard::samples_from_ipc_stream(&body).unwrap();
+        let streamed = dataset::contract::wire::samples_from_ipc_stream(&body).unwrap();
         assert_eq!(streamed.len(), expected.len());
         assert!(
             streamed.iter().zip(&expected).all(|(a, b)| a == *b),
@@ -752,7 +752,7 @@ fn a_split_without_rows_answers_empty_not_an_error() {
         )
         .unwrap();
     assert!(
-        dataset::contract::shard::samples_from_ipc_stream(&stream.body)
+        dataset::contract::wire::samples_from_ipc_stream(&stream.body)
             .unwrap()
             .is_empty()
     );
@@ -798,7 +798,7 @@ fn a_schema_1_1_dataset_serves_and_streams_its_rows_without_context() {
             &[("Accept", dataset::client::ARROW_STREAM)],
         )
         .unwrap();
-    let mut streamed = dataset::contract::shard::samples_from_ipc_stream(&stream.body).unwrap();
+    let mut streamed = dataset::contract::wire::samples_from_ipc_stream(&stream.body).unwrap();
     streamed.sort_by(|a, b| a.sample_id.cmp(&b.sample_id));
     let mut expected = without_context;
     expected.sort_by(|a, b| a.sample_id.cmp(&b.sample_id));

@@ -451,7 +451,7 @@ async fn row_group_ipc(
     }
     let bytes = blocking(move || {
         let batches = index.shards[shard].read_batches(group, None, true)?;
-        Ok(dataset::contract::shard::ipc_stream_bytes(&batches)?)
+        Ok(dataset::contract::wire::ipc_stream_bytes(&batches)?)
     })
     .await?;
     Ok(arrow_response(bytes))

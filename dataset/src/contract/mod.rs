@@ -1,7 +1,7 @@
 //! The data contract, on the [`crate::science`] core, in the order data flows: what arrives with each image
 //! ([`acquisition`]) and where the synthetic world keeps it ([`world`]); the seeded draw streams every stage
 //! takes its randomness from ([`rng`]); the terrain [`context`] cut around each crop; one DEM–image pair as a row
-//! ([`schema`]); rows in Parquet [`shard`]s; the [`manifest`] that lists and hashes them; the dataset card and
+//! ([`schema`]); rows in Parquet [`shard`]s and on the server's [`wire`]; the [`manifest`] that lists and hashes them; the dataset card and
 //! Croissant of a [`publication`]; and the epoch [`planner`] that reads a publication back in training order.
 
 // What arrives with each image: the acquisition metadata JSON.
@@ -21,6 +21,9 @@ pub mod schema;
 
 // Rows in Parquet shards: writing, reading, hashing.
 pub mod shard;
+
+// Rows on the wire: the Arrow IPC stream the dataset server sends.
+pub mod wire;
 
 // The manifest that lists and hashes the shards.
 pub mod manifest;

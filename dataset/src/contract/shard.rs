@@ -666,28 +666,6 @@ pub fn read_row_group(path: &Path, row_group: usize) -> Result<Vec<Sample>, Shar
     ShardFile::open(path)?.read_row_group(row_group)
 }
 
-/// Arrow IPC stream bytes (the wire format of the dataset server's tensor endpoints) of `batches`.
-pub fn ipc_stream_bytes(batches: &[RecordBatch]) -> Result<Vec<u8>, arrow::error::ArrowError> {
-    let schema = batches
-        .first()
-        .map_or_else(sample_schema, RecordBatch::schema);
-    let mut writer = arrow::ipc::writer::StreamWriter::try_new(Vec::new(), &schema)?;
-    for batch in batches {
-        writer.write(batch)?;
-    }
-    writer.into_inner()
-}
-
-/// Decode an Arrow IPC stream of sample rows (what [`ipc_stream_bytes`] wrote).
-pub fn samples_from_ipc_stream(bytes: &[u8]) -> Result<Vec<Sample>, SchemaError> {
-    let reader = arrow::ipc::reader::StreamReader::try_new(std::io::Cursor::new(bytes), None)?;
-    let mut out = Vec::new();
-    for batch in reader {
-        out.extend(batch_to_samples(&batch?)?);
-    }
-    Ok(out)
-}
-
 /// Ids and crop centres (map metres) of every row of a shard.
 #[derive(Debug, Default)]
 pub struct SamplePositions {
@@ -757,6 +735,7 @@ pub fn shard_name(split: &str, index: usize, count: usize) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::contract::wire::{ipc_stream_bytes, samples_from_ipc_stream};
     use crate::testing::synthetic_sample;
 
     #[test]

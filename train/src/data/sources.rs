@@ -140,7 +140,7 @@ impl SampleSource for HttpSource {
         let response = self
             .client
             .get_ok(&path, &[("Accept", dataset::client::ARROW_STREAM)])?;
-        let samples = dataset::contract::shard::samples_from_ipc_stream(&response.body)
+        let samples = dataset::contract::wire::samples_from_ipc_stream(&response.body)
             .with_context(|| {
                 format!(
                     "{}{path}: not an Arrow IPC stream of samples",
