@@ -1,0 +1,309 @@
+//! Reading shards: a footer parsed once, then row groups, rows or a few columns read on demand.
+
+use std::fs::File;
+use std::path::{Path, PathBuf};
+
+use arrow::record_batch::RecordBatch;
+use parquet::arrow::arrow_reader::{
+    ArrowReaderMetadata, ArrowReaderOptions, ParquetRecordBatchReaderBuilder, RowSelection,
+    RowSelector,
+};
+use parquet::arrow::ProjectionMask;
+
+use crate::contract::schema::{
+    batch_to_sample_metadata, batch_to_samples, sample_schema, Sample, SCHEMA_VERSION,
+    TENSOR_COLUMNS,
+};
+use crate::storage::ShardBytes;
+
+use super::{ShardError, ROW_GROUP_ROWS};
+
+/// An open shard with its footer parsed once: random reads of row groups or single rows touch only the needed
+/// column chunks, and a server can hold one per shard instead of re-reading footers per request. A local file, or
+/// an object in object storage ([`crate::storage`]) read with one ranged GET per row group.
+#[derive(Clone)]
+pub struct ShardFile {
+    /// The file's path, or the object's URL (for messages).
+    path: PathBuf,
+    metadata: ArrowReaderMetadata,
+    remote: Option<crate::storage::RemoteObject>,
+}
+
+impl ShardFile {
+    /// The file's own Arrow schema: a schema 1.1 shard has no context columns, unlike this build's
+    /// [`crate::contract::schema::sample_schema`].
+    pub fn schema(&self) -> arrow::datatypes::SchemaRef {
+        self.metadata.schema().clone()
+    }
+
+    /// Open and parse the footer; refuses a shard written with another major schema version.
+    pub fn open(path: &Path) -> Result<Self, ShardError> {
+        let file = File::open(path).map_err(|source| ShardError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let metadata =
+            ArrowReaderMetadata::load(&file, ArrowReaderOptions::default()).map_err(|source| {
+                ShardError::Parquet {
+                    path: path.to_path_buf(),
+                    source,
+                }
+            })?;
+        Self::checked(path.to_path_buf(), metadata, None)
+    }
+
+    /// Open a shard in object storage: its footer is read with two ranged GETs (the length, then the metadata).
+    pub fn open_remote(object: crate::storage::RemoteObject) -> Result<Self, ShardError> {
+        let path = PathBuf::from(object.url());
+        let metadata = ArrowReaderMetadata::load(&object, ArrowReaderOptions::default()).map_err(
+            |source| ShardError::Parquet {
+                path: path.clone(),
+                source,
+            },
+        )?;
+        Self::checked(path, metadata, Some(object))
+    }
+
+    fn checked(
+        path: PathBuf,
+        metadata: ArrowReaderMetadata,
+        remote: Option<crate::storage::RemoteObject>,
+    ) -> Result<Self, ShardError> {
+        let found = metadata
+            .schema()
+            .metadata()
+            .get("g2r.schema_version")
+            .cloned()
+            .unwrap_or_else(|| "none".into());
+        if found.split('.').next() != SCHEMA_VERSION.split('.').next() {
+            return Err(ShardError::SchemaVersion { path, found });
+        }
+        Ok(Self {
+            path,
+            metadata,
+            remote,
+        })
+    }
+
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Row count per row group, from the footer.
+    pub fn row_group_sizes(&self) -> Vec<usize> {
+        self.metadata
+            .metadata()
+            .row_groups()
+            .iter()
+            .map(|rg| rg.num_rows() as usize)
+            .collect()
+    }
+
+    fn parquet_err(&self, source: parquet::errors::ParquetError) -> ShardError {
+        ShardError::Parquet {
+            path: self.path.clone(),
+            source,
+        }
+    }
+
+    /// A reader of the whole file (local) or of `row_group` (remote: its column chunks fetched in one GET).
+    fn builder(
+        &self,
+        row_group: Option<usize>,
+    ) -> Result<ParquetRecordBatchReaderBuilder<ShardBytes>, ShardError> {
+        let bytes = match (&self.remote, row_group) {
+            (None, _) => {
+                ShardBytes::File(File::open(&self.path).map_err(|source| ShardError::Io {
+                    path: self.path.clone(),
+                    source,
+                })?)
+            }
+            (Some(object), Some(group)) => {
+                let columns = self.metadata.metadata().row_group(group).columns();
+                let start = columns.iter().map(|c| c.byte_range().0).min().unwrap_or(0);
+                let end = columns
+                    .iter()
+                    .map(|c| c.byte_range().0 + c.byte_range().1)
+                    .max()
+                    .unwrap_or(0);
+                ShardBytes::Fetched {
+                    offset: start,
+                    bytes: object.fetch(start..end).map_err(|e| self.parquet_err(e))?,
+                    len: parquet::file::reader::Length::len(object),
+                }
+            }
+            (Some(_), None) => {
+                return Err(self.parquet_err(parquet::errors::ParquetError::General(
+                    "a remote shard is read one row group at a time".into(),
+                )))
+            }
+        };
+        Ok(ParquetRecordBatchReaderBuilder::new_with_metadata(
+            bytes,
+            self.metadata.clone(),
+        ))
+    }
+
+    /// Raw Arrow batches of `rows` (within `row_group`), all columns or the metadata columns only.
+    pub fn read_batches(
+        &self,
+        row_group: usize,
+        rows: Option<std::ops::Range<usize>>,
+        tensors: bool,
+    ) -> Result<Vec<RecordBatch>, ShardError> {
+        let sizes = self.row_group_sizes();
+        let Some(&group_rows) = sizes.get(row_group) else {
+            return Err(ShardError::RowGroup {
+                path: self.path.clone(),
+                row_group,
+                count: sizes.len(),
+            });
+        };
+        let mut builder = self
+            .builder(Some(row_group))?
+            .with_row_groups(vec![row_group])
+            .with_batch_size(ROW_GROUP_ROWS);
+        if let Some(rows) = rows {
+            let rows = rows.start.min(group_rows)..rows.end.min(group_rows);
+            builder = builder.with_row_selection(RowSelection::from(vec![
+                RowSelector::skip(rows.start),
+                RowSelector::select(rows.len()),
+                RowSelector::skip(group_rows - rows.end),
+            ]));
+        }
+        if !tensors {
+            let schema = sample_schema();
+            let keep: Vec<&str> = schema
+                .fields()
+                .iter()
+                .map(|f| f.name().as_str())
+                .filter(|n| !TENSOR_COLUMNS.contains(n))
+                .collect();
+            let mask = ProjectionMask::columns(builder.parquet_schema(), keep);
+            builder = builder.with_projection(mask);
+        }
+        let reader = builder.build().map_err(|e| self.parquet_err(e))?;
+        reader
+            .map(|b| b.map_err(|e| self.parquet_err(e.into())))
+            .collect()
+    }
+
+    fn decode(&self, batches: &[RecordBatch], tensors: bool) -> Result<Vec<Sample>, ShardError> {
+        let mut out = Vec::new();
+        for batch in batches {
+            let decoded = if tensors {
+                batch_to_samples(batch)
+            } else {
+                batch_to_sample_metadata(batch)
+            };
+            out.extend(decoded.map_err(|source| ShardError::Schema {
+                path: self.path.clone(),
+                source,
+            })?);
+        }
+        Ok(out)
+    }
+
+    /// Every sample of one row group.
+    pub fn read_row_group(&self, row_group: usize) -> Result<Vec<Sample>, ShardError> {
+        self.decode(&self.read_batches(row_group, None, true)?, true)
+    }
+
+    /// Rows `rows` of one row group, decoding only the pages those rows need.
+    pub fn read_rows(
+        &self,
+        row_group: usize,
+        rows: std::ops::Range<usize>,
+    ) -> Result<Vec<Sample>, ShardError> {
+        self.decode(&self.read_batches(row_group, Some(rows), true)?, true)
+    }
+
+    /// Metadata of every row (raster fields empty), reading only the small columns.
+    pub fn read_metadata(&self) -> Result<Vec<Sample>, ShardError> {
+        let mut out = Vec::new();
+        for group in 0..self.row_group_sizes().len() {
+            out.extend(self.decode(&self.read_batches(group, None, false)?, false)?);
+        }
+        Ok(out)
+    }
+
+    /// Every sample of the shard.
+    pub fn read_all(&self) -> Result<Vec<Sample>, ShardError> {
+        let mut out = Vec::new();
+        for group in 0..self.row_group_sizes().len() {
+            out.extend(self.read_row_group(group)?);
+        }
+        Ok(out)
+    }
+}
+
+/// Read every sample of a shard.
+pub fn read_shard(path: &Path) -> Result<Vec<Sample>, ShardError> {
+    ShardFile::open(path)?.read_all()
+}
+
+/// Read one row group (random access reads only that group's column chunks).
+pub fn read_row_group(path: &Path, row_group: usize) -> Result<Vec<Sample>, ShardError> {
+    ShardFile::open(path)?.read_row_group(row_group)
+}
+
+/// Ids and crop centres (map metres) of every row of a shard.
+#[derive(Debug, Default)]
+pub struct SamplePositions {
+    pub sample_ids: Vec<String>,
+    pub center_x_m: Vec<f64>,
+    pub center_y_m: Vec<f64>,
+}
+
+/// (sample_id, center_x, center_y) of every row, reading only those three columns.
+pub fn read_sample_positions(path: &Path) -> Result<SamplePositions, ShardError> {
+    use arrow::array::{Array, Float64Array, StringArray};
+    let builder = ShardFile::open(path)?.builder(None)?;
+    let mask = parquet::arrow::ProjectionMask::columns(
+        builder.parquet_schema(),
+        ["sample_id", "center_x", "center_y"],
+    );
+    let reader = builder
+        .with_projection(mask)
+        .build()
+        .map_err(|source| ShardError::Parquet {
+            path: path.to_path_buf(),
+            source,
+        })?;
+    let (mut ids, mut xs, mut ys) = (Vec::new(), Vec::new(), Vec::new());
+    for batch in reader {
+        let batch = batch.map_err(|e| ShardError::Parquet {
+            path: path.to_path_buf(),
+            source: e.into(),
+        })?;
+        let bad = || ShardError::Schema {
+            path: path.to_path_buf(),
+            source: crate::contract::schema::SchemaError::Column("sample_id/center_x/center_y"),
+        };
+        let id = batch
+            .column_by_name("sample_id")
+            .and_then(|c| c.as_any().downcast_ref::<StringArray>())
+            .ok_or_else(bad)?;
+        let x = batch
+            .column_by_name("center_x")
+            .and_then(|c| c.as_any().downcast_ref::<Float64Array>())
+            .ok_or_else(bad)?;
+        let y = batch
+            .column_by_name("center_y")
+            .and_then(|c| c.as_any().downcast_ref::<Float64Array>())
+            .ok_or_else(bad)?;
+        ids.extend((0..id.len()).map(|i| id.value(i).to_string()));
+        xs.extend_from_slice(x.values());
+        ys.extend_from_slice(y.values());
+    }
+    Ok(SamplePositions {
+        sample_ids: ids,
+        center_x_m: xs,
+        center_y_m: ys,
+    })
+}
+
+/// Row count per row group, from the footer only.
+pub fn row_group_sizes(path: &Path) -> Result<Vec<usize>, ShardError> {
+    Ok(ShardFile::open(path)?.row_group_sizes())
+}
