@@ -7,7 +7,9 @@ TEST = 'out/evals/model-choice-test2k/model-choice.json'
 MODELS = ['m1', 'm2', 'l3', 'h1', 'h3']
 COMMAND = ('`g2r-train model-choice --data out/tycho-dataset/dataset --world out/tycho-world --split {split} '
            '--max-samples 2048 --models m1,m2,l3,h1,h3 --out out/evals/model-choice-{split}2k`')
-MEASURED = 'session of 2026-11-27 (eighth), AMD EPYC 2-core build machine, debug build (opt-level 2), commit af8390e'
+MEASURED = ('session of 2026-11-27 (eighth), AMD EPYC 2-core build machine; both runs used one debug build (opt-level '
+            '2) of the tree committed as af8390e (provenance.json records the checkout at run time: b4fd858-dirty '
+            'for val, af8390e-dirty for test)')
 
 val, test = (json.load(open(p)) for p in (VAL, TEST))
 test_by_ground = {g['ground']: g for g in test['grounds']}
@@ -16,11 +18,11 @@ for g in val['grounds']:
     t = test_by_ground.get(g['ground'])
     figures = {'val_crops': g['images'], 'test_crops': t['images'] if t else 0}
     for m in MODELS:
-        figures[f'val_form_{m}'] = round(g['form_over_paper_hapke'][m], 4)
-        figures[f'val_uniform_{m}'] = round(g['uniform_over_paper_hapke'][m], 4)
+        figures[f'val_form_{m}'] = round(g['form_over_paper_hapke'][m], 6)
+        figures[f'val_uniform_{m}'] = round(g['uniform_over_paper_hapke'][m], 6)
         if t:
-            figures[f'test_form_{m}'] = round(t['form_over_paper_hapke'][m], 4)
-    figures['val_oracle'] = round(g['sse']['oracle'] / g['sse']['hapke_paper'], 4)
+            figures[f'test_form_{m}'] = round(t['form_over_paper_hapke'][m], 6)
+    figures['val_oracle'] = round(g['sse']['oracle'] / g['sse']['hapke_paper'], 6)
     cells = [g['ground'].replace('_', ' '), '{val_crops} / {test_crops}', '{val_oracle:.3}']
     for m in MODELS:
         bold = '**' if m == g['chosen'] else ''
@@ -37,28 +39,32 @@ for g in val['grounds']:
 record = {
     'title': 'Which BRDF model each ground needs (tycho-full, world v3)',
     'intro': (
-        "Each candidate's **form floor**: the model with, at every pixel, the best geometry-blind coefficients for "
-        "the true material there (least squares over orbital geometries), rendered on the delivered DEM: the error "
-        "it keeps whatever a network puts in its maps. As learned / paper-Hapke SSE on 2,048 spread validation "
-        "crops, with the same on 2,048 spread test crops in brackets; `oracle` is the world's true Hapke maps. "
-        "Chosen on validation: the cheapest model (fewest parameter maps, then no Hapke, whose H-functions cost "
-        "about 20× a cosine polynomial to render) whose floor is within 5 % of the best. The test column repeats "
-        "the rule on test crops, once, to show whether the choice holds. `docs/scripts/model_choice_record.py` "
-        "writes this record from the two reports."),
+        "Each candidate's **form error**: the model with, at every pixel, the best geometry-blind coefficients for "
+        "the true material there (least squares over orbital geometries), rendered on the delivered DEM: what its "
+        "form attains whatever a network learns. As SSE over paper-Hapke's on 2,048 spread validation crops, with "
+        "the same on 2,048 spread test crops in brackets; `oracle` is the world's true Hapke maps. Chosen on "
+        "validation: the cheapest model (fewest parameter maps, then no Hapke, whose H-functions cost about 20× a "
+        "cosine polynomial to render) whose form error is within 5 % of the best. The test column repeats the "
+        "rule on test crops, once, to show whether the choice holds. `docs/scripts/model_choice_record.py` writes "
+        "this record from the two reports."),
     'columns': ['ground', 'crops (val / test)', 'oracle', 'M1 (2 maps)', 'M2 (3)', 'L3 (3)', 'H1 (1, Hapke)',
                 'H3 (3, Hapke)', 'chosen on val', 'rule on test'],
     'rows': rows,
     'notes': (
-        "H1, the shipped model's form, is within 5 % of the best floor only on the melt floor (validation) and the "
-        "plains (test). Wherever the ground holds fresh material (wall, rim, ejecta) H3's three Hapke-shaped terms "
-        "follow it almost to the oracle, while H1's single scale keeps up to 0.36 of paper-Hapke's error, most on "
-        "the terraced wall (7–9× H3's floor there on validation); the cheap L3 beats H1 only on the wall. The "
-        "paper's cosine polynomials M1 and M2 keep 0.2–1.2 of paper-Hapke's error on every ground: no map gives "
-        "them the regolith's photometric shape. These are floors, not trained results: on test the shipped H1 "
-        "model reaches 1.16 (highland wall) and 5.53 (mare wall), far above its form's floor there, so the "
-        "network's brightness level, not H1's form, still holds most of the wall's error "
-        "([crater-diagnosis.md](crater-diagnosis.md)). The uniform fits (one coefficient set for the Moon; "
-        "`val_uniform_*` in the figures) sit at 0.45–39× paper-Hapke, which peeks at each image's level."),
+        "H1, the shipped model's form, comes within 5 % of the best form error only on the melt floor (validation) "
+        "and the plains (test). Wherever the ground holds fresh material (wall, rim, ejecta) H3's three "
+        "Hapke-shaped terms follow it almost to the oracle, while H1's single scale keeps up to 0.36 of "
+        "paper-Hapke's error, most on the terraced wall (5–9× H3's there on validation); on validation the cheap "
+        "L3 beats H1 on the wall, on test it does not. The paper's cosine polynomials M1 and M2 keep 0.2–1.2 of "
+        "paper-Hapke's error on every ground: no map gives them the regolith's photometric shape. The form error "
+        "is what the best geometry-blind coefficients attain, fitted over flat-surface orbital geometries "
+        "(incidence 20–80°, emission 0–30°) and interpolated in the material's (w, b): not a strict lower bound, "
+        "least of all on steep walls, whose local geometries leave that range. It is not a trained result either: "
+        "on the whole test split the shipped H1 network reaches 1.16 (highland wall) and 5.53 (mare wall), far "
+        "above its form's error there, so the network's brightness level, not H1's form, still holds most of the "
+        "wall's error ([crater-diagnosis.md](crater-diagnosis.md)). The uniform fits (one coefficient set for the "
+        "Moon; `val_uniform_*` in the figures) sit at 0.49–39× paper-Hapke on validation, which peeks at each "
+        "image's level."),
 }
 json.dump(record, open('docs/results/37-model-choice.json', 'w'), indent=1, ensure_ascii=False)
 open('docs/results/37-model-choice.json', 'a').write('\n')

@@ -86,7 +86,8 @@ pub fn nonnegative_least_squares(ata: &[Vec<f64>], atb: &[f64]) -> Vec<f64> {
             .collect();
         let sub_b = idx.iter().map(|&i| atb[i]).collect();
         let sub_x = dataset::science::brdf::solve_small_system(sub_a, sub_b);
-        // NaN (a singular support) counts as infeasible.
+        // A singular support (collinear terms) solves to some finite x that need not be its optimum; it is still
+        // scored by the true objective, and the optimum's own support (independent terms) is among those tried.
         if !sub_x.iter().all(|&v| v >= 0.0) {
             continue;
         }
@@ -232,6 +233,34 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// Two identical terms (H3's are nearly so): the optimum is not unique, but what is returned meets the
+    /// optimality conditions and fits the target as well as the one term alone.
+    #[test]
+    fn duplicated_terms_still_give_an_optimum() {
+        let rows: Vec<(Vec<f64>, f64)> = (0..12)
+            .map(|k| {
+                let a = 0.5 + 0.1 * k as f64;
+                (vec![a, a, 1.0], 3.0 * a - 0.2)
+            })
+            .collect();
+        let (ata, atb) = normal_equations(&rows);
+        let x = nonnegative_least_squares(&ata, &atb);
+        assert!(x.iter().all(|&v| v >= 0.0), "{x:?}");
+        for i in 0..3 {
+            let gradient: f64 = (0..3).map(|j| ata[i][j] * x[j]).sum::<f64>() - atb[i];
+            assert!(
+                gradient >= -1e-9 && (x[i] == 0.0 || gradient.abs() <= 1e-9),
+                "x {x:?}, gradient[{i}] {gradient}"
+            );
+        }
+        // The constant would have to be negative (−0.2): it is dropped, and a + b is the slope-only fit.
+        assert_eq!(x[2], 0.0);
+        let (sa, st): (f64, f64) = rows
+            .iter()
+            .fold((0.0, 0.0), |(s, t), (r, y)| (s + r[0] * r[0], t + r[0] * y));
+        assert!((x[0] + x[1] - st / sa).abs() < 1e-9, "{x:?}");
     }
 
     /// A target that one term explains with a negative coefficient: that term is dropped, the rest refitted.

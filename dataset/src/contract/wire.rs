@@ -45,5 +45,8 @@ mod tests {
         assert_eq!(samples_from_ipc_stream(&bytes).unwrap(), samples);
         let empty = ipc_stream_bytes(&[]).unwrap();
         assert!(samples_from_ipc_stream(&empty).unwrap().is_empty());
+        let reader =
+            arrow::ipc::reader::StreamReader::try_new(std::io::Cursor::new(&empty), None).unwrap();
+        assert_eq!(*reader.schema(), *sample_schema());
     }
 }

@@ -309,9 +309,10 @@ pub enum Command {
         symmetry_mean: bool,
     },
     /// Which BRDF model each kind of ground needs, with no network in the way: per crop, each candidate's
-    /// model-form oracle (the best coefficients for the true material at every pixel: the model's floor) and its
-    /// uniform fit, grouped by terrain class and unit; per ground, the cheapest candidate whose floor is within
-    /// --tolerance of the best. Needs a synthetic world (--world). Writes model-choice.json and model-choice.md.
+    /// model-form oracle (the best geometry-blind coefficients for the true material at every pixel: what its form
+    /// attains) and its uniform fit, grouped by terrain class and unit; per ground, the cheapest candidate whose
+    /// form error is within --tolerance of the best. Needs a synthetic world (--world). Writes model-choice.json
+    /// and model-choice.md.
     ModelChoice {
         /// Dataset directory or server URL.
         #[arg(long)]
@@ -326,7 +327,7 @@ pub enum Command {
         /// and the one-scale Hapke the trainer ships). Cost: parameter maps, then whether it evaluates Hapke.
         #[arg(long, value_delimiter = ',', default_value = "m1,m2,l3,h1")]
         models: Vec<BrdfModel>,
-        /// How far above the best floor a cheaper model may be and still be chosen (0.05 = 5 %).
+        /// How far above the best form error a cheaper model may be and still be chosen (0.05 = 5 %).
         #[arg(long, default_value_t = 0.05)]
         tolerance: f64,
         /// Images, spread evenly over the split (default: all).
