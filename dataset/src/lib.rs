@@ -20,6 +20,17 @@ pub mod provenance;
 pub mod storage;
 pub mod testing;
 
+/// How every binary reports a failure: `error: ` and the whole cause chain on one line (a cause may carry line
+/// breaks of its own, e.g. an object store's XML error body), so a log reader or a test sees one error line.
+pub fn error_line(error: &anyhow::Error) -> String {
+    format!("error: {error:#}")
+        .lines()
+        .map(str::trim)
+        .filter(|l| !l.is_empty())
+        .collect::<Vec<_>>()
+        .join(" ")
+}
+
 /// Initialise structured logging for the binaries (`RUST_LOG` overrides the default `info`), and route GDAL's own
 /// messages into it: by default GDAL prints `ERROR 4: …` lines to stderr next to our one-line errors, which
 /// already carry the file and the fix.
@@ -38,4 +49,19 @@ pub fn init_logging() {
     gdal::config::set_error_handler(|class, number, message| {
         tracing::debug!(gdal_class = ?class, gdal_error = number, "GDAL: {message}");
     });
+}
+
+#[cfg(test)]
+mod tests {
+    /// A cause chain whose inner message spans lines (an S3 XML body) comes out as one line, every part kept.
+    #[test]
+    fn an_error_chain_with_line_breaks_is_one_line() {
+        let inner = anyhow::anyhow!("<Error>\n  <Code>NoSuchBucket</Code>\n</Error>\n");
+        let e = inner.context("s3://b/dataset/manifest.json: cannot read it");
+        let line = super::error_line(&e);
+        assert_eq!(
+            line,
+            "error: s3://b/dataset/manifest.json: cannot read it: <Error> <Code>NoSuchBucket</Code> </Error>"
+        );
+    }
 }

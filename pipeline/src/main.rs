@@ -139,7 +139,7 @@ fn main() -> ExitCode {
     match run(Cli::parse()) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            eprintln!("{}", dataset::error_line(&e));
             ExitCode::FAILURE
         }
     }

@@ -116,6 +116,21 @@ impl PipelineManifest {
             )
         })?;
         manifest.base_dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
+        // A URL here would be joined onto the manifest's folder as a relative path (`s3:/bucket/…`): refused.
+        for (field, location) in [
+            ("inputs.dem", &manifest.inputs.dem),
+            ("inputs.ortho_dir", &manifest.inputs.ortho_dir),
+            ("output.dir", &manifest.output.dir),
+        ] {
+            let location = location.to_string_lossy();
+            if dataset::storage::is_url(&location) {
+                anyhow::bail!(
+                    "{}: {field} = \"{location}\": the pipeline reads and writes local paths only; build to a local \
+                     folder, then publish it with `g2r-dataset upload DIR/dataset URL`",
+                    path.display()
+                );
+            }
+        }
         let rows = manifest.publish.rows_per_shard;
         let group = dataset::contract::shard::ROW_GROUP_ROWS;
         if rows == 0 || (rows > group && !rows.is_multiple_of(group)) {

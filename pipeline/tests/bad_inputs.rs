@@ -327,6 +327,27 @@ fn shard_size_that_cuts_a_row_group() {
 }
 
 #[test]
+fn object_store_url_where_a_local_path_belongs() {
+    // It would otherwise be joined onto the manifest's folder as the relative path `s3:/bucket/out`.
+    let (tmp, m) = case();
+    edit_text(&m, "dir = \"out\"", "dir = \"s3://bucket/out\"");
+    assert_refused(
+        tmp.path(),
+        &m,
+        &[
+            "m.toml",
+            "output.dir",
+            "s3://bucket/out",
+            "g2r-dataset upload",
+        ],
+    );
+    assert!(
+        !tmp.path().join("s3:").exists(),
+        "no local folder named after the URL"
+    );
+}
+
+#[test]
 fn context_cell_size_that_is_not_positive() {
     let (tmp, m) = case();
     edit_text(

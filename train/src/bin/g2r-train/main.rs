@@ -48,7 +48,7 @@ fn main() {
     tune_allocator();
     dataset::init_logging();
     if let Err(e) = run(Cli::parse()) {
-        eprintln!("error: {}", format!("{e:#}").replace('\n', " "));
+        eprintln!("{}", dataset::error_line(&e));
         std::process::exit(1);
     }
 }
