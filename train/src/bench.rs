@@ -55,13 +55,19 @@ pub fn bench<B: TrainBackend>(
         .init::<B, crate::model::UNet<B>>();
     // Forward, backward and optimizer phases timed apart; kernel totals from `kernels::profile` (CPU only).
     let mut phases = [0.0f64; 3];
+    // A GPU backend queues work and returns: each phase ends with a sync so that its time is the device's, not
+    // the enqueue's (a no-op on the CPU backend). A fit reads the loss every step, which syncs as often.
+    let sync = || B::sync(device).expect("the device finishes its queued work");
     let mut step = |net: crate::model::UNet<B>, phases: &mut [f64; 3]| {
         let t = Instant::now();
         let loss = train_loss(&net, model, &batch, device);
+        sync();
         let t_forward = t.elapsed().as_secs_f64();
         let grads = GradientsParams::from_grads(loss.backward(), &net);
+        sync();
         let t_backward = t.elapsed().as_secs_f64();
         let net = optim.step(1e-4, net, grads);
+        sync();
         let t_step = t.elapsed().as_secs_f64();
         for (total, span) in
             phases
