@@ -42,6 +42,31 @@ pub fn not_built(kind: BackendKind) -> anyhow::Error {
     )
 }
 
+/// Whether the NVIDIA driver library loads, checked before the first CUDA call: cudarc loads it lazily on a
+/// worker thread and panics there with a backtrace when it is missing (a machine without an NVIDIA driver).
+/// The names are the first ones cudarc itself tries.
+#[cfg(feature = "cuda")]
+pub fn cuda_driver() -> anyhow::Result<()> {
+    let names: &[&str] = if cfg!(windows) {
+        &["nvcuda.dll"]
+    } else {
+        &["libcuda.so", "libcuda.so.1"]
+    };
+    let mut last = String::new();
+    for name in names {
+        // SAFETY: loading the driver runs only its library initialisers, as cudarc's own load of it does next; no
+        // symbol is called through this handle, which is dropped at once.
+        match unsafe { libloading::Library::new(name) } {
+            Ok(_) => return Ok(()),
+            Err(e) => last = format!("{name}: {e}"),
+        }
+    }
+    Err(anyhow::anyhow!(
+        "--backend cuda: cannot load the NVIDIA driver ({last}); run on a machine with an NVIDIA GPU and its \
+         driver, or add the driver's folder to LD_LIBRARY_PATH"
+    ))
+}
+
 /// The inference backend under an autodiff backend `B`.
 pub type Inner<B> = <B as burn::tensor::backend::AutodiffBackend>::InnerBackend;
 
@@ -56,10 +81,13 @@ macro_rules! with_backend {
                 $body
             }
             #[cfg(feature = "cuda")]
-            $crate::backend::BackendKind::Cuda => {
-                type $B = burn::backend::Autodiff<burn::backend::Cuda>;
-                $body
-            }
+            $crate::backend::BackendKind::Cuda => match $crate::backend::cuda_driver() {
+                Err(e) => Err(e),
+                Ok(()) => {
+                    type $B = burn::backend::Autodiff<burn::backend::Cuda>;
+                    $body
+                }
+            },
             #[cfg(not(feature = "cuda"))]
             $crate::backend::BackendKind::Cuda => Err($crate::backend::not_built(
                 $crate::backend::BackendKind::Cuda,
