@@ -11,7 +11,7 @@ use std::sync::Arc;
 
 use anyhow::{bail, Context, Result};
 use object_store::path::Path as ObjectPath;
-use object_store::{ObjectStore, ObjectStoreExt, PutMode, PutOptions, PutPayload};
+use object_store::{ObjectStore, ObjectStoreExt, PutMode, PutOptions, PutPayload, RetryConfig};
 
 /// Whether `location` names object storage rather than a local path.
 pub fn is_url(location: &str) -> bool {
@@ -27,6 +27,32 @@ pub fn is_url(location: &str) -> bool {
     ]
     .iter()
     .any(|scheme| location.starts_with(scheme))
+}
+
+/// How often and how long a failed S3 request is retried: a refused connection, a 5xx, or a body cut mid-way (a
+/// GET resumes from the byte it reached). object_store's defaults (10 retries within 180 s) unless
+/// `G2R_STORE_MAX_RETRIES` or `G2R_STORE_RETRY_TIMEOUT_S` say otherwise: lower them to fail fast, raise them for a
+/// flaky link.
+fn retry_config() -> Result<RetryConfig> {
+    fn number(key: &str) -> Result<Option<f64>> {
+        let Ok(text) = std::env::var(key) else {
+            return Ok(None);
+        };
+        match text.trim().parse::<f64>() {
+            Ok(value) if value.is_finite() && value >= 0.0 => Ok(Some(value)),
+            _ => {
+                bail!("{key}={text:?}: give a number ≥ 0 (or unset it for object_store's default)")
+            }
+        }
+    }
+    let mut retry = RetryConfig::default();
+    if let Some(n) = number("G2R_STORE_MAX_RETRIES")? {
+        retry.max_retries = n as usize;
+    }
+    if let Some(seconds) = number("G2R_STORE_RETRY_TIMEOUT_S")? {
+        retry.retry_timeout = std::time::Duration::from_secs_f64(seconds);
+    }
+    Ok(retry)
 }
 
 /// A "directory" in object storage: every object under one prefix.
@@ -45,6 +71,7 @@ impl RemoteDir {
             "s3" | "s3a" => {
                 let store = object_store::aws::AmazonS3Builder::from_env()
                     .with_url(url)
+                    .with_retry(retry_config()?)
                     .build()
                     .with_context(|| {
                         format!("{url}: cannot configure S3 (AWS_* environment variables)")

@@ -1,5 +1,8 @@
 //! Fixtures for tests and benchmarks of this and the other crates: a varied synthetic sample and a published
-//! dataset directory written exactly as the publish stage lays it out (shards, manifest, summary, card, Croissant).
+//! dataset directory written exactly as the publish stage lays it out (shards, manifest, summary, card, Croissant);
+//! an S3 server and a failing network link for the object-storage tests ([`s3`]).
+
+pub mod s3;
 
 use std::collections::BTreeMap;
 use std::path::Path;

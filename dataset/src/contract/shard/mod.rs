@@ -38,6 +38,10 @@ pub enum ShardError {
         path: PathBuf,
         source: parquet::errors::ParquetError,
     },
+    /// A remote shard's bytes did not arrive after object_store's retries: the network or the store failed, the
+    /// shard itself may be whole.
+    #[error("{message}; the network or the store failed: run again, or allow more retries (G2R_STORE_MAX_RETRIES, G2R_STORE_RETRY_TIMEOUT_S)")]
+    Fetch { path: PathBuf, message: String },
     #[error("{path}: {source}")]
     Schema { path: PathBuf, source: SchemaError },
     #[error("{path}: no row group {row_group} (the shard has {count})")]
@@ -48,6 +52,23 @@ pub enum ShardError {
     },
     #[error("{path}: written with schema {found}, this build reads {SCHEMA_VERSION}; rebuild the dataset or use a matching g2r version")]
     SchemaVersion { path: PathBuf, found: String },
+}
+
+impl ShardError {
+    /// A Parquet error while reading `path`. An external error is a remote read that failed
+    /// ([`crate::storage::RemoteObject::fetch`] is where one comes from): reported as such, not as a damaged shard.
+    pub fn reading(path: &std::path::Path, source: parquet::errors::ParquetError) -> Self {
+        match source {
+            parquet::errors::ParquetError::External(inner) => ShardError::Fetch {
+                path: path.to_path_buf(),
+                message: inner.to_string(),
+            },
+            source => ShardError::Parquet {
+                path: path.to_path_buf(),
+                source,
+            },
+        }
+    }
 }
 
 /// Writer properties: zstd everywhere; on the tensor leaves no dictionary (interning the 16k values per row of the

@@ -42,25 +42,16 @@ impl ShardFile {
             path: path.to_path_buf(),
             source,
         })?;
-        let metadata =
-            ArrowReaderMetadata::load(&file, ArrowReaderOptions::default()).map_err(|source| {
-                ShardError::Parquet {
-                    path: path.to_path_buf(),
-                    source,
-                }
-            })?;
+        let metadata = ArrowReaderMetadata::load(&file, ArrowReaderOptions::default())
+            .map_err(|source| ShardError::reading(path, source))?;
         Self::checked(path.to_path_buf(), metadata, None)
     }
 
     /// Open a shard in object storage: its footer is read with two ranged GETs (the length, then the metadata).
     pub fn open_remote(object: crate::storage::RemoteObject) -> Result<Self, ShardError> {
         let path = PathBuf::from(object.url());
-        let metadata = ArrowReaderMetadata::load(&object, ArrowReaderOptions::default()).map_err(
-            |source| ShardError::Parquet {
-                path: path.clone(),
-                source,
-            },
-        )?;
+        let metadata = ArrowReaderMetadata::load(&object, ArrowReaderOptions::default())
+            .map_err(|source| ShardError::reading(&path, source))?;
         Self::checked(path, metadata, Some(object))
     }
 
@@ -100,10 +91,7 @@ impl ShardFile {
     }
 
     fn parquet_err(&self, source: parquet::errors::ParquetError) -> ShardError {
-        ShardError::Parquet {
-            path: self.path.clone(),
-            source,
-        }
+        ShardError::reading(&self.path, source)
     }
 
     /// A reader of the whole file (local) or of `row_group` (remote: its column chunks fetched in one GET).
@@ -266,16 +254,10 @@ pub fn read_sample_positions(path: &Path) -> Result<SamplePositions, ShardError>
     let reader = builder
         .with_projection(mask)
         .build()
-        .map_err(|source| ShardError::Parquet {
-            path: path.to_path_buf(),
-            source,
-        })?;
+        .map_err(|source| ShardError::reading(path, source))?;
     let (mut ids, mut xs, mut ys) = (Vec::new(), Vec::new(), Vec::new());
     for batch in reader {
-        let batch = batch.map_err(|e| ShardError::Parquet {
-            path: path.to_path_buf(),
-            source: e.into(),
-        })?;
+        let batch = batch.map_err(|e| ShardError::reading(path, e.into()))?;
         let bad = || ShardError::Schema {
             path: path.to_path_buf(),
             source: crate::contract::schema::SchemaError::Column("sample_id/center_x/center_y"),
