@@ -167,6 +167,86 @@ fn overfitting_a_handful_of_samples_drops_the_loss_tenfold_below_the_uniform_fit
     );
 }
 
+/// `nonnegative_start` starts the head at the non-negative least-squares fit, not the unconstrained one: a run
+/// stopped after one step at a vanishing rate still renders the non-negative coefficients everywhere (the first
+/// model, of H3, L3 and M2, whose unconstrained fit on these crops has a negative coefficient, so the two starts
+/// differ).
+#[test]
+fn a_nonnegative_start_renders_the_nonnegative_uniform_fit() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    train::testing::write_synthetic_dataset(
+        tmp.path(),
+        synthetic_samples(8, 1),
+        synthetic_samples(4, 2),
+    );
+    let source: Arc<dyn SampleSource> = Arc::new(LocalSource::open(tmp.path()).unwrap());
+    let (model, uniform) = [BrdfModel::H3, BrdfModel::L3, BrdfModel::M2]
+        .into_iter()
+        .map(|m| {
+            let fit =
+                train::calibration::calibrate(&*source, train::training::UNIFORM_INIT_SAMPLES, m)
+                    .unwrap();
+            (m, fit)
+        })
+        .find(|(_, fit)| fit.model_uniform.iter().any(|&c| c < 0.0))
+        .expect("no candidate's unconstrained fit is negative on these crops");
+    assert!(uniform.model_uniform_nonnegative.iter().all(|&c| c >= 0.0));
+
+    let mut cfg = config(model, 1, 1e-12, 8, false);
+    cfg.nonnegative_start = true;
+    cfg.stream.augment = false;
+    let run = tmp.path().join("run");
+    fit::<Ad>(
+        source,
+        &cfg,
+        &run,
+        false,
+        Some(1),
+        &Default::default(),
+        false,
+    )
+    .unwrap();
+    let got = fingerprint(&run, &cfg);
+
+    let input = train::run_dir::run_input(&run, &cfg).unwrap();
+    let batch = HostBatch::from_samples(&synthetic_samples(2, 77), &input);
+    let npx = CROP_PX * CROP_PX;
+    let render = |coefficients: &[f64]| {
+        let planar: Vec<f64> = (0..batch.len())
+            .flat_map(|_| {
+                coefficients
+                    .iter()
+                    .flat_map(|&c| std::iter::repeat_n(inverse_leaky_relu(c), npx))
+            })
+            .collect();
+        reference_render(model, &batch, &planar)
+    };
+    let worst = |want: &[f64]| {
+        let scale = want.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        got.iter()
+            .zip(want)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max)
+            / scale
+    };
+    let nonnegative = worst(&render(&uniform.model_uniform_nonnegative));
+    let unconstrained = worst(&render(&uniform.model_uniform));
+    eprintln!(
+        "{model:?} start {:?} (unconstrained {:?}): {nonnegative:e} from the non-negative render, \
+         {unconstrained:e} from the unconstrained one",
+        uniform.model_uniform_nonnegative, uniform.model_uniform
+    );
+    assert!(
+        nonnegative <= 1e-5,
+        "{model:?}: {nonnegative:e} from the non-negative fit"
+    );
+    assert!(
+        unconstrained > 1e-3,
+        "{model:?}: the two starts render alike ({unconstrained:e})"
+    );
+}
+
 /// The network's inference output on fixed samples: weights and BatchNorm running stats in one vector.
 fn fingerprint(run: &Path, cfg: &FitConfig) -> Vec<f64> {
     fingerprint_of(run, "last/model", cfg)
