@@ -34,23 +34,23 @@ pub fn is_url(location: &str) -> bool {
 /// `G2R_STORE_MAX_RETRIES` or `G2R_STORE_RETRY_TIMEOUT_S` say otherwise: lower them to fail fast, raise them for a
 /// flaky link.
 fn retry_config() -> Result<RetryConfig> {
-    fn number(key: &str) -> Result<Option<f64>> {
+    fn parsed<T: std::str::FromStr>(key: &str, what: &str) -> Result<Option<T>> {
         let Ok(text) = std::env::var(key) else {
             return Ok(None);
         };
-        match text.trim().parse::<f64>() {
-            Ok(value) if value.is_finite() && value >= 0.0 => Ok(Some(value)),
-            _ => {
-                bail!("{key}={text:?}: give a number ≥ 0 (or unset it for object_store's default)")
-            }
+        match text.trim().parse::<T>() {
+            Ok(value) => Ok(Some(value)),
+            Err(_) => bail!("{key}={text:?}: give {what} (or unset it for object_store's default)"),
         }
     }
     let mut retry = RetryConfig::default();
-    if let Some(n) = number("G2R_STORE_MAX_RETRIES")? {
-        retry.max_retries = n as usize;
+    if let Some(n) = parsed::<usize>("G2R_STORE_MAX_RETRIES", "a whole number ≥ 0")? {
+        retry.max_retries = n;
     }
-    if let Some(seconds) = number("G2R_STORE_RETRY_TIMEOUT_S")? {
-        retry.retry_timeout = std::time::Duration::from_secs_f64(seconds);
+    if let Some(seconds) = parsed::<f64>("G2R_STORE_RETRY_TIMEOUT_S", "seconds ≥ 0")? {
+        retry.retry_timeout = std::time::Duration::try_from_secs_f64(seconds).map_err(|_| {
+            anyhow::anyhow!("G2R_STORE_RETRY_TIMEOUT_S={seconds}: give seconds ≥ 0 (or unset it)")
+        })?;
     }
     Ok(retry)
 }
