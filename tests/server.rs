@@ -117,7 +117,7 @@ fn fixture_once() -> &'static Fixture {
             let runtime = tokio::runtime::Runtime::new().unwrap();
             runtime
                 .block_on(dataset_server::serve(
-                    &serve_dir,
+                    serve_dir.to_str().unwrap(),
                     "127.0.0.1:0".parse().unwrap(),
                     true,
                     |addr| {
@@ -716,7 +716,7 @@ fn serve_in_background(dir: PathBuf) -> String {
         tokio::runtime::Runtime::new()
             .unwrap()
             .block_on(dataset_server::serve(
-                &dir,
+                dir.to_str().unwrap(),
                 "127.0.0.1:0".parse().unwrap(),
                 true,
                 |a| send.send(a).unwrap(),

@@ -60,7 +60,17 @@ pub struct RemoteDir {
     url: String,
     store: Arc<dyn ObjectStore>,
     prefix: ObjectPath,
-    runtime: tokio::runtime::Runtime,
+    /// `Some` until drop, which shuts it down without blocking: a server drops its dataset inside async code,
+    /// where dropping a runtime the ordinary way panics.
+    runtime: Option<tokio::runtime::Runtime>,
+}
+
+impl Drop for RemoteDir {
+    fn drop(&mut self) {
+        if let Some(runtime) = self.runtime.take() {
+            runtime.shutdown_background();
+        }
+    }
 }
 
 impl RemoteDir {
@@ -97,7 +107,7 @@ impl RemoteDir {
             url: url.trim_end_matches('/').to_string(),
             store,
             prefix,
-            runtime,
+            runtime: Some(runtime),
         })
     }
 
@@ -114,21 +124,51 @@ impl RemoteDir {
         self.prefix.clone().join(name)
     }
 
+    /// Run one request to completion on this directory's runtime. Callers are blocking code: a thread of its own,
+    /// or `spawn_blocking` / `block_in_place` inside an async server.
+    fn block_on<F: std::future::Future>(&self, request: F) -> F::Output {
+        self.runtime
+            .as_ref()
+            .expect("the runtime lives until drop")
+            .block_on(request)
+    }
+
     /// The whole object `name`.
     pub fn get(&self, name: &str) -> Result<Vec<u8>> {
         let path = self.path(name);
         let bytes = self
-            .runtime
             .block_on(async { self.store.get(&path).await?.bytes().await })
             .with_context(|| format!("{}: cannot read", self.url_of(name)))?;
         Ok(bytes.to_vec())
     }
 
+    /// The whole object `name`, or `None` when there is no such object (any other failure is an error).
+    pub fn get_if_exists(&self, name: &str) -> Result<Option<Vec<u8>>> {
+        let path = self.path(name);
+        match self.block_on(async { self.store.get(&path).await?.bytes().await }) {
+            Ok(bytes) => Ok(Some(bytes.to_vec())),
+            Err(object_store::Error::NotFound { .. }) => Ok(None),
+            Err(e) => Err(e).with_context(|| format!("{}: cannot read", self.url_of(name))),
+        }
+    }
+
+    /// Bytes `ranges` of object `name`; object_store merges ranges that lie close together into one GET.
+    pub fn get_ranges(&self, name: &str, ranges: &[Range<u64>]) -> Result<Vec<bytes::Bytes>> {
+        let path = self.path(name);
+        self.block_on(self.store.get_ranges(&path, ranges))
+            .with_context(|| {
+                format!(
+                    "{}: cannot read {} byte ranges",
+                    self.url_of(name),
+                    ranges.len()
+                )
+            })
+    }
+
     /// Bytes `range` of object `name` (one ranged GET).
     pub fn get_range(&self, name: &str, range: Range<u64>) -> Result<bytes::Bytes> {
         let path = self.path(name);
-        self.runtime
-            .block_on(self.store.get_range(&path, range.clone()))
+        self.block_on(self.store.get_range(&path, range.clone()))
             .with_context(|| {
                 format!(
                     "{}: cannot read bytes {}..{}",
@@ -143,7 +183,6 @@ impl RemoteDir {
     pub fn size(&self, name: &str) -> Result<u64> {
         let path = self.path(name);
         Ok(self
-            .runtime
             .block_on(self.store.head(&path))
             .with_context(|| format!("{}: not found or unreadable", self.url_of(name)))?
             .size)
@@ -152,8 +191,7 @@ impl RemoteDir {
     /// Write object `name`, replacing any.
     pub fn put(&self, name: &str, bytes: Vec<u8>) -> Result<()> {
         let path = self.path(name);
-        self.runtime
-            .block_on(self.store.put(&path, PutPayload::from(bytes)))
+        self.block_on(self.store.put(&path, PutPayload::from(bytes)))
             .with_context(|| format!("{}: the store refused the write", self.url_of(name)))?;
         Ok(())
     }
@@ -167,7 +205,6 @@ impl RemoteDir {
             ..Default::default()
         };
         match self
-            .runtime
             .block_on(self.store.put_opts(&path, PutPayload::from(bytes), options))
         {
             Ok(_) => Ok(()),
@@ -177,6 +214,96 @@ impl RemoteDir {
             ),
             Err(e) => Err(e).with_context(|| format!("{}: the store refused the write", self.url_of(name))),
         }
+    }
+}
+
+/// Where a published dataset lives: a local directory, or a prefix in object storage. Readers that take either
+/// (the dataset server, `verify`) name files by their place in the dataset (`manifest.json`, a shard's name).
+pub enum DatasetLocation {
+    Local(std::path::PathBuf),
+    Remote(Arc<RemoteDir>),
+}
+
+impl DatasetLocation {
+    /// A URL ([`is_url`]) is object storage (contacted at the first read); anything else a directory, which must
+    /// exist.
+    pub fn open(location: &str) -> Result<Self> {
+        if is_url(location) {
+            return Ok(Self::Remote(Arc::new(RemoteDir::open(location)?)));
+        }
+        let dir = std::path::Path::new(location)
+            .canonicalize()
+            .with_context(|| format!("{location}: no such dataset directory"))?;
+        Ok(Self::Local(dir))
+    }
+
+    /// The directory's path or the prefix's URL, for messages.
+    pub fn describe(&self) -> String {
+        match self {
+            Self::Local(dir) => dir.display().to_string(),
+            Self::Remote(remote) => remote.url().to_string(),
+        }
+    }
+
+    /// The path or URL of `name` in the dataset, for messages.
+    pub fn describe_file(&self, name: &str) -> String {
+        match self {
+            Self::Local(dir) => dir.join(name).display().to_string(),
+            Self::Remote(remote) => remote.url_of(name),
+        }
+    }
+
+    /// The whole file `name`.
+    pub fn read(&self, name: &str) -> Result<Vec<u8>> {
+        match self {
+            Self::Local(dir) => std::fs::read(dir.join(name))
+                .with_context(|| format!("{}: cannot read", dir.join(name).display())),
+            Self::Remote(remote) => remote.get(name),
+        }
+    }
+
+    /// The whole file `name`, or `None` when the dataset has no such file.
+    pub fn read_if_exists(&self, name: &str) -> Result<Option<Vec<u8>>> {
+        match self {
+            Self::Local(dir) => match std::fs::read(dir.join(name)) {
+                Ok(bytes) => Ok(Some(bytes)),
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
+                Err(e) => {
+                    Err(e).with_context(|| format!("{}: cannot read", dir.join(name).display()))
+                }
+            },
+            Self::Remote(remote) => remote.get_if_exists(name),
+        }
+    }
+
+    /// The size of file `name` in bytes.
+    pub fn size(&self, name: &str) -> Result<u64> {
+        match self {
+            Self::Local(dir) => Ok(std::fs::metadata(dir.join(name))
+                .with_context(|| format!("{}: not found or unreadable", dir.join(name).display()))?
+                .len()),
+            Self::Remote(remote) => remote.size(name),
+        }
+    }
+
+    /// The blake3 hash of file `name`, as manifests record it (hex).
+    pub fn blake3(&self, name: &str) -> Result<String> {
+        match self {
+            Self::Local(dir) => crate::contract::manifest::hash_file(&dir.join(name))
+                .with_context(|| format!("{}: cannot read", dir.join(name).display())),
+            Self::Remote(remote) => Ok(blake3::hash(&remote.get(name)?).to_hex().to_string()),
+        }
+    }
+
+    /// Shard `name`, its footer parsed.
+    pub fn open_shard(&self, name: &str) -> Result<crate::contract::shard::ShardFile> {
+        use crate::contract::shard::ShardFile;
+        Ok(match self {
+            Self::Local(dir) => ShardFile::open(&dir.join(name))?,
+            Self::Remote(remote) => {
+                ShardFile::open_remote(RemoteObject::open(remote.clone(), name)?)?
+            }
+        })
     }
 }
 
@@ -288,6 +415,18 @@ impl RemoteObject {
             .get_range(&self.name, range)
             .map_err(|e| parquet::errors::ParquetError::External(format!("{e:#}").into()))
     }
+
+    /// Bytes `ranges` (ranges close together merged into one GET), as the pieces of a [`ShardBytes::Fetched`].
+    pub fn fetch_ranges(&self, ranges: &[Range<u64>]) -> parquet::errors::Result<ShardBytes> {
+        let pieces = self
+            .dir
+            .get_ranges(&self.name, ranges)
+            .map_err(|e| parquet::errors::ParquetError::External(format!("{e:#}").into()))?;
+        Ok(ShardBytes::Fetched {
+            pieces: ranges.iter().map(|r| r.start).zip(pieces).collect(),
+            len: self.len,
+        })
+    }
 }
 
 impl parquet::file::reader::Length for RemoteObject {
@@ -309,32 +448,50 @@ impl parquet::file::reader::ChunkReader for RemoteObject {
     }
 }
 
-/// Where a shard reader ([`crate::contract::shard::ShardFile`]) takes its bytes from: the local file, or one row
-/// group's bytes fetched ahead from object storage.
+/// Where a shard reader ([`crate::contract::shard::ShardFile`]) takes its bytes from: the local file, or the
+/// byte ranges of one row group (all its column chunks, or only the ones a read needs) fetched ahead from object
+/// storage.
 pub enum ShardBytes {
     File(std::fs::File),
-    /// Bytes `offset..offset + bytes.len()` of a file of `len` bytes.
+    /// `(offset, bytes)` pieces of a file of `len` bytes.
     Fetched {
-        offset: u64,
-        bytes: bytes::Bytes,
+        pieces: Vec<(u64, bytes::Bytes)>,
         len: u64,
     },
 }
 
 impl ShardBytes {
+    /// Bytes `start..start + length`, which must lie inside one fetched piece.
     fn slice(&self, start: u64, length: u64) -> parquet::errors::Result<bytes::Bytes> {
-        match self {
-            ShardBytes::Fetched { offset, bytes, .. }
-                if start >= *offset && start + length <= offset + bytes.len() as u64 =>
-            {
-                let from = (start - offset) as usize;
-                Ok(bytes.slice(from..from + length as usize))
+        if let ShardBytes::Fetched { pieces, .. } = self {
+            for (offset, bytes) in pieces {
+                if start >= *offset && start + length <= offset + bytes.len() as u64 {
+                    let from = (start - offset) as usize;
+                    return Ok(bytes.slice(from..from + length as usize));
+                }
             }
-            _ => Err(parquet::errors::ParquetError::General(format!(
-                "bytes {start}..{} lie outside the fetched row group",
-                start + length
-            ))),
         }
+        Err(parquet::errors::ParquetError::General(format!(
+            "bytes {start}..{} lie outside what was fetched of the row group",
+            start + length
+        )))
+    }
+
+    /// From `start` to the end of the fetched piece holding it.
+    fn rest_of_piece(&self, start: u64) -> parquet::errors::Result<bytes::Bytes> {
+        if let ShardBytes::Fetched { pieces, .. } = self {
+            // Strictly inside: the column chunks of a row group lie end to end, so a chunk's first byte is also
+            // the end of the piece before it.
+            let holding = pieces
+                .iter()
+                .find(|(offset, bytes)| start >= *offset && start < offset + bytes.len() as u64);
+            if let Some((offset, bytes)) = holding {
+                return Ok(bytes.slice((start - offset) as usize..));
+            }
+        }
+        Err(parquet::errors::ParquetError::General(format!(
+            "byte {start} lies outside what was fetched of the row group"
+        )))
     }
 }
 
@@ -356,11 +513,7 @@ impl parquet::file::reader::ChunkReader for ShardBytes {
             ShardBytes::File(file) => Ok(Box::new(parquet::file::reader::ChunkReader::get_read(
                 file, start,
             )?)),
-            ShardBytes::Fetched { offset, bytes, .. } => {
-                let rest =
-                    bytes.len() as u64 - start.saturating_sub(*offset).min(bytes.len() as u64);
-                Ok(Box::new(self.slice(start, rest)?.reader()))
-            }
+            ShardBytes::Fetched { .. } => Ok(Box::new(self.rest_of_piece(start)?.reader())),
         }
     }
 

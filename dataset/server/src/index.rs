@@ -3,14 +3,15 @@
 //! id lookups never touch the shards and tensor reads go straight to the one row group they need.
 
 use std::collections::{BTreeMap, HashMap};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use anyhow::{bail, Context, Result};
 
-use dataset::contract::manifest::{hash_file, DatasetManifest};
+use dataset::contract::manifest::DatasetManifest;
 use dataset::contract::planner::RowGroupRef;
 use dataset::contract::schema::Sample;
 use dataset::contract::shard::ShardFile;
+use dataset::storage::DatasetLocation;
 
 /// One row: its metadata and where it lives.
 pub struct RowEntry {
@@ -34,7 +35,8 @@ pub struct TileEntry {
 }
 
 pub struct DatasetIndex {
-    pub dir: PathBuf,
+    /// The dataset's directory, or its prefix in object storage.
+    pub location: DatasetLocation,
     pub manifest: DatasetManifest,
     pub manifest_bytes: Vec<u8>,
     pub manifest_blake3: String,
@@ -58,50 +60,44 @@ fn parse_tile_id(tile_id: &str) -> Option<(i64, i64)> {
 }
 
 impl DatasetIndex {
-    /// Load `dir/manifest.json`, check every shard's size (and blake3 when `verify_hashes`), read all footers and
-    /// row metadata.
-    pub fn load(dir: &Path, verify_hashes: bool) -> Result<Self> {
-        let dir = dir
-            .canonicalize()
-            .with_context(|| format!("{}: no such dataset directory", dir.display()))?;
-        let manifest_path = dir.join("manifest.json");
-        let manifest = DatasetManifest::load_dir(&dir)?;
-        let manifest_bytes = std::fs::read(&manifest_path)
-            .with_context(|| format!("{}: cannot read", manifest_path.display()))?;
-        let manifest_blake3 = hash_file(&manifest_path)
-            .with_context(|| format!("{}: cannot read", manifest_path.display()))?;
+    /// Load `manifest.json` from a directory or a prefix in object storage, check every shard's size (and blake3
+    /// when `verify_hashes`: every shard read once), read all footers and row metadata (from a bucket: only the
+    /// metadata columns' bytes).
+    pub fn load(location: DatasetLocation, verify_hashes: bool) -> Result<Self> {
+        let Some(manifest_bytes) = location.read_if_exists("manifest.json")? else {
+            bail!(
+                "{}: no manifest.json: point at a published dataset, a directory or its object-storage URL (g2r-pipeline run writes OUT/dataset)",
+                location.describe()
+            );
+        };
+        let manifest_path = location.describe_file("manifest.json");
+        let manifest_text = std::str::from_utf8(&manifest_bytes)
+            .with_context(|| format!("{manifest_path}: not UTF-8; re-publish the dataset"))?;
+        let manifest = DatasetManifest::parse(manifest_text, Path::new(&manifest_path))?;
+        let manifest_blake3 = blake3::hash(&manifest_bytes).to_hex().to_string();
         for shard in &manifest.shards {
-            let path = dir.join(&shard.path);
-            let bytes = std::fs::metadata(&path)
-                .with_context(|| {
-                    format!(
-                        "{}: listed in manifest.json but missing; re-publish the dataset",
-                        path.display()
-                    )
-                })?
-                .len();
+            let path = location.describe_file(&shard.path);
+            let bytes = location.size(&shard.path).with_context(|| {
+                format!("{path}: listed in manifest.json but missing; re-publish the dataset")
+            })?;
             if bytes != shard.bytes {
                 bail!(
-                    "{}: {bytes} bytes, manifest.json says {}; re-publish the dataset (or run g2r-dataset verify)",
-                    path.display(),
+                    "{path}: {bytes} bytes, manifest.json says {}; re-publish the dataset (or run g2r-dataset verify)",
                     shard.bytes
                 );
             }
-            let hash =
-                || hash_file(&path).with_context(|| format!("{}: cannot read", path.display()));
-            if verify_hashes && hash()? != shard.blake3 {
-                bail!(
-                    "{}: blake3 does not match manifest.json; re-publish the dataset",
-                    path.display()
-                );
+            if verify_hashes && location.blake3(&shard.path)? != shard.blake3 {
+                bail!("{path}: blake3 does not match manifest.json; re-publish the dataset");
             }
         }
-        let summary: serde_json::Value = std::fs::read_to_string(dir.join("summary.json"))
-            .ok()
-            .and_then(|t| serde_json::from_str(&t).ok())
+        let summary: serde_json::Value = location
+            .read_if_exists("summary.json")?
+            .and_then(|bytes| serde_json::from_slice(&bytes).ok())
             .unwrap_or(serde_json::Value::Null);
-        let card = std::fs::read_to_string(dir.join("README.md"))
-            .unwrap_or_else(|_| dataset::contract::publication::dataset_card(&manifest, &summary));
+        let card = match location.read_if_exists("README.md")? {
+            Some(bytes) => String::from_utf8_lossy(&bytes).into_owned(),
+            None => dataset::contract::publication::dataset_card(&manifest, &summary),
+        };
         let croissant = dataset::contract::publication::croissant(&manifest);
 
         let (mut shards, mut rows) = (Vec::new(), Vec::new());
@@ -118,7 +114,7 @@ impl DatasetIndex {
             .collect();
         for split in manifest.split_counts.keys() {
             for name in manifest.split_shards(split) {
-                let file = ShardFile::open(&dir.join(name))?;
+                let file = location.open_shard(name)?;
                 let shard = shards.len();
                 let sizes = file.row_group_sizes();
                 let metadata = file.read_metadata()?;
@@ -174,7 +170,7 @@ impl DatasetIndex {
         {
             bail!(
                 "{}: shards hold {listed} rows of known splits, manifest.json lists {}; re-publish the dataset",
-                dir.display(),
+                location.describe(),
                 manifest.shards.iter().map(|s| s.rows).sum::<u64>()
             );
         }
@@ -214,7 +210,7 @@ impl DatasetIndex {
             *b = [b[0].min(x), b[1].min(y), b[2].max(x), b[3].max(y)];
         }
         Ok(Self {
-            dir,
+            location,
             manifest,
             manifest_bytes,
             manifest_blake3,

@@ -1,8 +1,9 @@
-//! `g2r-dataset serve`: a read-only HTTP API over one published dataset directory (axum + tower-http).
+//! `g2r-dataset serve`: a read-only HTTP API over one published dataset, a directory or a prefix in object storage
+//! (axum + tower-http; [`dataset::storage`]).
 //!
-//! Nothing outside the directory can be served: shards are looked up by exact name in the manifest's list (never
+//! Nothing outside the dataset can be served: shards are looked up by exact name in the manifest's list (never
 //! joined from a request path), and every other endpoint answers from the in-memory [`index::DatasetIndex`].
-//! File reads run on tokio's blocking pool so slow disks never stall the event loop.
+//! File and bucket reads run on tokio's blocking pool so slow disks and slow links never stall the event loop.
 //!
 //! | endpoint | answer |
 //! |---|---|
@@ -25,7 +26,6 @@ pub mod preview;
 
 use std::collections::BTreeMap;
 use std::net::SocketAddr;
-use std::path::Path;
 use std::sync::Arc;
 
 use axum::body::Body;
@@ -39,6 +39,7 @@ use tower::ServiceExt;
 
 use dataset::contract::planner::plan_epoch;
 use dataset::contract::schema::{Sample, CONTEXT_PX, CROP_PX, DEM_PX};
+use dataset::storage::{DatasetLocation, RemoteDir};
 use index::DatasetIndex;
 use preview::Preview;
 
@@ -109,19 +110,22 @@ pub fn router(index: Arc<DatasetIndex>) -> Router {
         .with_state(index)
 }
 
-/// Serve `dir` on `addr` until Ctrl-C; `ready` is called with the bound address (port 0 picks a free one).
+/// Serve the dataset at `location` (a directory, or an object-storage URL such as `s3://bucket/prefix`) on `addr`
+/// until Ctrl-C; `ready` is called with the bound address (port 0 picks a free one).
 pub async fn serve(
-    dir: &Path,
+    location: &str,
     addr: SocketAddr,
     verify_hashes: bool,
     ready: impl FnOnce(SocketAddr),
 ) -> anyhow::Result<()> {
-    let index = tokio::task::block_in_place(|| DatasetIndex::load(dir, verify_hashes))?;
+    let index = tokio::task::block_in_place(|| {
+        DatasetIndex::load(DatasetLocation::open(location)?, verify_hashes)
+    })?;
     tracing::info!(
         rows = index.rows.len(),
         shards = index.shards.len(),
         "loaded {}",
-        index.dir.display()
+        index.location.describe()
     );
     let listener = tokio::net::TcpListener::bind(addr)
         .await
@@ -405,24 +409,109 @@ fn listed_shard(index: &DatasetIndex, name: &str) -> ApiResult<usize> {
     })
 }
 
-/// The shard's bytes via tower-http's `ServeFile` (single byte ranges → 206, malformed or unsatisfiable → 416).
+/// The shard's bytes, whole or one byte range (206), as tower-http's `ServeFile` answers for a file: a malformed or
+/// unsatisfiable range, or several ranges, get 416.
 async fn shard_file(
     State(index): Shared,
     UrlPath(name): UrlPath<String>,
     request: Request,
 ) -> ApiResult<Response> {
     let shard = listed_shard(&index, &name)?;
-    let path = index.shards[shard].path().to_path_buf();
-    let response = tower_http::services::ServeFile::new_with_mime(
-        &path,
-        &"application/vnd.apache.parquet"
-            .parse()
-            .expect("valid mime"),
+    let remote = match &index.location {
+        DatasetLocation::Local(_) => {
+            let path = index.shards[shard].path().to_path_buf();
+            let mime = PARQUET_MIME.parse().expect("a valid media type");
+            let response = tower_http::services::ServeFile::new_with_mime(&path, &mime)
+                .oneshot(request)
+                .await
+                .map_err(ApiError::internal)?;
+            return Ok(response.map(Body::new));
+        }
+        DatasetLocation::Remote(remote) => remote.clone(),
+    };
+    let size = index
+        .manifest
+        .shards
+        .iter()
+        .find(|entry| entry.path == name)
+        .expect("listed_shard found it in the manifest")
+        .bytes;
+    let content = [
+        (header::CONTENT_TYPE, parquet_mime()),
+        (header::ACCEPT_RANGES, HeaderValue::from_static("bytes")),
+    ];
+    let Some(range) = request.headers().get(header::RANGE) else {
+        let body = remote_bytes(remote, name, 0..size);
+        return Ok((
+            content,
+            [(header::CONTENT_LENGTH, HeaderValue::from(size))],
+            body,
+        )
+            .into_response());
+    };
+    let unsatisfiable = || {
+        (
+            StatusCode::RANGE_NOT_SATISFIABLE,
+            [(header::CONTENT_RANGE, format!("bytes */{size}"))],
+            "the range is malformed, lies outside the shard, or asks for several ranges (one is served at a time)",
+        )
+            .into_response()
+    };
+    let ranges = range
+        .to_str()
+        .ok()
+        .and_then(|text| http_range_header::parse_range_header(text).ok())
+        .and_then(|parsed| parsed.validate(size).ok());
+    let Some([range]) = ranges.as_deref() else {
+        return Ok(unsatisfiable());
+    };
+    let (first, last) = (*range.start(), *range.end());
+    let body = remote_bytes(remote, name, first..last + 1);
+    Ok((
+        StatusCode::PARTIAL_CONTENT,
+        content,
+        [
+            (header::CONTENT_LENGTH, HeaderValue::from(last + 1 - first)),
+            (
+                header::CONTENT_RANGE,
+                HeaderValue::from_str(&format!("bytes {first}-{last}/{size}"))
+                    .expect("digits are a valid header"),
+            ),
+        ],
+        body,
     )
-    .oneshot(request)
-    .await
-    .map_err(ApiError::internal)?;
-    Ok(response.map(Body::new))
+        .into_response())
+}
+
+const PARQUET_MIME: &str = "application/vnd.apache.parquet";
+
+fn parquet_mime() -> HeaderValue {
+    HeaderValue::from_static(PARQUET_MIME)
+}
+
+/// Bytes `range` of object `name`, streamed in ranged GETs of at most 8 MiB each, so a whole-shard download holds
+/// one piece in memory, not the shard.
+fn remote_bytes(
+    remote: std::sync::Arc<RemoteDir>,
+    name: String,
+    range: std::ops::Range<u64>,
+) -> Body {
+    const PIECE: u64 = 8 << 20;
+    let end = range.end;
+    let pieces = futures_util::stream::try_unfold(range.start, move |at| {
+        let (remote, name) = (remote.clone(), name.clone());
+        async move {
+            if at >= end {
+                return Ok(None);
+            }
+            let to = (at + PIECE).min(end);
+            let bytes = tokio::task::spawn_blocking(move || remote.get_range(&name, at..to))
+                .await
+                .map_err(anyhow::Error::from)??;
+            Ok::<_, anyhow::Error>(Some((bytes, to)))
+        }
+    });
+    Body::from_stream(pieces)
 }
 
 fn arrow_response(bytes: Vec<u8>) -> Response {

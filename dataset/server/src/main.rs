@@ -48,10 +48,13 @@ enum Command {
         dir: PathBuf,
     },
     /// Serve a published dataset read-only over HTTP: JSON API under /v1, a browser viewer at /, shard bytes with
-    /// Range support, and Arrow IPC streams for training (`g2r-train fit --data http://ADDR`).
+    /// Range support, and Arrow IPC streams for training (`g2r-train fit --data http://ADDR`). The dataset may sit
+    /// in a directory or in object storage: from a bucket, start-up reads the manifest, each shard's footer and
+    /// the small metadata columns; tensors are fetched per request.
     Serve {
-        /// Published dataset directory.
-        dir: PathBuf,
+        /// Published dataset directory, or its object-storage URL (`s3://bucket/prefix`; S3 settings from AWS_*
+        /// variables, e.g. AWS_ENDPOINT_URL, AWS_ALLOW_HTTP=true).
+        dir: String,
         /// Address to listen on; port 0 picks a free port. Keep it on loopback unless a proxy fronts it.
         #[arg(long, default_value = "127.0.0.1:8080")]
         addr: std::net::SocketAddr,
@@ -161,8 +164,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             let runtime = tokio::runtime::Runtime::new()?;
             runtime.block_on(dataset_server::serve(&dir, addr, verify, |bound| {
                 println!(
-                    "serving {} at http://{bound}/ (viewer) and http://{bound}/v1/info; Ctrl-C stops",
-                    dir.display()
+                    "serving {dir} at http://{bound}/ (viewer) and http://{bound}/v1/info; Ctrl-C stops"
                 );
             }))?;
         }

@@ -94,10 +94,12 @@ impl ShardFile {
         ShardError::reading(&self.path, source)
     }
 
-    /// A reader of the whole file (local) or of `row_group` (remote: its column chunks fetched in one GET).
+    /// A reader of the whole file (local), or of `row_group` (remote: the column chunks of `columns`, or of every
+    /// column, fetched ahead; chunks that lie together come in one GET).
     fn builder(
         &self,
         row_group: Option<usize>,
+        columns: Option<&[&str]>,
     ) -> Result<ParquetRecordBatchReaderBuilder<ShardBytes>, ShardError> {
         let bytes = match (&self.remote, row_group) {
             (None, _) => {
@@ -107,18 +109,29 @@ impl ShardFile {
                 })?)
             }
             (Some(object), Some(group)) => {
-                let columns = self.metadata.metadata().row_group(group).columns();
-                let start = columns.iter().map(|c| c.byte_range().0).min().unwrap_or(0);
-                let end = columns
+                let ranges: Vec<std::ops::Range<u64>> = self
+                    .metadata
+                    .metadata()
+                    .row_group(group)
+                    .columns()
                     .iter()
-                    .map(|c| c.byte_range().0 + c.byte_range().1)
-                    .max()
-                    .unwrap_or(0);
-                ShardBytes::Fetched {
-                    offset: start,
-                    bytes: object.fetch(start..end).map_err(|e| self.parquet_err(e))?,
-                    len: parquet::file::reader::Length::len(object),
-                }
+                    .filter(|chunk| {
+                        columns.is_none_or(|wanted| {
+                            chunk
+                                .column_path()
+                                .parts()
+                                .first()
+                                .is_some_and(|name| wanted.contains(&name.as_str()))
+                        })
+                    })
+                    .map(|chunk| {
+                        let (start, length) = chunk.byte_range();
+                        start..start + length
+                    })
+                    .collect();
+                object
+                    .fetch_ranges(&ranges)
+                    .map_err(|e| self.parquet_err(e))?
             }
             (Some(_), None) => {
                 return Err(self.parquet_err(parquet::errors::ParquetError::General(
@@ -132,7 +145,8 @@ impl ShardFile {
         ))
     }
 
-    /// Raw Arrow batches of `rows` (within `row_group`), all columns or the metadata columns only.
+    /// Raw Arrow batches of `rows` (within `row_group`), all columns or the metadata columns only (a remote shard
+    /// then fetches only those columns' bytes).
     pub fn read_batches(
         &self,
         row_group: usize,
@@ -147,8 +161,16 @@ impl ShardFile {
                 count: sizes.len(),
             });
         };
+        let schema = sample_schema();
+        let metadata_columns: Vec<&str> = schema
+            .fields()
+            .iter()
+            .map(|f| f.name().as_str())
+            .filter(|n| !TENSOR_COLUMNS.contains(n))
+            .collect();
+        let columns = (!tensors).then_some(metadata_columns.as_slice());
         let mut builder = self
-            .builder(Some(row_group))?
+            .builder(Some(row_group), columns)?
             .with_row_groups(vec![row_group])
             .with_batch_size(ROW_GROUP_ROWS);
         if let Some(rows) = rows {
@@ -159,15 +181,8 @@ impl ShardFile {
                 RowSelector::skip(group_rows - rows.end),
             ]));
         }
-        if !tensors {
-            let schema = sample_schema();
-            let keep: Vec<&str> = schema
-                .fields()
-                .iter()
-                .map(|f| f.name().as_str())
-                .filter(|n| !TENSOR_COLUMNS.contains(n))
-                .collect();
-            let mask = ProjectionMask::columns(builder.parquet_schema(), keep);
+        if let Some(columns) = columns {
+            let mask = ProjectionMask::columns(builder.parquet_schema(), columns.iter().copied());
             builder = builder.with_projection(mask);
         }
         let reader = builder.build().map_err(|e| self.parquet_err(e))?;
@@ -246,7 +261,7 @@ pub struct SamplePositions {
 /// (sample_id, center_x, center_y) of every row, reading only those three columns.
 pub fn read_sample_positions(path: &Path) -> Result<SamplePositions, ShardError> {
     use arrow::array::{Array, Float64Array, StringArray};
-    let builder = ShardFile::open(path)?.builder(None)?;
+    let builder = ShardFile::open(path)?.builder(None, None)?;
     let mask = parquet::arrow::ProjectionMask::columns(
         builder.parquet_schema(),
         ["sample_id", "center_x", "center_y"],
