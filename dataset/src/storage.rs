@@ -1,5 +1,6 @@
-//! Published datasets in object storage: `s3://bucket/prefix` (and whatever else arrow-rs `object_store` serves:
-//! `gs://`, `az://`, `file://`, `memory://`), next to local directories.
+//! Published datasets in object storage: `s3://bucket/prefix` (any S3-compatible store) and `file://` (arrow-rs
+//! `object_store`), next to local directories. `gs://` and `az://` are recognised and refused in one line: their
+//! clients are not built.
 //!
 //! Synchronous on purpose: the callers (upload, verify, the trainer's sample source) are blocking code on their own
 //! threads, so each [`RemoteDir`] owns a small Tokio runtime and each call blocks on its request. S3 settings come
@@ -90,11 +91,17 @@ impl RemoteDir {
                     .with_context(|| format!("{url}: bad object path"))?;
                 (Arc::new(store), prefix)
             }
-            _ => {
+            "file" | "memory" => {
                 let (store, prefix) = object_store::parse_url(&parsed)
                     .with_context(|| format!("{url}: unsupported object-store URL"))?;
                 (Arc::from(store), prefix)
             }
+            // Recognised so they are not taken for a relative folder, but not built: object_store's gcp and azure
+            // features would add clients no test here can exercise.
+            scheme => bail!(
+                "{url}: this build reads s3:// and file:// object storage, not {scheme}://; copy the dataset to S3 \
+                 (or an S3-compatible store) or to a local folder"
+            ),
         };
         // One worker thread: requests come one at a time from each caller's thread (`block_on` from several
         // threads at once is what the trainer's prefetcher does), and the store's HTTP client is shared.
@@ -196,23 +203,34 @@ impl RemoteDir {
         Ok(())
     }
 
-    /// Write object `name` only if none exists (a conditional put: S3's `If-None-Match: *`); an existing object is
-    /// an error, whoever wrote it, so two publishers never both believe they published.
+    /// Write object `name` only if none exists (a conditional put: S3's `If-None-Match: *`); an object with other
+    /// bytes is an error, whoever wrote it, so two publishers of different datasets never both believe they
+    /// published. When the put fails or finds an object, the object is read back: if it holds exactly `bytes`, the
+    /// write happened (a response lost on the way back, then object_store's retry finding its own object) and
+    /// this is success, not a false "already exists".
     pub fn put_new(&self, name: &str, bytes: Vec<u8>) -> Result<()> {
         let path = self.path(name);
         let options = PutOptions {
             mode: PutMode::Create,
             ..Default::default()
         };
-        match self
-            .block_on(self.store.put_opts(&path, PutPayload::from(bytes), options))
-        {
-            Ok(_) => Ok(()),
-            Err(object_store::Error::AlreadyExists { .. }) => bail!(
+        let outcome = self.block_on(self.store.put_opts(
+            &path,
+            PutPayload::from(bytes.clone()),
+            options,
+        ));
+        let Err(error) = outcome else {
+            return Ok(());
+        };
+        if matches!(self.get_if_exists(name), Ok(Some(found)) if found == bytes) {
+            return Ok(());
+        }
+        match error {
+            object_store::Error::AlreadyExists { .. } => bail!(
                 "{}: already exists; publish to a new prefix (a published dataset is never overwritten)",
                 self.url_of(name)
             ),
-            Err(e) => Err(e).with_context(|| format!("{}: the store refused the write", self.url_of(name))),
+            e => Err(e).with_context(|| format!("{}: the store refused the write", self.url_of(name))),
         }
     }
 }
@@ -523,6 +541,41 @@ impl parquet::file::reader::ChunkReader for ShardBytes {
                 parquet::file::reader::ChunkReader::get_bytes(file, start, length)
             }
             ShardBytes::Fetched { .. } => self.slice(start, length as u64),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A conditional put whose object already holds exactly its bytes succeeded earlier (its response was lost
+    /// and object_store's retry found the object): success. Other bytes there: refused, and left as they were.
+    #[test]
+    fn a_conditional_put_finding_its_own_bytes_succeeds_and_other_bytes_are_refused() {
+        let remote = RemoteDir::open("memory:///datasets/a").unwrap();
+        let manifest = br#"{"name": "a"}"#.to_vec();
+        remote.put_new("manifest.json", manifest.clone()).unwrap();
+        remote.put_new("manifest.json", manifest.clone()).unwrap();
+        let refused = format!(
+            "{:#}",
+            remote
+                .put_new("manifest.json", br#"{"name": "b"}"#.to_vec())
+                .unwrap_err()
+        );
+        assert!(refused.contains("already exists"), "{refused}");
+        assert_eq!(remote.get("manifest.json").unwrap(), manifest);
+        assert_eq!(remote.get_if_exists("missing.json").unwrap(), None);
+    }
+
+    #[test]
+    fn object_stores_this_build_lacks_are_refused_in_one_line() {
+        for url in ["gs://bucket/dataset", "az://container/dataset"] {
+            let message = format!("{:#}", RemoteDir::open(url).err().unwrap());
+            assert!(
+                message.starts_with(url) && message.contains("s3://") && !message.contains('\n'),
+                "{message}"
+            );
         }
     }
 }

@@ -31,7 +31,7 @@ enum Command {
         /// (`s3://bucket/prefix`; S3 settings from AWS_* variables, e.g. AWS_ENDPOINT_URL, AWS_ALLOW_HTTP=true).
         dir: String,
     },
-    /// Copy a published dataset to object storage (`s3://bucket/prefix`, `gs://`, `az://`, `file://`): verified
+    /// Copy a published dataset to object storage (`s3://bucket/prefix` or `file://`): verified
     /// first, every shard and document uploaded, then manifest.json last with a conditional put, so a reader
     /// never sees a half-published dataset and a published one is never overwritten. `g2r-train fit --data URL`
     /// then trains from it with ranged reads.

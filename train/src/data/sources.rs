@@ -214,7 +214,7 @@ impl SampleSource for ObjectStoreSource {
     }
 }
 
-/// `--data`: an `http://` URL of `g2r-dataset serve`, an object-storage URL (`s3://bucket/prefix`, `gs://`, `az://`,
+/// `--data`: an `http://` URL of `g2r-dataset serve`, an object-storage URL (`s3://bucket/prefix`,
 /// `file://`) of a published dataset, or a published dataset directory.
 pub fn open_source(data: &str) -> Result<Arc<dyn SampleSource>> {
     if data.starts_with("http://") || data.starts_with("https://") {
