@@ -366,6 +366,14 @@ pub fn upload_dataset(dir: &std::path::Path, remote: &RemoteDir) -> Result<u64> 
     Ok(uploaded)
 }
 
+/// Whether `remote` already holds the dataset in `dir`: its `manifest.json` there, byte for byte. A rerun of a build
+/// that was uploaded before finds it so; a prefix with another dataset's manifest is refused by [`upload_dataset`].
+pub fn holds_dataset(dir: &std::path::Path, remote: &RemoteDir) -> Result<bool> {
+    let local = std::fs::read(dir.join("manifest.json"))
+        .with_context(|| format!("{}: cannot read", dir.join("manifest.json").display()))?;
+    Ok(remote.get_if_exists("manifest.json")?.as_ref() == Some(&local))
+}
+
 /// The published manifest at `remote`.
 pub fn remote_manifest(remote: &RemoteDir) -> Result<crate::contract::manifest::DatasetManifest> {
     let text = String::from_utf8(remote.get("manifest.json")?)

@@ -63,6 +63,11 @@ pub fn run(
         RunScope::Whole => (stages::pipeline(manifest, progress)?, None),
     };
     let mut ran = runner.run_timed(until, force)?;
+    let publishes =
+        !matches!(scope, RunScope::Partition(_)) && matches!(until, None | Some("publish"));
+    if let (true, Some(url)) = (publishes, &manifest.output.publish_to) {
+        copy_to_object_storage(manifest, url)?;
+    }
     if let Some(seconds) = merged_seconds {
         ran.insert(
             0,
@@ -124,6 +129,26 @@ pub fn status_lines(
         ));
     }
     Ok(lines)
+}
+
+/// Copy the published dataset to `url` (`output.publish_to`) unless it is there already, byte for byte. A copy that
+/// fails part way leaves no manifest there; running the pipeline again (every stage up to date) retries the copy.
+fn copy_to_object_storage(manifest: &PipelineManifest, url: &str) -> Result<()> {
+    let dir = manifest.out_dir().join("dataset");
+    let remote = dataset::storage::RemoteDir::open(url)?;
+    if dataset::storage::holds_dataset(&dir, &remote)? {
+        tracing::info!(url, "the dataset is already published there");
+        return Ok(());
+    }
+    let started = Instant::now();
+    let bytes = dataset::storage::upload_dataset(&dir, &remote)?;
+    tracing::info!(
+        url,
+        mib = bytes >> 20,
+        seconds = format!("{:.1}", started.elapsed().as_secs_f64()),
+        "dataset copied to object storage"
+    );
+    Ok(())
 }
 
 /// `clean`: remove every stage output, stray files under stages/, the published dataset, the partitions' outputs

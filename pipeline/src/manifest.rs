@@ -46,6 +46,11 @@ pub struct Inputs {
 pub struct Output {
     /// Stage outputs go to `DIR/stages/`, the published dataset to `DIR/dataset/`, the lock to `DIR/pipeline.lock.json`.
     pub dir: PathBuf,
+    /// Where the published dataset is copied once it is built: an object-storage prefix (`s3://bucket/prefix`),
+    /// written as `g2r-dataset upload` writes it (shards, then `manifest.json` last with a conditional put). Not a
+    /// stage parameter: where the dataset is copied does not change its bytes.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub publish_to: Option<String>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -126,7 +131,15 @@ impl PipelineManifest {
             if dataset::storage::is_url(&location) {
                 anyhow::bail!(
                     "{}: {field} = \"{location}\": the pipeline reads and writes local paths only; build to a local \
-                     folder, then publish it with `g2r-dataset upload DIR/dataset URL`",
+                     folder and set output.publish_to = \"URL\" (or run `g2r-dataset upload DIR/dataset URL`)",
+                    path.display()
+                );
+            }
+        }
+        if let Some(url) = &manifest.output.publish_to {
+            if !dataset::storage::is_url(url) {
+                anyhow::bail!(
+                    "{}: output.publish_to = \"{url}\": give an object-storage prefix such as s3://bucket/prefix (the local dataset is output.dir/dataset)",
                     path.display()
                 );
             }
