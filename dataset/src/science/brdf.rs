@@ -26,6 +26,7 @@ use glam::DVec3;
 
 use crate::science::geometry::{Cosines, HalfDiffCosines, PixelGeometry};
 use crate::science::hapke::{double_hg, hapke_i_over_f, hapke_parts, HFunction, HapkeParams};
+use crate::science::least_squares::solve_small_system;
 
 /// Negative slope of the LeakyReLU applied to every raw parameter.
 pub const LEAKY_SLOPE: f64 = 0.01;
@@ -227,39 +228,6 @@ impl BrdfModel {
             .map(|(&p, t)| leaky_relu(p) * t)
             .sum()
     }
-}
-
-/// Solve the small system `a x = b` (Gaussian elimination with partial pivoting); singular directions (a term
-/// that is zero everywhere) get 0. The normal equations of every least-squares fit of a model's coefficients.
-pub fn solve_small_system(mut a: Vec<Vec<f64>>, mut b: Vec<f64>) -> Vec<f64> {
-    let n = b.len();
-    for col in 0..n {
-        let pivot = (col..n)
-            .max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))
-            .expect("non-empty");
-        a.swap(col, pivot);
-        b.swap(col, pivot);
-        if a[col][col].abs() < 1e-300 {
-            continue;
-        }
-        for row in col + 1..n {
-            let f = a[row][col] / a[col][col];
-            let (upper, lower) = a.split_at_mut(row);
-            for (x, p) in lower[0][col..].iter_mut().zip(&upper[col][col..]) {
-                *x -= f * p;
-            }
-            b[row] -= f * b[col];
-        }
-    }
-    let mut x = vec![0.0; n];
-    for row in (0..n).rev() {
-        if a[row][row].abs() < 1e-300 {
-            continue;
-        }
-        let rest: f64 = (row + 1..n).map(|k| a[row][k] * x[k]).sum();
-        x[row] = (b[row] - rest) / a[row][row];
-    }
-    x
 }
 
 /// The geometries of lunar orbital images on a flat surface: incidence 20–80° (5° steps), emission 0–30°, the

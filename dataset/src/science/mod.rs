@@ -23,3 +23,6 @@ pub mod brdf;
 
 // Hapke's model in full, the reference the BRDF models are measured against.
 pub mod hapke;
+
+// Fitting a model's coefficients: small linear least squares, unconstrained and non-negative.
+pub mod least_squares;

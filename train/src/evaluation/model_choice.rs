@@ -28,7 +28,7 @@ use crate::calibration::{calibrate, model_uniform_render};
 use crate::data::{for_each_sample_group, SampleSource};
 
 use super::model_form::ModelFormTable;
-use super::tables::{breakdowns, PerImage};
+use super::tables::{breakdowns, group_images, PerImage};
 use super::truth::{TrueAlbedo, TruthMaps};
 
 /// A candidate's cost, in the order the choice compares it: parameter maps, then whether it evaluates Hapke.
@@ -170,11 +170,11 @@ pub fn model_choice(
             options.split
         );
     }
-    let mut groups = vec![(
-        "all".to_string(),
-        per_image.len(),
-        summed_sse(per_image.iter()),
-    )];
+    let mut groups: Vec<(String, usize, BTreeMap<String, f64>)> =
+        group_images(&per_image, |_| Some("all"))
+            .into_iter()
+            .map(|g| (g.group, g.images, g.sse))
+            .collect();
     for breakdown in breakdowns(&per_image) {
         if breakdown.by == "terrain_class_and_unit" {
             groups.extend(
@@ -225,16 +225,6 @@ fn renderings(
         ));
     }
     out
-}
-
-fn summed_sse<'a>(images: impl Iterator<Item = &'a PerImage>) -> BTreeMap<String, f64> {
-    let mut sse = BTreeMap::new();
-    for image in images {
-        for (method, m) in &image.metrics {
-            *sse.entry(method.clone()).or_default() += m.sse;
-        }
-    }
-    sse
 }
 
 fn choose(

@@ -49,7 +49,7 @@ pub struct Breakdown {
 }
 
 /// Group images by `key` (groups in key order; images with no key left out).
-fn group_images<K: Ord + ToString>(
+pub(super) fn group_images<K: Ord + ToString>(
     per_image: &[PerImage],
     key: impl Fn(&PerImage) -> Option<K>,
 ) -> Vec<PerGroup> {
