@@ -236,7 +236,7 @@ impl RemoteDir {
 }
 
 /// Where a published dataset lives: a local directory, or a prefix in object storage. Readers that take either
-/// (the dataset server, `verify`) name files by their place in the dataset (`manifest.json`, a shard's name).
+/// (the dataset server) name files by their place in the dataset (`manifest.json`, a shard's name).
 pub enum DatasetLocation {
     Local(std::path::PathBuf),
     Remote(Arc<RemoteDir>),
@@ -366,8 +366,9 @@ pub fn upload_dataset(dir: &std::path::Path, remote: &RemoteDir) -> Result<u64> 
     Ok(uploaded)
 }
 
-/// Whether `remote` already holds the dataset in `dir`: its `manifest.json` there, byte for byte. A rerun of a build
-/// that was uploaded before finds it so; a prefix with another dataset's manifest is refused by [`upload_dataset`].
+/// Whether `remote` already holds the dataset in `dir`: its `manifest.json` there, byte for byte, so the shards it
+/// lists with their hashes (not the card or other documents, which it does not hash). A rerun of a build that was
+/// uploaded before finds it so; a prefix with another dataset's manifest is refused by [`upload_dataset`].
 pub fn holds_dataset(dir: &std::path::Path, remote: &RemoteDir) -> Result<bool> {
     let local = std::fs::read(dir.join("manifest.json"))
         .with_context(|| format!("{}: cannot read", dir.join("manifest.json").display()))?;

@@ -63,11 +63,6 @@ pub fn run(
         RunScope::Whole => (stages::pipeline(manifest, progress)?, None),
     };
     let mut ran = runner.run_timed(until, force)?;
-    let publishes =
-        !matches!(scope, RunScope::Partition(_)) && matches!(until, None | Some("publish"));
-    if let (true, Some(url)) = (publishes, &manifest.output.publish_to) {
-        copy_to_object_storage(manifest, url)?;
-    }
     if let Some(seconds) = merged_seconds {
         ran.insert(
             0,
@@ -78,8 +73,17 @@ pub fn run(
             },
         );
     }
+    // The copy to object storage comes after the run record: a refused copy keeps the build's timings, and the
+    // rerun that retries it finds every stage up to date.
+    let publishes =
+        !matches!(scope, RunScope::Partition(_)) && matches!(until, None | Some("publish"));
+    let copy = || match (publishes, &manifest.output.publish_to) {
+        (true, Some(url)) => copy_to_object_storage(manifest, url),
+        _ => Ok(()),
+    };
     let seconds = started.elapsed().as_secs_f64();
     if ran.is_empty() {
+        copy()?;
         return Ok(RunOutcome {
             stages: ran,
             seconds,
@@ -96,6 +100,7 @@ pub fn run(
         "provenance": dataset::provenance::Provenance::capture(),
     });
     dataset::contract::manifest::write_json_atomic(&record_path, &record)?;
+    copy()?;
     Ok(RunOutcome {
         stages: ran,
         seconds,
@@ -131,8 +136,10 @@ pub fn status_lines(
     Ok(lines)
 }
 
-/// Copy the published dataset to `url` (`output.publish_to`) unless it is there already, byte for byte. A copy that
-/// fails part way leaves no manifest there; running the pipeline again (every stage up to date) retries the copy.
+/// Copy the published dataset to `url` (`output.publish_to`) unless the same `manifest.json` is there already (its
+/// shards, which it lists with their hashes, are then the same bytes; the card and the other documents are not
+/// compared). A copy that fails part way leaves no manifest there; running the pipeline again (every stage up to
+/// date) retries the copy.
 fn copy_to_object_storage(manifest: &PipelineManifest, url: &str) -> Result<()> {
     let dir = manifest.out_dir().join("dataset");
     let remote = dataset::storage::RemoteDir::open(url)?;

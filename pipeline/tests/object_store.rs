@@ -88,14 +88,16 @@ fn a_built_dataset_is_copied_to_its_bucket_once_and_a_refused_copy_is_rerun() {
     let manifest = build_dir(tmp.path(), url);
     let refused = error_line(&run(&manifest, &moto));
     assert!(refused.contains("s3://published/tiny/"), "{refused}");
+    // The build's timings were kept although the copy failed.
+    assert!(tmp.path().join("out/run-record.json").exists());
+
+    // Once the bucket exists, a rerun (every stage up to date) copies the same bytes.
+    assert_eq!(moto.request("PUT", "/published"), 200);
     let remote = RemoteDir::open(url).unwrap();
     assert!(
         remote.size("manifest.json").is_err(),
         "no manifest after a refused copy"
     );
-
-    // Once the bucket exists, a rerun (every stage up to date) copies the same bytes.
-    assert_eq!(moto.request("PUT", "/published"), 200);
     let out = run(&manifest, &moto);
     assert!(out.status.success(), "{}", stderr(&out));
     assert!(

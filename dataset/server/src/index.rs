@@ -78,7 +78,7 @@ impl DatasetIndex {
         for shard in &manifest.shards {
             let path = location.describe_file(&shard.path);
             let bytes = location.size(&shard.path).with_context(|| {
-                format!("{path}: listed in manifest.json but missing; re-publish the dataset")
+                format!("{path}: listed in manifest.json but not readable (re-publish the dataset if it is missing)")
             })?;
             if bytes != shard.bytes {
                 bail!(

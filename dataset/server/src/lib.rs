@@ -440,7 +440,12 @@ async fn shard_file(
         (header::CONTENT_TYPE, parquet_mime()),
         (header::ACCEPT_RANGES, HeaderValue::from_static("bytes")),
     ];
-    let Some(range) = request.headers().get(header::RANGE) else {
+    // An empty object has no byte to serve: every range is unsatisfiable (http-range-header would accept 0-0).
+    let range = request.headers().get(header::RANGE);
+    if size == 0 && range.is_some() {
+        return Ok(unsatisfiable(size));
+    }
+    let Some(range) = range else {
         let body = remote_bytes(remote, name, 0..size);
         return Ok((
             content,
@@ -449,21 +454,13 @@ async fn shard_file(
         )
             .into_response());
     };
-    let unsatisfiable = || {
-        (
-            StatusCode::RANGE_NOT_SATISFIABLE,
-            [(header::CONTENT_RANGE, format!("bytes */{size}"))],
-            "the range is malformed, lies outside the shard, or asks for several ranges (one is served at a time)",
-        )
-            .into_response()
-    };
     let ranges = range
         .to_str()
         .ok()
         .and_then(|text| http_range_header::parse_range_header(text).ok())
         .and_then(|parsed| parsed.validate(size).ok());
     let Some([range]) = ranges.as_deref() else {
-        return Ok(unsatisfiable());
+        return Ok(unsatisfiable(size));
     };
     let (first, last) = (*range.start(), *range.end());
     let body = remote_bytes(remote, name, first..last + 1);
@@ -481,6 +478,16 @@ async fn shard_file(
         body,
     )
         .into_response())
+}
+
+/// 416 for a shard of `size` bytes.
+fn unsatisfiable(size: u64) -> Response {
+    (
+        StatusCode::RANGE_NOT_SATISFIABLE,
+        [(header::CONTENT_RANGE, format!("bytes */{size}"))],
+        "the range is malformed, lies outside the shard, or asks for several ranges (one is served at a time)",
+    )
+        .into_response()
 }
 
 const PARQUET_MIME: &str = "application/vnd.apache.parquet";

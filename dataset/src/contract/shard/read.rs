@@ -20,7 +20,8 @@ use super::{ShardError, ROW_GROUP_ROWS};
 
 /// An open shard with its footer parsed once: random reads of row groups or single rows touch only the needed
 /// column chunks, and a server can hold one per shard instead of re-reading footers per request. A local file, or
-/// an object in object storage ([`crate::storage`]) read with one ranged GET per row group.
+/// an object in object storage ([`crate::storage`]) whose row groups are read by ranged GETs of the column chunks
+/// a read needs (adjacent chunks merged into one GET).
 #[derive(Clone)]
 pub struct ShardFile {
     /// The file's path, or the object's URL (for messages).
