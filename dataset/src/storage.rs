@@ -142,11 +142,8 @@ impl RemoteDir {
 
     /// The whole object `name`.
     pub fn get(&self, name: &str) -> Result<Vec<u8>> {
-        let path = self.path(name);
-        let bytes = self
-            .block_on(async { self.store.get(&path).await?.bytes().await })
-            .with_context(|| format!("{}: cannot read", self.url_of(name)))?;
-        Ok(bytes.to_vec())
+        self.get_if_exists(name)?
+            .with_context(|| format!("{}: cannot read: no such object", self.url_of(name)))
     }
 
     /// The whole object `name`, or `None` when there is no such object (any other failure is an error).

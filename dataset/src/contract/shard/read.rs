@@ -162,14 +162,18 @@ impl ShardFile {
                 count: sizes.len(),
             });
         };
-        let schema = sample_schema();
-        let metadata_columns: Vec<&str> = schema
-            .fields()
-            .iter()
-            .map(|f| f.name().as_str())
-            .filter(|n| !TENSOR_COLUMNS.contains(n))
-            .collect();
-        let columns = (!tensors).then_some(metadata_columns.as_slice());
+        // The metadata columns' names only when they are asked for: a tensor read (the trainer's per-row-group
+        // path) builds no schema.
+        let schema = (!tensors).then(sample_schema);
+        let metadata_columns: Option<Vec<&str>> = schema.as_ref().map(|schema| {
+            schema
+                .fields()
+                .iter()
+                .map(|f| f.name().as_str())
+                .filter(|n| !TENSOR_COLUMNS.contains(n))
+                .collect()
+        });
+        let columns = metadata_columns.as_deref();
         let mut builder = self
             .builder(Some(row_group), columns)?
             .with_row_groups(vec![row_group])
