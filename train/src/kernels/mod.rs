@@ -237,6 +237,21 @@ pub trait TrainOps: Backend {
         stock::batch_norm_leaky_relu::<Self>(x, gamma, beta, epsilon, slope)
     }
 
+    /// Inference-mode BatchNorm (running statistics `mean`, `var`, `[C]`) followed by LeakyReLU with `slope`:
+    /// validation, evaluation and inference.
+    #[allow(clippy::too_many_arguments)]
+    fn batch_norm_leaky_relu_inference(
+        x: FloatTensor<Self>,
+        gamma: FloatTensor<Self>,
+        beta: FloatTensor<Self>,
+        mean: FloatTensor<Self>,
+        var: FloatTensor<Self>,
+        epsilon: f64,
+        slope: f64,
+    ) -> FloatTensor<Self> {
+        stock::batch_norm_leaky_relu_inference::<Self>(x, gamma, beta, mean, var, epsilon, slope)
+    }
+
     /// Backward of [`TrainOps::batch_norm_leaky_relu`] given the forward's input, parameters, statistics and
     /// output. The stock path takes the LeakyReLU's slope mask from `output`; a kernel may instead recompute the
     /// pre-activation from `x`, `gamma`, `beta` and the statistics (one memory stream fewer per pass).
@@ -385,7 +400,15 @@ pub fn batch_norm_leaky_relu<B: TrainOps>(
 ) -> Tensor<B, 4> {
     let device = x.device();
     if !B::ad_enabled(&device) {
-        return burn::tensor::activation::leaky_relu(norm.forward(x), slope);
+        return tensor(B::batch_norm_leaky_relu_inference(
+            primitive(x),
+            primitive(norm.gamma.val()),
+            primitive(norm.beta.val()),
+            primitive(norm.running_mean.value().to_device(&device)),
+            primitive(norm.running_var.value().to_device(&device)),
+            norm.epsilon,
+            slope,
+        ));
     }
     let out = B::batch_norm_leaky_relu(
         primitive(x),

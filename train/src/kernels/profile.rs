@@ -15,6 +15,8 @@ pub enum Kernel {
     ConvBiasGrad,
     NormForward,
     NormBackward,
+    /// Inference-mode BatchNorm + LeakyReLU (running statistics): validation, evaluation, inference.
+    NormInference,
     PoolForward,
     PoolBackward,
     DropoutForward,
@@ -33,13 +35,14 @@ pub enum Kernel {
 }
 
 impl Kernel {
-    pub const ALL: [Kernel; 17] = [
+    pub const ALL: [Kernel; 18] = [
         Kernel::ConvForward,
         Kernel::ConvInputGrad,
         Kernel::ConvWeightGrad,
         Kernel::ConvBiasGrad,
         Kernel::NormForward,
         Kernel::NormBackward,
+        Kernel::NormInference,
         Kernel::PoolForward,
         Kernel::PoolBackward,
         Kernel::DropoutForward,

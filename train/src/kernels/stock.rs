@@ -49,6 +49,25 @@ pub fn batch_norm_leaky_relu<B: Backend>(
     }
 }
 
+/// Inference-mode BatchNorm (the running statistics `mean`, `var`) followed by LeakyReLU, as Burn's own module
+/// computes it (`BatchNorm::forward` without autodiff): `(x − μ) / √(var + ε) · γ + β`.
+pub fn batch_norm_leaky_relu_inference<B: Backend>(
+    x: FloatTensor<B>,
+    gamma: FloatTensor<B>,
+    beta: FloatTensor<B>,
+    mean: FloatTensor<B>,
+    var: FloatTensor<B>,
+    epsilon: f64,
+    slope: f64,
+) -> FloatTensor<B> {
+    let x = tensor::<B, 4>(x);
+    let c = x.dims()[1];
+    let per_channel = |t: FloatTensor<B>| tensor::<B, 1>(t).reshape([1, c, 1, 1]);
+    let std = per_channel(var).add_scalar(epsilon).sqrt();
+    let normalised = (x - per_channel(mean)) / std * per_channel(gamma) + per_channel(beta);
+    primitive(leaky_relu(normalised, slope))
+}
+
 /// With x̂ = (x − μ)/σ, z = γx̂ + β, y = LeakyReLU(z) and g = ∂L/∂z (z < 0 exactly where y < 0):
 /// ∂L/∂β = Σg, ∂L/∂γ = Σg·x̂, ∂L/∂x = γ/(σM) · (M·g − ∂L/∂β − x̂·∂L/∂γ), M = N·H·W (μ and σ depend on x).
 #[allow(clippy::too_many_arguments)]

@@ -96,6 +96,42 @@ fn fused_batch_norm_matches_stock_batch_norm_and_autodiff() {
     assert_close("running var", fused.2 .1, stock.2 .1, 1e-5);
 }
 
+/// Inference-mode BatchNorm + LeakyReLU (running statistics, no autodiff: validation and inference) against
+/// Burn's own module: the stock default (what CUDA runs) to the bit, the Flex kernel to f32 rounding.
+#[test]
+fn inference_batch_norm_matches_burns_module() {
+    let device = Default::default();
+    let (shape, slope, c) = ([3, 5, 7, 9], 0.01, 5);
+    let mut norm = BatchNormConfig::new(c).init::<Flex>(&device);
+    norm.gamma = Param::from_tensor(random([c], 3).inner() * 0.3 + 1.0);
+    norm.beta = Param::from_tensor(random([c], 4).inner() * 0.5);
+    norm.running_mean = burn::module::RunningState::new(random([c], 5).inner() * 0.8);
+    norm.running_var = burn::module::RunningState::new(random([c], 6).inner().abs() * 2.0 + 0.05);
+    let x = random(shape, 7).inner() * 2.0 + 0.7;
+    let burn_module = values(leaky_relu(norm.forward(x.clone()), slope));
+    let stock_default = values(tensor::<Flex, 4>(stock::batch_norm_leaky_relu_inference::<
+        Flex,
+    >(
+        primitive(x.clone()),
+        primitive(norm.gamma.val()),
+        primitive(norm.beta.val()),
+        primitive(norm.running_mean.value()),
+        primitive(norm.running_var.value()),
+        norm.epsilon,
+        slope,
+    )));
+    assert_eq!(
+        stock_default, burn_module,
+        "the stock default is Burn's module, bit for bit"
+    );
+    let kernel = values(batch_norm_leaky_relu(&norm, x, slope));
+    assert!(
+        kernel.iter().any(|&v| v < 0.0) && kernel.iter().any(|&v| v > 0.0),
+        "both sides of the LeakyReLU are exercised"
+    );
+    assert_close("inference output", kernel, burn_module, 1e-6);
+}
+
 /// The stock-op defaults (what CUDA runs) against Burn's autodiff of the stock module.
 #[test]
 fn stock_batch_norm_backward_matches_autodiff() {

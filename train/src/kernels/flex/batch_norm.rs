@@ -65,13 +65,22 @@ pub fn batch_norm_leaky_relu(
     let mean: Vec<f32> = stats.iter().map(|s| s.0 as f32).collect();
     let var: Vec<f32> = stats.iter().map(|s| s.1 as f32).collect();
     let affine = norm_affine(slice(&gamma_c), slice(&beta_c), &mean, &var, epsilon);
+    NormOutput {
+        output: from_vec(affine_leaky_relu(values, &affine, plane, slope), &shape),
+        mean: from_vec(mean, &[c]),
+        var: from_vec(var, &[c]),
+    }
+}
+
+/// `LeakyReLU(scale·x + shift)` with channel `p mod C`'s `(scale, shift)` on plane `p`: BatchNorm's output pass.
+fn affine_leaky_relu(values: &[f32], affine: &[(f32, f32)], plane: usize, slope: f64) -> Vec<f32> {
     let slope = slope as f32;
     let mut out = vec![0.0f32; values.len()];
     out.par_chunks_mut(plane)
         .zip(values.par_chunks(plane))
         .enumerate()
         .for_each(|(p, (y, x))| {
-            let (scale, shift) = affine[p % c];
+            let (scale, shift) = affine[p % affine.len()];
             vectorized(
                 #[inline(always)]
                 || {
@@ -81,11 +90,39 @@ pub fn batch_norm_leaky_relu(
                 },
             );
         });
-    NormOutput {
-        output: from_vec(out, &shape),
-        mean: from_vec(mean, &[c]),
-        var: from_vec(var, &[c]),
-    }
+    out
+}
+
+/// Inference-mode BatchNorm + LeakyReLU: the running statistics folded into one `(scale, shift)` per channel
+/// ([`norm_affine`]), then the same single output pass as training. Stock Burn computes it as four broadcasting
+/// operations and an activation, each a strided pass over the activations, which made validation cost ten
+/// training steps' worth of time per batch (perf).
+pub fn batch_norm_leaky_relu_inference(
+    x: FloatTensor<Flex>,
+    gamma: FloatTensor<Flex>,
+    beta: FloatTensor<Flex>,
+    mean: FloatTensor<Flex>,
+    var: FloatTensor<Flex>,
+    epsilon: f64,
+    slope: f64,
+) -> FloatTensor<Flex> {
+    let prepared = [&x, &gamma, &beta, &mean, &var].map(f32_data);
+    let [Some((xc, shape)), Some((gamma_c, _)), Some((beta_c, _)), Some((mean_c, _)), Some((var_c, _))] =
+        prepared
+    else {
+        return stock::batch_norm_leaky_relu_inference::<Flex>(
+            x, gamma, beta, mean, var, epsilon, slope,
+        );
+    };
+    let plane = shape[2..].iter().product::<usize>();
+    let affine = norm_affine(
+        slice(&gamma_c),
+        slice(&beta_c),
+        slice(&mean_c),
+        slice(&var_c),
+        epsilon,
+    );
+    from_vec(affine_leaky_relu(slice(&xc), &affine, plane, slope), &shape)
 }
 
 /// The backward pass of [`batch_norm_leaky_relu`]. The LeakyReLU's slope applies where the pre-activation

@@ -181,6 +181,20 @@ impl TrainOps for Flex {
         })
     }
 
+    fn batch_norm_leaky_relu_inference(
+        x: FloatTensor<Self>,
+        gamma: FloatTensor<Self>,
+        beta: FloatTensor<Self>,
+        mean: FloatTensor<Self>,
+        var: FloatTensor<Self>,
+        epsilon: f64,
+        slope: f64,
+    ) -> FloatTensor<Self> {
+        timed(Kernel::NormInference, || {
+            batch_norm::batch_norm_leaky_relu_inference(x, gamma, beta, mean, var, epsilon, slope)
+        })
+    }
+
     fn batch_norm_leaky_relu_backward(
         x: FloatTensor<Self>,
         gamma: FloatTensor<Self>,
