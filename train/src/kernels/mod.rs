@@ -1,6 +1,6 @@
 //! The U-Net's hot operations as one backend extension, [`TrainOps`]: a convolution whose backward pass the
 //! backend chooses, and a training-mode BatchNorm fused with the LeakyReLU that follows it everywhere in the
-//! network, with an analytic backward pass.
+//! network, with an analytic backward pass (and the same fusion in inference mode, from the running statistics).
 //!
 //! Why: written as stock tensor operations, BatchNorm's statistics and its autodiff graph (swap_dims, reshape,
 //! broadcast sub/div/mul and their broadcast-reducing backward passes) and the stock convolution backward

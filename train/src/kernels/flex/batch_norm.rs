@@ -1,5 +1,5 @@
-//! Training-mode BatchNorm fused with the LeakyReLU after it: statistics in f64 lanes, then one output pass;
-//! the backward pass the same two.
+//! BatchNorm fused with the LeakyReLU after it. Training mode: statistics in f64 lanes, then one output pass;
+//! the backward pass the same two. Inference mode: the output pass alone, from the running statistics.
 
 use super::*;
 

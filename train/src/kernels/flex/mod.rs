@@ -7,7 +7,8 @@
 //!   gradient per-channel sums;
 //! - [`upsample_conv`]: nearest ×2 then a 3×3 convolution, as four 2×2 convolutions on the coarse grid;
 //! - [`batch_norm`]: BatchNorm + LeakyReLU, one pass for the statistics (per channel, f64 sums of x and x²)
-//!   and one for the output, and the same two for the backward;
+//!   and one for the output, and the same two for the backward; in inference mode the output pass alone, from
+//!   the running statistics;
 //! - [`pool`], [`dropout`], [`join`] (LeakyReLU while concatenating a skip), [`render_loss`] (the renderer
 //!   layer's masked squared error).
 //!
