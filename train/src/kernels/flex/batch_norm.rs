@@ -95,8 +95,8 @@ fn affine_leaky_relu(values: &[f32], affine: &[(f32, f32)], plane: usize, slope:
 
 /// Inference-mode BatchNorm + LeakyReLU: the running statistics folded into one `(scale, shift)` per channel
 /// ([`norm_affine`]), then the same single output pass as training. Stock Burn computes it as four broadcasting
-/// operations and an activation, each a strided pass over the activations, which made validation cost ten
-/// training steps' worth of time per batch (perf).
+/// operations and an activation, each a strided pass over the activations: half of a validation's time
+/// (perf; docs/performance.md).
 pub fn batch_norm_leaky_relu_inference(
     x: FloatTensor<Flex>,
     gamma: FloatTensor<Flex>,
