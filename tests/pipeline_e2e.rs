@@ -223,6 +223,10 @@ fn merge(manifest_path: &Path, count: usize) -> Result<Vec<&'static str>, String
     .map_err(|e| format!("{e:#}"))?;
     assert_eq!(outcome.stages[0].name, "merge");
     assert_eq!(outcome.record, Some(m.out_dir().join("run-record.json")));
+    // One hash memo for the command: the partitions' checks, adopt and the publish run read each file once.
+    let hashing = outcome.hashing;
+    assert!(hashing.distinct_files > 0, "{hashing:?}");
+    assert_eq!(hashing.files_hashed, hashing.distinct_files, "{hashing:?}");
     Ok(outcome.stages[1..].iter().map(|stage| stage.name).collect())
 }
 

@@ -27,6 +27,8 @@ pub struct RunOutcome {
     pub stages: Vec<StageRun>,
     pub seconds: f64,
     pub record: Option<PathBuf>,
+    /// The files hashed to check and record the stages (at least once each; more often is wasted reading).
+    pub hashing: runner::HashStats,
 }
 
 /// Run the stale stages of `manifest` in `scope` (up to `until`, re-running `force` and what follows), and write
@@ -82,12 +84,14 @@ pub fn run(
         _ => Ok(()),
     };
     let seconds = started.elapsed().as_secs_f64();
+    let hashing = runner.hash_memo.stats();
     if ran.is_empty() {
         copy()?;
         return Ok(RunOutcome {
             stages: ran,
             seconds,
             record: None,
+            hashing,
         });
     }
     let record_path = match scope {
@@ -97,6 +101,7 @@ pub fn run(
     let record = serde_json::json!({
         "stages": ran,
         "seconds": seconds,
+        "hashing": hashing,
         "provenance": dataset::provenance::Provenance::capture(),
     });
     dataset::contract::manifest::write_json_atomic(&record_path, &record)?;
@@ -105,6 +110,7 @@ pub fn run(
         stages: ran,
         seconds,
         record: Some(record_path),
+        hashing,
     })
 }
 

@@ -96,32 +96,92 @@ pub struct Runner<'a> {
     pub lock_path: PathBuf,
     pub stages: Vec<Stage<'a>>,
     /// blake3 by path, with the size and modification time it was taken at: within one run a stage's outputs are
-    /// the next stages' inputs, and re-hashing gigabytes of unchanged files cost seconds each time.
-    pub hash_memo: HashMemo,
+    /// the next stages' inputs, and re-hashing gigabytes of unchanged files cost seconds each time. Shared (an
+    /// `Arc`) so that one command driving several runners (the merge: every partition's, then the whole's) hashes
+    /// each file once.
+    pub hash_memo: std::sync::Arc<HashMemo>,
 }
 
+/// Hashes taken, by path, with what they cost.
 #[derive(Default)]
-pub struct HashMemo(std::sync::Mutex<BTreeMap<PathBuf, (u64, std::time::SystemTime, String)>>);
+pub struct HashMemo {
+    entries: std::sync::Mutex<BTreeMap<PathBuf, (u64, std::time::SystemTime, String)>>,
+    /// Keep the entries across `status` / `run` / `adopt` calls ([`HashMemo::for_one_command`]).
+    kept: bool,
+    files_hashed: std::sync::atomic::AtomicU64,
+    bytes_hashed: std::sync::atomic::AtomicU64,
+}
+
+/// What a [`HashMemo`] hashed: `files_hashed` counts every hash computed, `distinct_files` the paths they were of
+/// (equal when no file was hashed twice), `bytes_hashed` their sizes summed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+pub struct HashStats {
+    pub files_hashed: u64,
+    pub distinct_files: u64,
+    pub bytes_hashed: u64,
+}
 
 impl HashMemo {
-    /// Forget everything: each `run` / `status` starts afresh, so edits between calls are always seen (mtime
-    /// ticks are coarse enough that two writes of equal size can share one).
-    fn clear(&self) {
-        self.0.lock().expect("hash memo poisoned").clear();
+    /// A memo forgotten at each `status` / `run` / `adopt` call, so that edits between calls on one runner are
+    /// always seen (mtime ticks are coarse enough that two writes of equal size can share one).
+    pub fn per_call() -> Self {
+        Self::default()
+    }
+
+    /// A memo kept for the whole of one command, for runners that check the same files in turn while nothing
+    /// but the runners themselves writes them (the merge). A file a stage writes is forgotten when the runner
+    /// renames it into place, so its next hash is taken from the new bytes.
+    pub fn for_one_command() -> Self {
+        Self {
+            kept: true,
+            ..Self::default()
+        }
+    }
+
+    /// The start of a `status` / `run` / `adopt` call.
+    fn begin_call(&self) {
+        if !self.kept {
+            self.lock().clear();
+        }
+    }
+
+    fn lock(
+        &self,
+    ) -> std::sync::MutexGuard<'_, BTreeMap<PathBuf, (u64, std::time::SystemTime, String)>> {
+        self.entries.lock().expect("hash memo poisoned")
+    }
+
+    /// Drop what is known of `path` (just rewritten).
+    fn forget(&self, path: &Path) {
+        self.lock().remove(path);
     }
 
     pub fn hash(&self, path: &Path) -> std::io::Result<String> {
         let meta = std::fs::metadata(path)?;
         let stamp = (meta.len(), meta.modified()?);
-        let mut memo = self.0.lock().expect("hash memo poisoned");
+        let mut memo = self.lock();
         if let Some((len, modified, hash)) = memo.get(path) {
             if (*len, *modified) == stamp {
                 return Ok(hash.clone());
             }
         }
         let hash = hash_file(path)?;
+        use std::sync::atomic::Ordering::Relaxed;
+        self.files_hashed.fetch_add(1, Relaxed);
+        self.bytes_hashed.fetch_add(stamp.0, Relaxed);
         memo.insert(path.to_path_buf(), (stamp.0, stamp.1, hash.clone()));
         Ok(hash)
+    }
+
+    /// What was hashed so far. `distinct_files` counts the paths the memo holds, so for a per-call memo it is
+    /// the last call's.
+    pub fn stats(&self) -> HashStats {
+        use std::sync::atomic::Ordering::Relaxed;
+        HashStats {
+            files_hashed: self.files_hashed.load(Relaxed),
+            distinct_files: self.lock().len() as u64,
+            bytes_hashed: self.bytes_hashed.load(Relaxed),
+        }
     }
 }
 
@@ -213,7 +273,7 @@ impl<'a> Runner<'a> {
 
     /// Staleness of every stage in order; a stale stage makes every later one stale too.
     pub fn status(&self) -> anyhow::Result<Vec<(&'static str, Staleness)>> {
-        self.hash_memo.clear();
+        self.hash_memo.begin_call();
         let lock = self.load_lock()?;
         let mut out = Vec::new();
         let mut first_stale: Option<&'static str> = None;
@@ -242,7 +302,7 @@ impl<'a> Runner<'a> {
 
     /// [`Runner::run`], returning each stage run with its wall time and the process's peak memory after it.
     pub fn run_timed(&self, until: Option<&str>, force: &[&str]) -> anyhow::Result<Vec<StageRun>> {
-        self.hash_memo.clear();
+        self.hash_memo.begin_call();
         for name in until.into_iter().chain(force.iter().copied()) {
             if !self.stages.iter().any(|s| s.name == name) {
                 let names: Vec<&str> = self.stages.iter().map(|s| s.name).collect();
@@ -273,6 +333,7 @@ impl<'a> Runner<'a> {
                         anyhow::bail!("stage '{}' did not write {}", stage.name, path.display());
                     }
                     std::fs::rename(t, path)?;
+                    self.hash_memo.forget(path);
                 }
                 lock.stages.insert(
                     stage.name.to_string(),
@@ -311,7 +372,7 @@ impl<'a> Runner<'a> {
     /// running the stages would record when the files hold the same bytes, so later stages and `status` see no
     /// difference.
     pub fn adopt(&self, names: &[&str]) -> anyhow::Result<()> {
-        self.hash_memo.clear();
+        self.hash_memo.begin_call();
         let mut lock = self.load_lock()?;
         for name in names {
             let stage = self
@@ -432,7 +493,7 @@ mod tests {
         Runner {
             root: dir.to_path_buf(),
             lock_path: dir.join("pipeline.lock.json"),
-            hash_memo: HashMemo::default(),
+            hash_memo: Default::default(),
             stages: vec![
                 Stage {
                     name: "double",

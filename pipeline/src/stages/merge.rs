@@ -11,7 +11,7 @@ use super::split::SplitSummary;
 use super::{pipeline, pipeline_scoped, row_group_rows, Layout, Scope};
 use crate::manifest::PipelineManifest;
 use crate::partition::{dir, Partition};
-use crate::runner::{Runner, Staleness};
+use crate::runner::{HashMemo, Runner, Staleness};
 use dataset::contract::manifest::write_json_atomic;
 use dataset::contract::shard::{EncodedRowGroups, ShardFile, ShardWriter};
 
@@ -23,14 +23,18 @@ pub fn merge(
     count: usize,
     progress: indicatif::ProgressBar,
 ) -> anyhow::Result<Runner<'static>> {
+    // One memo for the command: every partition checks the same DEM, and adopt and the publish run hash the
+    // images and the merged outputs again; with a memo per runner call the DEM was hashed N + 2 times.
+    let memo = std::sync::Arc::new(HashMemo::for_one_command());
     let mut parts = Vec::with_capacity(count);
     for index in 0..count {
         let part = Partition { index, count };
-        let runner = pipeline_scoped(
+        let mut runner = pipeline_scoped(
             manifest,
             Scope::Partition(part),
             indicatif::ProgressBar::hidden(),
         )?;
+        runner.hash_memo = memo.clone();
         if let Some((stage, why)) = runner
             .status()?
             .into_iter()
@@ -88,7 +92,8 @@ pub fn merge(
         .collect::<anyhow::Result<Vec<_>>>()?;
     write_json(&whole.train_dem, &TrainDemStatistic::concat(statistics))?;
 
-    let runner = pipeline(manifest, progress)?;
+    let mut runner = pipeline(manifest, progress)?;
+    runner.hash_memo = memo;
     runner.adopt(&["ingest", "erode", "sample", "split", "project"])?;
     Ok(runner)
 }
