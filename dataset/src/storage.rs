@@ -232,6 +232,94 @@ impl RemoteDir {
     }
 }
 
+/// Files larger than this are copied to and from object storage in parts of this size, never held whole in
+/// memory (and S3 caps a single PUT at 5 GB).
+const PART_BYTES: u64 = 32 << 20;
+
+impl RemoteDir {
+    /// Copy the local file `from` to object `name`, replacing any: one PUT up to [`PART_BYTES`], else a multipart
+    /// upload streamed from disk (aborted on a read or write error, so no part is left billed). Returns its size.
+    pub fn put_file(&self, name: &str, from: &std::path::Path) -> Result<u64> {
+        use std::io::Read;
+        let size = std::fs::metadata(from)
+            .with_context(|| format!("{}: cannot read", from.display()))?
+            .len();
+        if size <= PART_BYTES {
+            let bytes =
+                std::fs::read(from).with_context(|| format!("{}: cannot read", from.display()))?;
+            self.put(name, bytes)?;
+            return Ok(size);
+        }
+        let path = self.path(name);
+        let refused = || format!("{}: the store refused the write", self.url_of(name));
+        let mut file = std::fs::File::open(from)
+            .with_context(|| format!("{}: cannot read", from.display()))?;
+        self.block_on(async {
+            let upload = self
+                .store
+                .put_multipart(&path)
+                .await
+                .with_context(refused)?;
+            let mut writer =
+                object_store::WriteMultipart::new_with_chunk_size(upload, PART_BYTES as usize);
+            let mut buffer = vec![0u8; PART_BYTES as usize];
+            let copied: Result<()> = async {
+                loop {
+                    let read = file
+                        .read(&mut buffer)
+                        .with_context(|| format!("{}: cannot read", from.display()))?;
+                    if read == 0 {
+                        return Ok(());
+                    }
+                    writer.wait_for_capacity(2).await.with_context(refused)?;
+                    writer.write(&buffer[..read]);
+                }
+            }
+            .await;
+            match copied {
+                Ok(()) => writer.finish().await.map(drop).with_context(refused),
+                Err(e) => {
+                    let _ = writer.abort().await;
+                    Err(e)
+                }
+            }
+        })?;
+        Ok(size)
+    }
+
+    /// Copy object `name`, of `size` bytes, to the local file `to` (created or replaced), in ranged GETs of at most
+    /// [`PART_BYTES`]. Returns the blake3 of what was written, so the caller checks the copy without reading it
+    /// again.
+    pub fn get_to_file(&self, name: &str, size: u64, to: &std::path::Path) -> Result<String> {
+        use std::io::Write;
+        let mut file =
+            std::fs::File::create(to).with_context(|| format!("{}: cannot write", to.display()))?;
+        let mut hasher = blake3::Hasher::new();
+        let mut start = 0;
+        while start < size {
+            let end = (start + PART_BYTES).min(size);
+            let bytes = self.get_range(name, start..end)?;
+            hasher.update(&bytes);
+            file.write_all(&bytes)
+                .with_context(|| format!("{}: cannot write", to.display()))?;
+            start = end;
+        }
+        file.sync_all()
+            .with_context(|| format!("{}: cannot write", to.display()))?;
+        Ok(hasher.finalize().to_hex().to_string())
+    }
+
+    /// Remove object `name`; removing one that does not exist is not an error.
+    pub fn delete(&self, name: &str) -> Result<()> {
+        let path = self.path(name);
+        match self.block_on(self.store.delete(&path)) {
+            Ok(()) | Err(object_store::Error::NotFound { .. }) => Ok(()),
+            Err(e) => Err(e)
+                .with_context(|| format!("{}: the store refused the delete", self.url_of(name))),
+        }
+    }
+}
+
 /// Where a published dataset lives: a local directory, or a prefix in object storage. Readers that take either
 /// (the dataset server) name files by their place in the dataset (`manifest.json`, a shard's name).
 pub enum DatasetLocation {

@@ -53,6 +53,9 @@ pub fn run(
             None,
         ),
         RunScope::Merge(count) => {
+            if let Some(url) = &manifest.output.exchange {
+                fetch_partitions(manifest, count, url)?;
+            }
             let runner = stages::merge::merge(manifest, count, progress)?;
             let seconds = started.elapsed().as_secs_f64();
             tracing::info!(
@@ -79,9 +82,22 @@ pub fn run(
     // rerun that retries it finds every stage up to date.
     let publishes =
         !matches!(scope, RunScope::Partition(_)) && matches!(until, None | Some("publish"));
-    let copy = || match (publishes, &manifest.output.publish_to) {
-        (true, Some(url)) => copy_to_object_storage(manifest, url),
-        _ => Ok(()),
+    // A partition that reached its last stage goes to the exchange (when the manifest names one) after its run
+    // record, which travels with it; a rerun with nothing stale retries only the copy.
+    let exchange = match (scope, &manifest.output.exchange) {
+        (RunScope::Partition(part), Some(url)) if matches!(until, None | Some("project")) => {
+            Some((part, url))
+        }
+        _ => None,
+    };
+    let copy = || -> Result<()> {
+        if let (true, Some(url)) = (publishes, &manifest.output.publish_to) {
+            copy_to_object_storage(manifest, url)?;
+        }
+        if let Some((part, url)) = exchange {
+            send_partition(manifest, part, url)?;
+        }
+        Ok(())
     };
     let seconds = started.elapsed().as_secs_f64();
     let hashing = runner.hash_memo.stats();
@@ -160,6 +176,40 @@ fn copy_to_object_storage(manifest: &PipelineManifest, url: &str) -> Result<()> 
         mib = bytes >> 20,
         seconds = format!("{:.1}", started.elapsed().as_secs_f64()),
         "dataset copied to object storage"
+    );
+    Ok(())
+}
+
+/// Copy finished partition `part` to the exchange (`output.exchange`), for a merge on another machine.
+fn send_partition(manifest: &PipelineManifest, part: Partition, url: &str) -> Result<()> {
+    let started = Instant::now();
+    let bytes = crate::exchange::send(manifest, part, url)?;
+    if bytes > 0 {
+        tracing::info!(
+            partition = %part,
+            url = crate::exchange::prefix(url, part),
+            mib = bytes >> 20,
+            seconds = format!("{:.1}", started.elapsed().as_secs_f64()),
+            "partition copied to the exchange"
+        );
+    }
+    Ok(())
+}
+
+/// Fetch from the exchange (`output.exchange`) what the merge needs of each of `count` partitions and does not
+/// hold already.
+fn fetch_partitions(manifest: &PipelineManifest, count: usize, url: &str) -> Result<()> {
+    let started = Instant::now();
+    let mut bytes = 0;
+    for index in 0..count {
+        bytes += crate::exchange::fetch(manifest, Partition { index, count }, url)?;
+    }
+    tracing::info!(
+        partitions = count,
+        url,
+        mib = bytes >> 20,
+        seconds = format!("{:.1}", started.elapsed().as_secs_f64()),
+        "partitions fetched from the exchange"
     );
     Ok(())
 }

@@ -51,6 +51,11 @@ pub struct Output {
     /// stage parameter: where the dataset is copied does not change its bytes.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub publish_to: Option<String>,
+    /// Where partitions meet the merge when they run on machines that share no file system: an object-storage
+    /// prefix. Each finished partition copies its directory to `EXCHANGE/partitions/N/I/`, and `run --merge N`
+    /// fetches from there what it does not hold ([`crate::exchange`]). Not a stage parameter either.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub exchange: Option<String>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -140,6 +145,14 @@ impl PipelineManifest {
             if !dataset::storage::is_url(url) {
                 anyhow::bail!(
                     "{}: output.publish_to = \"{url}\": give an object-storage prefix such as s3://bucket/prefix (the local dataset is output.dir/dataset)",
+                    path.display()
+                );
+            }
+        }
+        if let Some(url) = &manifest.output.exchange {
+            if !dataset::storage::is_url(url) {
+                anyhow::bail!(
+                    "{}: output.exchange = \"{url}\": give an object-storage prefix such as s3://bucket/build (on a shared file system, leave it out: partitions write under output.dir)",
                     path.display()
                 );
             }

@@ -10,6 +10,22 @@ use std::process::{Command, Output};
 use dataset::storage::RemoteDir;
 use dataset::testing::s3::Moto;
 
+/// The tests that talk to a bucket point this process's AWS_* variables at their own moto server, so they take
+/// turns.
+static ONE_SERVER_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+/// Start moto and point this process's S3 settings at it, holding the turn until the test ends.
+fn moto_for_this_test() -> (std::sync::MutexGuard<'static, ()>, Moto) {
+    let turn = ONE_SERVER_AT_A_TIME
+        .lock()
+        .unwrap_or_else(|poisoned| poisoned.into_inner());
+    let moto = Moto::start();
+    for (key, value) in moto.env() {
+        std::env::set_var(key, value);
+    }
+    (turn, moto)
+}
+
 /// Retries bounded so a refused write fails in seconds.
 const RETRIES: [(&str, &str); 2] = [
     ("G2R_STORE_MAX_RETRIES", "1"),
@@ -78,10 +94,7 @@ fn local_and_remote(dataset: &Path, url: &str) -> Vec<(String, Vec<u8>, Vec<u8>)
 
 #[test]
 fn a_built_dataset_is_copied_to_its_bucket_once_and_a_refused_copy_is_rerun() {
-    let moto = Moto::start();
-    for (key, value) in moto.env() {
-        std::env::set_var(key, value);
-    }
+    let (_turn, moto) = moto_for_this_test();
     let tmp = tempfile::tempdir().unwrap();
     // The bucket does not exist yet: the store refuses the copy.
     let url = "s3://published/tiny";
@@ -154,4 +167,145 @@ fn publish_to_must_name_object_storage() {
         error.contains("m.toml") && error.contains("output.publish_to") && error.contains("s3://"),
         "{error}"
     );
+}
+
+/// A folder standing for one machine: the tiny world (generated once, in `world`) linked in, and a manifest whose
+/// partitions meet through `exchange`.
+fn machine(tmp: &Path, name: &str, exchange: &str) -> PathBuf {
+    let dir = tmp.join(name);
+    std::fs::create_dir_all(&dir).unwrap();
+    std::os::unix::fs::symlink(tmp.join("world"), dir.join("world")).unwrap();
+    let manifest = dir.join("m.toml");
+    let text = pipeline::manifest::tiny_manifest_toml(1, 2.0).replace(
+        "dir = \"out\"",
+        &format!("dir = \"out\"\nexchange = \"{exchange}\""),
+    );
+    std::fs::write(&manifest, text).unwrap();
+    manifest
+}
+
+fn run_with(manifest: &Path, moto: &Moto, args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_g2r-pipeline"))
+        .arg("run")
+        .arg(manifest)
+        .args(args)
+        .envs(moto.env())
+        .envs(RETRIES)
+        .output()
+        .unwrap()
+}
+
+fn dataset_files(manifest: &Path) -> Vec<(String, Vec<u8>)> {
+    let dataset = manifest.parent().unwrap().join("out/dataset");
+    let mut files: Vec<(String, Vec<u8>)> = std::fs::read_dir(&dataset)
+        .unwrap()
+        .flatten()
+        .map(|e| {
+            (
+                e.file_name().to_string_lossy().into_owned(),
+                std::fs::read(e.path()).unwrap(),
+            )
+        })
+        .collect();
+    files.sort();
+    files
+}
+
+/// Two partitions on two machines that share no folder, and a merge on a third, meet only through the bucket; the
+/// merge publishes the bytes one process publishes. A merge before a partition's copy is complete (no marker:
+/// not run yet, or being replaced) fails naming it and publishes nothing; once the partition reruns, it succeeds.
+#[test]
+fn partitions_without_a_shared_file_system_meet_through_the_exchange() {
+    let (_turn, moto) = moto_for_this_test();
+    assert_eq!(moto.request("PUT", "/build"), 200);
+    let tmp = tempfile::tempdir().unwrap();
+    pipeline::synth::generate(
+        &pipeline::synth::config::tiny(),
+        3,
+        &tmp.path().join("world"),
+        true,
+    )
+    .expect("tiny world");
+    let exchange = "s3://build/tiny";
+    let [single, first, second, merger] =
+        ["single", "first", "second", "merger"].map(|name| machine(tmp.path(), name, exchange));
+    let out = run_with(&single, &moto, &[]);
+    assert!(out.status.success(), "{}", stderr(&out));
+
+    let out = run_with(&first, &moto, &["--partition", "0/2"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert!(
+        stderr(&out).contains("partition copied to the exchange"),
+        "{}",
+        stderr(&out)
+    );
+    let missing = error_line(&run_with(&merger, &moto, &["--merge", "2"]));
+    assert!(
+        missing.contains("partition 1/2")
+            && missing.contains("s3://build/tiny/partitions/2/1/complete.json"),
+        "{missing}"
+    );
+    assert!(!merger.parent().unwrap().join("out/dataset").exists());
+
+    let out = run_with(&second, &moto, &["--partition", "1/2"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    // A rerun finds its copy in place and sends nothing.
+    let out = run_with(&second, &moto, &["--partition", "1/2"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert!(
+        stderr(&out).contains("partition already in the exchange"),
+        "{}",
+        stderr(&out)
+    );
+    // A copy being replaced has no marker: the merge waits for it.
+    let copy = RemoteDir::open("s3://build/tiny/partitions/2/1").unwrap();
+    copy.delete(pipeline::exchange::MARKER).unwrap();
+    let replacing = error_line(&run_with(&merger, &moto, &["--merge", "2"]));
+    assert!(replacing.contains("partition 1/2"), "{replacing}");
+    let out = run_with(&second, &moto, &["--partition", "1/2"]);
+    assert!(
+        stderr(&out).contains("partition copied to the exchange"),
+        "{}",
+        stderr(&out)
+    );
+
+    let out = run_with(&merger, &moto, &["--merge", "2"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let (merged, reference) = (dataset_files(&merger), dataset_files(&single));
+    assert!(merged.iter().any(|(name, _)| name.ends_with(".parquet")));
+    assert_eq!(
+        merged.iter().map(|(name, _)| name).collect::<Vec<_>>(),
+        reference.iter().map(|(name, _)| name).collect::<Vec<_>>()
+    );
+    for ((name, a), (_, b)) in merged.iter().zip(&reference) {
+        assert!(
+            a == b,
+            "{name}: the merge through the exchange differs from one process"
+        );
+    }
+}
+
+/// A file larger than one part goes up as a multipart upload and comes back whole, checked by its blake3.
+#[test]
+fn large_files_go_up_in_parts_and_come_back_whole() {
+    let (_turn, moto) = moto_for_this_test();
+    assert_eq!(moto.request("PUT", "/parts"), 200);
+    let tmp = tempfile::tempdir().unwrap();
+    let (from, to) = (tmp.path().join("big.bin"), tmp.path().join("back.bin"));
+    // 40 MiB of varied bytes: two parts of 32 MiB and 8 MiB.
+    let bytes: Vec<u8> = (0..40u64 << 20)
+        .map(|i| (i.wrapping_mul(2_654_435_761) >> 13) as u8)
+        .collect();
+    std::fs::write(&from, &bytes).unwrap();
+    let remote = RemoteDir::open("s3://parts/x").unwrap();
+    assert_eq!(
+        remote.put_file("big.bin", &from).unwrap(),
+        bytes.len() as u64
+    );
+    assert_eq!(remote.size("big.bin").unwrap(), bytes.len() as u64);
+    let blake3 = remote
+        .get_to_file("big.bin", bytes.len() as u64, &to)
+        .unwrap();
+    assert_eq!(blake3, blake3::hash(&bytes).to_hex().to_string());
+    assert!(std::fs::read(&to).unwrap() == bytes);
 }
