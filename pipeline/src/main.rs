@@ -76,11 +76,13 @@ enum Command {
         force: Vec<String>,
         /// Run only partition I of N (0-based, e.g. `$SLURM_ARRAY_TASK_ID/4`): ingest through project over a run of
         /// consecutive orthos balanced by footprint area, in OUT/partitions/N/I/ with its own lock. Nothing is
-        /// published until `--merge N` (docs/scale-out.md).
+        /// published until `--merge N` (docs/scale-out.md). With `output.exchange` in the manifest, a finished
+        /// partition is also copied there, for a merge on a machine that shares no file system with this one.
         #[arg(long, value_name = "I/N", conflicts_with = "merge")]
         partition: Option<pipeline::partition::Partition>,
         /// Join the N finished partitions into OUT/stages/ and publish: the same bytes as one process builds. An
-        /// unfinished partition is an error naming it, and nothing is published.
+        /// unfinished partition is an error naming it, and nothing is published. With `output.exchange`, what the
+        /// partitions copied there is fetched first.
         #[arg(long, value_name = "N")]
         merge: Option<usize>,
     },
