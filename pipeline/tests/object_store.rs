@@ -211,6 +211,15 @@ fn dataset_files(manifest: &Path) -> Vec<(String, Vec<u8>)> {
     files
 }
 
+/// A run that succeeded and logged `text`.
+fn succeeds_saying(out: &Output, text: &str) {
+    assert!(
+        out.status.success() && stderr(out).contains(text),
+        "{}",
+        stderr(out)
+    );
+}
+
 /// Two partitions on two machines that share no folder, and a merge on a third, meet only through the bucket; the
 /// merge publishes the bytes one process publishes. A merge before a partition's copy is complete (no marker:
 /// not run yet, or being replaced) fails naming it and publishes nothing; once the partition reruns, it succeeds.
@@ -232,12 +241,9 @@ fn partitions_without_a_shared_file_system_meet_through_the_exchange() {
     let out = run_with(&single, &moto, &[]);
     assert!(out.status.success(), "{}", stderr(&out));
 
-    let out = run_with(&first, &moto, &["--partition", "0/2"]);
-    assert!(out.status.success(), "{}", stderr(&out));
-    assert!(
-        stderr(&out).contains("partition copied to the exchange"),
-        "{}",
-        stderr(&out)
+    succeeds_saying(
+        &run_with(&first, &moto, &["--partition", "0/2"]),
+        "partition copied to the exchange",
     );
     let missing = error_line(&run_with(&merger, &moto, &["--merge", "2"]));
     assert!(
@@ -250,23 +256,18 @@ fn partitions_without_a_shared_file_system_meet_through_the_exchange() {
     let out = run_with(&second, &moto, &["--partition", "1/2"]);
     assert!(out.status.success(), "{}", stderr(&out));
     // A rerun finds its copy in place and sends nothing.
-    let out = run_with(&second, &moto, &["--partition", "1/2"]);
-    assert!(out.status.success(), "{}", stderr(&out));
-    assert!(
-        stderr(&out).contains("partition already in the exchange"),
-        "{}",
-        stderr(&out)
+    succeeds_saying(
+        &run_with(&second, &moto, &["--partition", "1/2"]),
+        "partition already in the exchange",
     );
     // A copy being replaced has no marker: the merge waits for it.
     let copy = RemoteDir::open("s3://build/tiny/partitions/2/1").unwrap();
     copy.delete(pipeline::exchange::MARKER).unwrap();
     let replacing = error_line(&run_with(&merger, &moto, &["--merge", "2"]));
     assert!(replacing.contains("partition 1/2"), "{replacing}");
-    let out = run_with(&second, &moto, &["--partition", "1/2"]);
-    assert!(
-        stderr(&out).contains("partition copied to the exchange"),
-        "{}",
-        stderr(&out)
+    succeeds_saying(
+        &run_with(&second, &moto, &["--partition", "1/2"]),
+        "partition copied to the exchange",
     );
 
     let out = run_with(&merger, &moto, &["--merge", "2"]);
