@@ -41,11 +41,14 @@ fn build_dir(dir: &Path, url: &str) -> PathBuf {
         true,
     )
     .expect("tiny world");
+    tiny_manifest(dir, 1.0, &format!("publish_to = \"{url}\""))
+}
+
+/// `dir/m.toml`: the tiny manifest at `coverage` with `output_line` added to its `[output]` table.
+fn tiny_manifest(dir: &Path, coverage: f64, output_line: &str) -> PathBuf {
     let manifest = dir.join("m.toml");
-    let text = pipeline::manifest::tiny_manifest_toml(1, 1.0).replace(
-        "dir = \"out\"",
-        &format!("dir = \"out\"\npublish_to = \"{url}\""),
-    );
+    let text = pipeline::manifest::tiny_manifest_toml(1, coverage)
+        .replace("dir = \"out\"", &format!("dir = \"out\"\n{output_line}"));
     std::fs::write(&manifest, text).unwrap();
     manifest
 }
@@ -151,22 +154,22 @@ fn a_built_dataset_is_copied_to_its_bucket_once_and_a_refused_copy_is_rerun() {
 }
 
 #[test]
-fn publish_to_must_name_object_storage() {
+fn publish_to_and_exchange_must_name_object_storage() {
     let tmp = tempfile::tempdir().unwrap();
-    let manifest = tmp.path().join("m.toml");
-    let text = pipeline::manifest::tiny_manifest_toml(1, 1.0).replace(
-        "dir = \"out\"",
-        "dir = \"out\"\npublish_to = \"copies/tiny\"",
-    );
-    std::fs::write(&manifest, text).unwrap();
-    let error = format!(
-        "{:#}",
-        pipeline::manifest::PipelineManifest::load(&manifest).unwrap_err()
-    );
-    assert!(
-        error.contains("m.toml") && error.contains("output.publish_to") && error.contains("s3://"),
-        "{error}"
-    );
+    for (field, line) in [
+        ("output.publish_to", "publish_to = \"copies/tiny\""),
+        ("output.exchange", "exchange = \"shared/build\""),
+    ] {
+        let manifest = tiny_manifest(tmp.path(), 1.0, line);
+        let error = format!(
+            "{:#}",
+            pipeline::manifest::PipelineManifest::load(&manifest).unwrap_err()
+        );
+        assert!(
+            error.contains("m.toml") && error.contains(field) && error.contains("s3://"),
+            "{error}"
+        );
+    }
 }
 
 /// A folder standing for one machine: the tiny world (generated once, in `world`) linked in, and a manifest whose
@@ -175,13 +178,7 @@ fn machine(tmp: &Path, name: &str, exchange: &str) -> PathBuf {
     let dir = tmp.join(name);
     std::fs::create_dir_all(&dir).unwrap();
     std::os::unix::fs::symlink(tmp.join("world"), dir.join("world")).unwrap();
-    let manifest = dir.join("m.toml");
-    let text = pipeline::manifest::tiny_manifest_toml(1, 2.0).replace(
-        "dir = \"out\"",
-        &format!("dir = \"out\"\nexchange = \"{exchange}\""),
-    );
-    std::fs::write(&manifest, text).unwrap();
-    manifest
+    tiny_manifest(&dir, 2.0, &format!("exchange = \"{exchange}\""))
 }
 
 fn run_with(manifest: &Path, moto: &Moto, args: &[&str]) -> Output {
