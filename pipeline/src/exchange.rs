@@ -15,7 +15,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::manifest::PipelineManifest;
 use crate::partition::{self, Partition};
-use dataset::contract::manifest::hash_file;
+use crate::runner::HashMemo;
 use dataset::science::raster::tmp_path;
 use dataset::storage::RemoteDir;
 
@@ -44,36 +44,31 @@ pub fn prefix(url: &str, part: Partition) -> String {
     )
 }
 
-/// The files under `dir` (recursively), relative and sorted, leaving out unfinished `*.tmp` outputs.
+/// The files under `dir`, relative (`/`-separated) and sorted, leaving out unfinished `*.tmp` outputs.
 fn files_under(dir: &Path) -> Result<Vec<String>> {
-    let (mut found, mut pending) = (Vec::new(), vec![dir.to_path_buf()]);
-    while let Some(folder) = pending.pop() {
-        for entry in std::fs::read_dir(&folder)
-            .with_context(|| format!("{}: cannot list", folder.display()))?
-        {
-            let path = entry?.path();
-            if path.is_dir() {
-                pending.push(path);
-            } else if path.extension().is_none_or(|e| e != "tmp") {
-                let relative = path.strip_prefix(dir).expect("listed under dir");
-                found.push(
-                    relative
-                        .components()
-                        .map(|c| c.as_os_str().to_string_lossy().into_owned())
-                        .collect::<Vec<_>>()
-                        .join("/"),
-                );
-            }
-        }
-    }
-    found.sort();
-    Ok(found)
+    Ok(crate::runner::files_under(dir)?
+        .into_iter()
+        .filter(|(path, _)| path.extension().is_none_or(|e| e != "tmp"))
+        .map(|(path, _)| {
+            let relative = path.strip_prefix(dir).expect("listed under dir");
+            relative
+                .components()
+                .map(|c| c.as_os_str().to_string_lossy().into_owned())
+                .collect::<Vec<_>>()
+                .join("/")
+        })
+        .collect())
 }
 
 /// Copy finished partition `part` to the exchange `url`: every file, then [`MARKER`] last. A copy already there
 /// with the same marker is left as it is; another one loses its marker first, then is replaced. Returns the bytes
-/// copied (0 when the copy was there).
-pub fn send(manifest: &PipelineManifest, part: Partition, url: &str) -> Result<u64> {
+/// copied (0 when the copy was there). Hashes come from `memo`, the partition runner's, which holds its outputs'.
+pub fn send(
+    manifest: &PipelineManifest,
+    part: Partition,
+    url: &str,
+    memo: &HashMemo,
+) -> Result<u64> {
     let dir = partition::dir(manifest, part);
     let mut listing = Listing {
         files: BTreeMap::new(),
@@ -81,8 +76,9 @@ pub fn send(manifest: &PipelineManifest, part: Partition, url: &str) -> Result<u
     for name in files_under(&dir)? {
         let path = dir.join(&name);
         let bytes = std::fs::metadata(&path)?.len();
-        let blake3 =
-            hash_file(&path).with_context(|| format!("{}: cannot read", path.display()))?;
+        let blake3 = memo
+            .hash(&path)
+            .with_context(|| format!("{}: cannot read", path.display()))?;
         listing.files.insert(name, FileEntry { bytes, blake3 });
     }
     let marker = serde_json::to_vec_pretty(&listing)?;
@@ -103,8 +99,13 @@ pub fn send(manifest: &PipelineManifest, part: Partition, url: &str) -> Result<u
 /// Make partition `part`'s directory hold its copy in the exchange `url`: each file the marker lists is fetched
 /// unless the local one has its size and blake3, checked as it arrives, and renamed into place. A partition with
 /// no marker there has not finished (or is being replaced): an error naming it, and nothing is merged.
-/// Returns the bytes fetched.
-pub fn fetch(manifest: &PipelineManifest, part: Partition, url: &str) -> Result<u64> {
+/// Returns the bytes fetched. `memo` is the merge's: what is checked or fetched here is not read again there.
+pub fn fetch(
+    manifest: &PipelineManifest,
+    part: Partition,
+    url: &str,
+    memo: &HashMemo,
+) -> Result<u64> {
     let remote = RemoteDir::open(&prefix(url, part))?;
     let Some(marker) = remote.get_if_exists(MARKER)? else {
         bail!(
@@ -119,7 +120,7 @@ pub fn fetch(manifest: &PipelineManifest, part: Partition, url: &str) -> Result<
     for (name, entry) in &listing.files {
         let path: PathBuf = name.split('/').fold(dir.clone(), |p, c| p.join(c));
         let held = std::fs::metadata(&path).is_ok_and(|m| m.len() == entry.bytes)
-            && hash_file(&path).is_ok_and(|h| h == entry.blake3);
+            && memo.hash(&path).is_ok_and(|h| h == entry.blake3);
         if held {
             continue;
         }
@@ -138,6 +139,7 @@ pub fn fetch(manifest: &PipelineManifest, part: Partition, url: &str) -> Result<
         }
         std::fs::rename(&tmp, &path)
             .with_context(|| format!("{}: cannot write", path.display()))?;
+        memo.remember(&path, blake3)?;
         fetched += entry.bytes;
     }
     Ok(fetched)

@@ -53,10 +53,11 @@ pub fn run(
             None,
         ),
         RunScope::Merge(count) => {
+            let memo = std::sync::Arc::new(runner::HashMemo::for_one_command());
             if let Some(url) = &manifest.output.exchange {
-                fetch_partitions(manifest, count, url)?;
+                fetch_partitions(manifest, count, url, &memo)?;
             }
-            let runner = stages::merge::merge(manifest, count, progress)?;
+            let runner = stages::merge::merge(manifest, count, memo, progress)?;
             let seconds = started.elapsed().as_secs_f64();
             tracing::info!(
                 partitions = count,
@@ -95,7 +96,7 @@ pub fn run(
             copy_to_object_storage(manifest, url)?;
         }
         if let Some((part, url)) = exchange {
-            send_partition(manifest, part, url)?;
+            send_partition(manifest, part, url, &runner.hash_memo)?;
         }
         Ok(())
     };
@@ -181,9 +182,14 @@ fn copy_to_object_storage(manifest: &PipelineManifest, url: &str) -> Result<()> 
 }
 
 /// Copy finished partition `part` to the exchange (`output.exchange`), for a merge on another machine.
-fn send_partition(manifest: &PipelineManifest, part: Partition, url: &str) -> Result<()> {
+fn send_partition(
+    manifest: &PipelineManifest,
+    part: Partition,
+    url: &str,
+    memo: &runner::HashMemo,
+) -> Result<()> {
     let started = Instant::now();
-    let bytes = crate::exchange::send(manifest, part, url)?;
+    let bytes = crate::exchange::send(manifest, part, url, memo)?;
     if bytes > 0 {
         tracing::info!(
             partition = %part,
@@ -198,11 +204,16 @@ fn send_partition(manifest: &PipelineManifest, part: Partition, url: &str) -> Re
 
 /// Fetch from the exchange (`output.exchange`) what the merge needs of each of `count` partitions and does not
 /// hold already.
-fn fetch_partitions(manifest: &PipelineManifest, count: usize, url: &str) -> Result<()> {
+fn fetch_partitions(
+    manifest: &PipelineManifest,
+    count: usize,
+    url: &str,
+    memo: &runner::HashMemo,
+) -> Result<()> {
     let started = Instant::now();
     let mut bytes = 0;
     for index in 0..count {
-        bytes += crate::exchange::fetch(manifest, Partition { index, count }, url)?;
+        bytes += crate::exchange::fetch(manifest, Partition { index, count }, url, memo)?;
     }
     tracing::info!(
         partitions = count,
@@ -266,20 +277,8 @@ pub fn world_config(preset: &str, config_path: Option<&Path>) -> Result<WorldCon
 
 /// Bytes of the files under `dir` (what `synth` reports having written).
 pub fn tree_bytes(dir: &Path) -> u64 {
-    std::fs::read_dir(dir)
-        .map(|entries| {
-            entries
-                .flatten()
-                .map(|entry| {
-                    let path = entry.path();
-                    if path.is_dir() {
-                        tree_bytes(&path)
-                    } else {
-                        entry.metadata().map(|m| m.len()).unwrap_or(0)
-                    }
-                })
-                .sum()
-        })
+    runner::files_under(dir)
+        .map(|files| files.iter().map(|(_, bytes)| bytes).sum())
         .unwrap_or(0)
 }
 

@@ -112,8 +112,9 @@ pub struct HashMemo {
     bytes_hashed: std::sync::atomic::AtomicU64,
 }
 
-/// What a [`HashMemo`] hashed: `files_hashed` counts every hash computed, `distinct_files` the paths they were of
-/// (equal when no file was hashed twice), `bytes_hashed` their sizes summed.
+/// What a [`HashMemo`] hashed: `files_hashed` counts every file read to hash it and `bytes_hashed` their sizes,
+/// `distinct_files` the paths it holds hashes of (equal to `files_hashed` when no file was read twice and none was
+/// [`HashMemo::remember`]ed).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 pub struct HashStats {
     pub files_hashed: u64,
@@ -171,6 +172,15 @@ impl HashMemo {
         self.bytes_hashed.fetch_add(stamp.0, Relaxed);
         memo.insert(path.to_path_buf(), (stamp.0, stamp.1, hash.clone()));
         Ok(hash)
+    }
+
+    /// Record `hash` as `path`'s, taken from the bytes just written there (a download checked on the way), so
+    /// the next check does not read the file again.
+    pub fn remember(&self, path: &Path, hash: String) -> std::io::Result<()> {
+        let meta = std::fs::metadata(path)?;
+        self.lock()
+            .insert(path.to_path_buf(), (meta.len(), meta.modified()?, hash));
+        Ok(())
     }
 
     /// What was hashed so far. `distinct_files` counts the paths the memo holds, so for a per-call memo it is
@@ -403,27 +413,10 @@ impl<'a> Runner<'a> {
             .flat_map(|s| s.outputs.iter())
             .flat_map(|p| [p.clone(), tmp_path(p)])
             .collect();
-        let (mut found, mut pending) = (Vec::new(), vec![dir.to_path_buf()]);
-        while let Some(d) = pending.pop() {
-            let entries = match std::fs::read_dir(&d) {
-                Ok(entries) => entries,
-                Err(e) if e.kind() == std::io::ErrorKind::NotFound => continue,
-                Err(e) => {
-                    return Err(anyhow::Error::new(e).context(format!("listing {}", d.display())))
-                }
-            };
-            for entry in entries {
-                let entry = entry?;
-                let meta = entry.metadata()?;
-                if meta.is_dir() {
-                    pending.push(entry.path());
-                } else if !known.contains(&entry.path()) {
-                    found.push((entry.path(), meta.len()));
-                }
-            }
-        }
-        found.sort();
-        Ok(found)
+        Ok(files_under(dir)?
+            .into_iter()
+            .filter(|(path, _)| !known.contains(path))
+            .collect())
     }
 
     /// Remove every declared output, leftover temporaries and the lock.
@@ -442,6 +435,29 @@ impl<'a> Runner<'a> {
         }
         Ok(removed)
     }
+}
+
+/// Every file under `dir` (recursively) with its size, sorted by path; none when `dir` does not exist.
+pub fn files_under(dir: &Path) -> anyhow::Result<Vec<(PathBuf, u64)>> {
+    let (mut found, mut pending) = (Vec::new(), vec![dir.to_path_buf()]);
+    while let Some(d) = pending.pop() {
+        let entries = match std::fs::read_dir(&d) {
+            Ok(entries) => entries,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => continue,
+            Err(e) => return Err(anyhow::Error::new(e).context(format!("listing {}", d.display()))),
+        };
+        for entry in entries {
+            let entry = entry?;
+            let meta = entry.metadata()?;
+            if meta.is_dir() {
+                pending.push(entry.path());
+            } else {
+                found.push((entry.path(), meta.len()));
+            }
+        }
+    }
+    found.sort();
+    Ok(found)
 }
 
 /// One stage that ran, as `g2r-pipeline run` records it in `run-record.json`.

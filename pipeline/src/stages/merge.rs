@@ -18,14 +18,16 @@ use dataset::contract::shard::{EncodedRowGroups, ShardFile, ShardWriter};
 /// The reduce: check that every partition of `count` is finished, join their outputs into the single-process
 /// layout, record those stages in the manifest's lock as run, and return the single-process runner, whose `run`
 /// then publishes. A missing or unfinished partition is an error naming it, and nothing is published.
+///
+/// `memo` is the command's ([`HashMemo::for_one_command`]), shared by every runner here and the one returned:
+/// every partition checks the same DEM, and adopt and the publish run check the images and the merged outputs
+/// again, and each file is read once.
 pub fn merge(
     manifest: &PipelineManifest,
     count: usize,
+    memo: std::sync::Arc<HashMemo>,
     progress: indicatif::ProgressBar,
 ) -> anyhow::Result<Runner<'static>> {
-    // One memo for the command: every partition checks the same DEM, and adopt and the publish run hash the
-    // images and the merged outputs again; with a memo per runner call the DEM was hashed N + 2 times.
-    let memo = std::sync::Arc::new(HashMemo::for_one_command());
     let mut parts = Vec::with_capacity(count);
     for index in 0..count {
         let part = Partition { index, count };

@@ -359,6 +359,6 @@ pub fn pipeline_scoped(
         root: m.base_dir.clone(),
         lock_path,
         stages,
-        hash_memo: Default::default(),
+        hash_memo: std::sync::Arc::new(crate::runner::HashMemo::per_call()),
     })
 }
