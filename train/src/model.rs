@@ -12,7 +12,8 @@ use burn::prelude::*;
 use burn::tensor::activation::leaky_relu;
 
 use crate::kernels::{
-    batch_norm_leaky_relu, conv2d, dropout, join_channels, max_pool2d, upsample_conv2d, TrainOps,
+    batch_norm_leaky_relu, conv2d, dropout, join_channels, max_pool2d, pointwise_conv2d_joined,
+    upsample_conv2d, TrainOps,
 };
 
 /// Negative slope of the network's activations.
@@ -388,11 +389,19 @@ impl<B: Backend> UNet<B> {
                 x = x * (gamma.expand([n, c, h, w]) + 1.0) + beta.expand([n, c, h, w]);
             }
         }
-        let x = match &self.head_hidden {
-            Some(hidden) => leaky_relu(conv2d(hidden, join(x)), ACTIVATION_SLOPE),
-            None => join(x),
+        // The 1×1 convolutions that read the joined features at full resolution take them as a per-sample
+        // offset, not as planes (`pointwise_conv2d_joined`).
+        let joined_conv = |conv: &Conv2d<B>, x: Tensor<B, 4>| match &features {
+            Some(f) => pointwise_conv2d_joined(conv, x, f),
+            None => conv2d(conv, x),
         };
-        let out = conv2d(&self.head, x);
+        let out = match &self.head_hidden {
+            Some(hidden) => conv2d(
+                &self.head,
+                leaky_relu(joined_conv(hidden, x), ACTIVATION_SLOPE),
+            ),
+            None => joined_conv(&self.head, x),
+        };
         match (&self.level, crop_elevation) {
             (Some(level), Some(elevation)) => {
                 let inputs = match &features {

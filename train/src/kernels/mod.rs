@@ -321,6 +321,44 @@ pub fn conv2d<B: TrainOps>(conv: &Conv2d<B>, x: Tensor<B, 4>) -> Tensor<B, 4> {
     ))
 }
 
+/// A 1×1 convolution of `x` (`[N, C, H, W]`) joined with `features` (`[N, K]`) as `K` planes constant over
+/// each sample: `conv(cat[x, features broadcast])` without building the planes. Over a constant plane a 1×1
+/// convolution is a per-sample offset, so it is `conv_x(x) + W_f · features` with the weight split by input
+/// channel (`W = [W_x | W_f]`). At the head the planes were `K / C` times the features the network computes
+/// there (32 planes beside 8 at width 8): building them, the joined gemm over them and their gradients'
+/// reduction back to `[N, K]` cost more of a train step than the head's own work.
+pub fn pointwise_conv2d_joined<B: TrainOps>(
+    conv: &Conv2d<B>,
+    x: Tensor<B, 4>,
+    features: &Tensor<B, 2>,
+) -> Tensor<B, 4> {
+    let [p, joined, kh, kw] = conv.weight.dims();
+    let ([n, c, h, w], [nf, k]) = (x.dims(), features.dims());
+    assert!(
+        [kh, kw] == [1, 1]
+            && matches!(conv.padding, PaddingConfig2d::Valid)
+            && conv.stride == [1, 1]
+            && conv.dilation == [1, 1]
+            && conv.groups == 1,
+        "pointwise_conv2d_joined needs a 1x1, stride-1, unpadded convolution"
+    );
+    assert!(
+        joined == c + k && nf == n,
+        "a {joined}-channel convolution cannot join {c} channels with {k} features of {nf} samples"
+    );
+    let weight = conv.weight.val();
+    let local_weight = weight.clone().narrow(1, 0, c);
+    let feature_weight = weight.narrow(1, c, k).reshape([p, k]);
+    let local = tensor(B::train_conv2d(
+        primitive(x),
+        primitive(local_weight),
+        conv.bias.as_ref().map(|b| primitive(b.val())),
+        ConvOptions::new([1, 1], [0, 0], [1, 1], 1),
+    ));
+    let offset = features.clone().matmul(feature_weight.transpose());
+    local + offset.reshape([n, p, 1, 1]).expand([n, p, h, w])
+}
+
 /// `dropout.forward(x)` through [`TrainOps::dropout`]: the identity in inference or at probability 0, as Burn's.
 pub fn dropout<B: TrainOps>(dropout: &Dropout, x: Tensor<B, 4>) -> Tensor<B, 4> {
     if !B::ad_enabled(&x.device()) || dropout.prob == 0.0 {

@@ -504,6 +504,55 @@ fn join_channels_matches_leaky_relu_then_cat_and_splits_its_gradient() {
     assert_eq!(values(tensor::<Flex, 4>(fb)), values(tensor::<Flex, 4>(rb)));
 }
 
+/// The joined pointwise convolution against the convolution of the materialised join (features repeated as
+/// constant planes, then concatenated): the output and every gradient (x, the features, the weight, the bias),
+/// through autodiff, with more output channels than one and a plane that is not a SIMD multiple. Only the order
+/// of the sums differs, so the two agree to f32 rounding.
+#[test]
+fn pointwise_conv_of_joined_features_matches_the_materialised_join() {
+    let device = Default::default();
+    let ([n, c, h, w], k, p) = ([3, 4, 7, 5], 6, 2);
+    let weights = random([n, p, h, w], 101);
+    let mut conv = Conv2dConfig::new([c + k, p], [1, 1]).init::<Ad>(&device);
+    conv.weight = Param::from_tensor(random([p, c + k, 1, 1], 102).detach());
+    conv.bias = Some(Param::from_tensor(random([p], 103).detach()));
+    let run = |split: bool| {
+        let x = random([n, c, h, w], 104).require_grad();
+        let f = random([n, k], 105).require_grad();
+        let y = if split {
+            pointwise_conv2d_joined(&conv, x.clone(), &f)
+        } else {
+            let planes = f
+                .clone()
+                .reshape([n, k, 1, 1])
+                .repeat_dim(2, h)
+                .repeat_dim(3, w);
+            conv2d(&conv, Tensor::cat(vec![x.clone(), planes], 1))
+        };
+        let grads = (y.clone() * weights.clone()).sum().backward();
+        let grad = |t: Option<Tensor<Flex, 4>>| values(t.expect("a gradient"));
+        (
+            values(y),
+            grad(x.grad(&grads)),
+            values(f.grad(&grads).expect("a gradient")),
+            grad(conv.weight.grad(&grads)),
+            values(
+                conv.bias
+                    .as_ref()
+                    .unwrap()
+                    .grad(&grads)
+                    .expect("a gradient"),
+            ),
+        )
+    };
+    let (split, joined) = (run(true), run(false));
+    assert_close("output", split.0, joined.0, 1e-6);
+    assert_close("dx", split.1, joined.1, 1e-6);
+    assert_close("dfeatures", split.2, joined.2, 1e-6);
+    assert_close("dweight", split.3, joined.3, 1e-6);
+    assert_close("dbias", split.4, joined.4, 1e-6);
+}
+
 /// The fused render + masked MSE against the stock composition (LeakyReLU, product with the terms, sum over
 /// terms, squared error under the mask over the mask's count) through autodiff: the loss and ∂raw, with raw values
 /// on both sides of LeakyReLU's kink and a mask with holes; an empty mask gives 0 and a zero gradient, as stock.
