@@ -56,6 +56,23 @@ fn retry_config() -> Result<RetryConfig> {
     Ok(retry)
 }
 
+/// What identifies one version of an object without reading it: its size and entity tag (the ETag a replacement
+/// changes; `None` where a store has none, e.g. some `file://` listings).
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct ObjectVersion {
+    pub bytes: u64,
+    pub e_tag: Option<String>,
+}
+
+impl ObjectVersion {
+    fn of(meta: &object_store::ObjectMeta) -> Self {
+        Self {
+            bytes: meta.size,
+            e_tag: meta.e_tag.clone(),
+        }
+    }
+}
+
 /// A "directory" in object storage: every object under one prefix.
 pub struct RemoteDir {
     url: String,
@@ -190,6 +207,32 @@ impl RemoteDir {
             .block_on(self.store.head(&path))
             .with_context(|| format!("{}: not found or unreadable", self.url_of(name)))?
             .size)
+    }
+
+    /// The size and entity tag of object `name`.
+    pub fn version(&self, name: &str) -> Result<ObjectVersion> {
+        let path = self.path(name);
+        let meta = self
+            .block_on(self.store.head(&path))
+            .with_context(|| format!("{}: not found or unreadable", self.url_of(name)))?;
+        Ok(ObjectVersion::of(&meta))
+    }
+
+    /// The objects directly under this prefix (not those under a further `/`), by name, sorted.
+    pub fn list(&self) -> Result<Vec<(String, ObjectVersion)>> {
+        let listed = self
+            .block_on(self.store.list_with_delimiter(Some(&self.prefix)))
+            .with_context(|| format!("{}/: cannot list", self.url))?;
+        let mut objects: Vec<(String, ObjectVersion)> = listed
+            .objects
+            .iter()
+            .filter_map(|meta| {
+                let name = meta.location.filename()?.to_string();
+                Some((name, ObjectVersion::of(meta)))
+            })
+            .collect();
+        objects.sort_by(|a, b| a.0.cmp(&b.0));
+        Ok(objects)
     }
 
     /// Write object `name`, replacing any.
