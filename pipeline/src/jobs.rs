@@ -29,6 +29,8 @@ pub struct RunOutcome {
     pub record: Option<PathBuf>,
     /// The files hashed to check and record the stages (at least once each; more often is wasted reading).
     pub hashing: runner::HashStats,
+    /// What fetching the inputs given as URLs copied (all zero for local inputs).
+    pub inputs: crate::inputs::Fetched,
 }
 
 /// Run the stale stages of `manifest` in `scope` (up to `until`, re-running `force` and what follows), and write
@@ -47,6 +49,16 @@ pub fn run(
         );
     }
     let started = Instant::now();
+    let inputs = crate::inputs::fetch(manifest)?;
+    if !crate::inputs::urls(manifest).is_empty() {
+        tracing::info!(
+            objects = inputs.objects,
+            bytes = inputs.bytes,
+            removed = inputs.removed,
+            current = inputs.current,
+            "inputs fetched"
+        );
+    }
     let (runner, merged_seconds) = match scope {
         RunScope::Partition(part) => (
             stages::pipeline_scoped(manifest, Scope::Partition(part), progress)?,
@@ -109,6 +121,7 @@ pub fn run(
             seconds,
             record: None,
             hashing,
+            inputs,
         });
     }
     let record_path = match scope {
@@ -119,6 +132,7 @@ pub fn run(
         "stages": ran,
         "seconds": seconds,
         "hashing": hashing,
+        "inputs_fetched": inputs,
         "provenance": dataset::provenance::Provenance::capture(),
     });
     dataset::contract::manifest::write_json_atomic(&record_path, &record)?;
@@ -128,6 +142,7 @@ pub fn run(
         seconds,
         record: Some(record_path),
         hashing,
+        inputs,
     })
 }
 

@@ -64,7 +64,9 @@ enum Command {
     /// A stage is stale when its code version, parameters or input files changed, or an output is missing or
     /// modified (see `status`). Outputs go to the manifest's output.dir: stages/ (intermediate Parquet tables),
     /// dataset/ (shards, manifest.json, README.md card, croissant.json, summary.json, map.png) and
-    /// pipeline.lock.json. Outputs are written under temporary names and renamed when a stage succeeds.
+    /// pipeline.lock.json. Outputs are written under temporary names and renamed when a stage succeeds. Inputs
+    /// given as URLs (inputs.dem = "s3://…/dem.tif", inputs.ortho_dir = "s3://…/ortho/") are first copied to
+    /// OUT/inputs/, only what changed since the last run (docs/scale-out.md).
     Run {
         /// Pipeline manifest (TOML), e.g. manifests/demo.toml.
         manifest: PathBuf,

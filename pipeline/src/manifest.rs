@@ -35,9 +35,11 @@ pub struct DatasetInfo {
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Inputs {
-    /// GeoTIFF DEM in a lunar CRS (heights above the 1737400 m sphere).
+    /// GeoTIFF DEM in a lunar CRS (heights above the 1737400 m sphere): a path, or an object's URL
+    /// (`s3://bucket/dem.tif`; fetched by [`crate::inputs`]).
     pub dem: PathBuf,
-    /// Directory of orthoimages (`*.tif`) each with its acquisition metadata (`*.json`).
+    /// Directory of orthoimages (`*.tif`) each with its acquisition metadata (`*.json`): a path, or an
+    /// object-storage prefix whose objects directly under it are the folder's files.
     pub ortho_dir: PathBuf,
 }
 
@@ -127,19 +129,14 @@ impl PipelineManifest {
         })?;
         manifest.base_dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
         // A URL here would be joined onto the manifest's folder as a relative path (`s3:/bucket/…`): refused.
-        for (field, location) in [
-            ("inputs.dem", &manifest.inputs.dem),
-            ("inputs.ortho_dir", &manifest.inputs.ortho_dir),
-            ("output.dir", &manifest.output.dir),
-        ] {
-            let location = location.to_string_lossy();
-            if dataset::storage::is_url(&location) {
-                anyhow::bail!(
-                    "{}: {field} = \"{location}\": the pipeline reads and writes local paths only; build to a local \
-                     folder and set output.publish_to = \"URL\" (or run `g2r-dataset upload DIR/dataset URL`)",
-                    path.display()
-                );
-            }
+        // (Inputs may be URLs: `crate::inputs` fetches them.)
+        let dir = manifest.output.dir.to_string_lossy();
+        if dataset::storage::is_url(&dir) {
+            anyhow::bail!(
+                "{}: output.dir = \"{dir}\": the pipeline builds in a local folder; set output.dir to one and \
+                 output.publish_to = \"URL\" (or run `g2r-dataset upload DIR/dataset URL`)",
+                path.display()
+            );
         }
         if let Some(url) = &manifest.output.publish_to {
             if !dataset::storage::is_url(url) {

@@ -93,6 +93,9 @@ pub fn params_hash(params: &serde_json::Value) -> String {
 pub struct Runner<'a> {
     /// Lock keys are paths relative to this directory (the manifest's), so the lock is portable.
     pub root: PathBuf,
+    /// Folders holding copies of inputs fetched from object storage, with the URL prefix each copies
+    /// ([`crate::inputs`]): a file there is keyed by its object's URL, what the build read.
+    pub fetched_from: Vec<(PathBuf, String)>,
     pub lock_path: PathBuf,
     pub stages: Vec<Stage<'a>>,
     /// blake3 by path, with the size and modification time it was taken at: within one run a stage's outputs are
@@ -197,6 +200,11 @@ impl HashMemo {
 
 impl<'a> Runner<'a> {
     fn key(&self, path: &Path) -> String {
+        for (dir, url) in &self.fetched_from {
+            if let Ok(name) = path.strip_prefix(dir) {
+                return format!("{url}/{}", name.display());
+            }
+        }
         path.strip_prefix(&self.root)
             .unwrap_or(path)
             .display()
@@ -508,6 +516,7 @@ mod tests {
         let (input2, doubled2) = (input.clone(), doubled.clone());
         Runner {
             root: dir.to_path_buf(),
+            fetched_from: Vec::new(),
             lock_path: dir.join("pipeline.lock.json"),
             hash_memo: Default::default(),
             stages: vec![

@@ -307,3 +307,157 @@ fn large_files_go_up_in_parts_and_come_back_whole() {
     assert_eq!(blake3, blake3::hash(&bytes).to_hex().to_string());
     assert!(std::fs::read(&to).unwrap() == bytes);
 }
+
+/// The names of the files in `dir`, sorted.
+fn names_under(dir: &Path) -> Vec<String> {
+    let mut names: Vec<String> = std::fs::read_dir(dir)
+        .unwrap()
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    names
+}
+
+/// Assert that the datasets of two manifests hold the same files with the same bytes, except that their
+/// `manifest.json` may differ in `pipeline_lock_blake3` (each lock names the inputs where its build read them);
+/// returns the files of `built`.
+fn same_dataset_but_the_lock(built: &Path, reference: &Path) -> Vec<(String, Vec<u8>)> {
+    let (built, reference) = (dataset_files(built), dataset_files(reference));
+    assert!(built.iter().any(|(name, _)| name.ends_with(".parquet")));
+    assert_eq!(
+        built.iter().map(|(name, _)| name).collect::<Vec<_>>(),
+        reference.iter().map(|(name, _)| name).collect::<Vec<_>>()
+    );
+    let without_lock = |bytes: &[u8]| {
+        let mut manifest: serde_json::Value = serde_json::from_slice(bytes).unwrap();
+        let lock = manifest
+            .as_object_mut()
+            .unwrap()
+            .remove("pipeline_lock_blake3");
+        assert!(lock.is_some(), "the manifest records its lock");
+        manifest
+    };
+    for ((name, a), (_, b)) in built.iter().zip(&reference) {
+        if name == "manifest.json" {
+            assert_eq!(without_lock(a), without_lock(b));
+        } else {
+            assert!(
+                a == b,
+                "{name}: built from the bucket, it differs from the local build"
+            );
+        }
+    }
+    built
+}
+
+/// The tiny world's DEM and ortho folder put in the bucket `lunar` under `world/`.
+fn upload_world(world: &Path) {
+    let dem = RemoteDir::open("s3://lunar/world/dem").unwrap();
+    dem.put_file("dem.tif", &world.join("dem/dem.tif")).unwrap();
+    let orthos = RemoteDir::open("s3://lunar/world/ortho").unwrap();
+    for entry in std::fs::read_dir(world.join("ortho")).unwrap().flatten() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        orthos.put_file(&name, &entry.path()).unwrap();
+    }
+}
+
+/// Inputs in a bucket (the DEM as an object, the orthos as a prefix) publish the bytes the same inputs in local
+/// folders publish. A rerun fetches nothing; an object replaced in the bucket is fetched again and the stages that
+/// read it rerun; the copy of a withdrawn ortho is removed; a DEM object that is not there fails in one line naming
+/// it, before any stage runs.
+#[test]
+fn inputs_in_a_bucket_build_the_bytes_local_inputs_build() {
+    let (_turn, moto) = moto_for_this_test();
+    assert_eq!(moto.request("PUT", "/lunar"), 200);
+    let tmp = tempfile::tempdir().unwrap();
+    let world = tmp.path().join("world");
+    pipeline::synth::generate(&pipeline::synth::config::tiny(), 3, &world, true)
+        .expect("tiny world");
+    let local = tmp.path().join("local");
+    std::fs::create_dir_all(&local).unwrap();
+    std::os::unix::fs::symlink(&world, local.join("world")).unwrap();
+    let local = tiny_manifest(&local, 1.0, "");
+    let out = run_with(&local, &moto, &[]);
+    assert!(out.status.success(), "{}", stderr(&out));
+
+    upload_world(&world);
+    let ortho_objects = names_under(&world.join("ortho")).len();
+    let remote_dir = tmp.path().join("remote");
+    std::fs::create_dir_all(&remote_dir).unwrap();
+    let remote = remote_dir.join("m.toml");
+    let text = pipeline::manifest::tiny_manifest_toml(1, 1.0)
+        .replace("\"world/dem/dem.tif\"", "\"s3://lunar/world/dem/dem.tif\"")
+        .replace("\"world/ortho\"", "\"s3://lunar/world/ortho/\"");
+    std::fs::write(&remote, &text).unwrap();
+    // Before any run, status says what is missing and how it arrives.
+    let status = Command::new(env!("CARGO_BIN_EXE_g2r-pipeline"))
+        .arg("status")
+        .arg(&remote)
+        .output()
+        .unwrap();
+    assert!(
+        !status.status.success() && error_line(&status).contains("not fetched yet"),
+        "{}",
+        stderr(&status)
+    );
+
+    succeeds_saying(
+        &run_with(&remote, &moto, &[]),
+        &format!("objects={}", ortho_objects + 1),
+    );
+    let reference = same_dataset_but_the_lock(&remote, &local);
+    // The lock says what the build read: the objects, by URL.
+    let lock = std::fs::read_to_string(remote_dir.join("out/pipeline.lock.json")).unwrap();
+    let first_ortho = &names_under(&world.join("ortho"))[0];
+    assert!(
+        lock.contains("\"s3://lunar/world/dem/dem.tif\"")
+            && lock.contains(&format!("\"s3://lunar/world/ortho/{first_ortho}\""))
+            && !lock.contains("out/inputs"),
+        "{lock}"
+    );
+    let rerun = run_with(&remote, &moto, &[]);
+    succeeds_saying(&rerun, "objects=0");
+    assert!(stderr(&rerun).contains(&format!("current={}", ortho_objects + 1)));
+
+    // Withdraw one ortho (its metadata and image): both copies go, and the stages rerun without it.
+    let orthos = RemoteDir::open("s3://lunar/world/ortho").unwrap();
+    let (names, _): (Vec<String>, Vec<_>) = orthos.list().unwrap().into_iter().unzip();
+    let metadata = names.iter().find(|n| n.ends_with(".json")).unwrap().clone();
+    let meta: serde_json::Value = serde_json::from_slice(&orthos.get(&metadata).unwrap()).unwrap();
+    let image = meta["image_file"].as_str().unwrap().to_string();
+    orthos.delete(&metadata).unwrap();
+    orthos.delete(&image).unwrap();
+    let out = run_with(&remote, &moto, &[]);
+    succeeds_saying(&out, "removed=2");
+    let copies = remote_dir.join("out/inputs/ortho");
+    assert!(!copies.join(&metadata).exists() && !copies.join(&image).exists());
+    assert!(
+        stderr(&out).contains("ingest"),
+        "the stages rerun without the withdrawn ortho: {}",
+        stderr(&out)
+    );
+    // Put it back with the same bytes: fetched again, and the build is the local one's again.
+    orthos
+        .put_file(&metadata, &world.join("ortho").join(&metadata))
+        .unwrap();
+    orthos
+        .put_file(&image, &world.join("ortho").join(&image))
+        .unwrap();
+    succeeds_saying(&run_with(&remote, &moto, &[]), "objects=2");
+    assert_eq!(dataset_files(&remote), reference);
+
+    let missing = remote_dir.join("missing.toml");
+    std::fs::write(
+        &missing,
+        text.replace("dem/dem.tif", "dem/nothing.tif")
+            .replace("dir = \"out\"", "dir = \"out-missing\""),
+    )
+    .unwrap();
+    let error = error_line(&run_with(&missing, &moto, &[]));
+    assert!(
+        error.contains("s3://lunar/world/dem/nothing.tif") && error.contains("inputs.dem"),
+        "{error}"
+    );
+    assert!(!remote_dir.join("out-missing/stages").exists());
+}

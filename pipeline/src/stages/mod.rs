@@ -109,8 +109,18 @@ pub fn pipeline_scoped(
     progress: indicatif::ProgressBar,
 ) -> anyhow::Result<Runner<'static>> {
     let m = manifest.clone();
-    let dem_path = m.resolve(&m.inputs.dem);
-    let ortho_dir = m.resolve(&m.inputs.ortho_dir);
+    let dem_path = crate::inputs::dem_path(&m);
+    let ortho_dir = crate::inputs::ortho_dir(&m);
+    if let Some((field, url)) = crate::inputs::urls(&m).into_iter().find(|(field, _)| {
+        !(if *field == "inputs.dem" {
+            &dem_path
+        } else {
+            &ortho_dir
+        })
+        .exists()
+    }) {
+        anyhow::bail!("{field} = \"{url}\": not fetched yet; `g2r-pipeline run` copies inputs given as URLs to {} first", crate::inputs::cache_dir(&m).display());
+    }
     if !dem_path.exists() {
         anyhow::bail!("{}: DEM not found; check inputs.dem in the manifest (paths are relative to the manifest)", dem_path.display());
     }
@@ -357,6 +367,7 @@ pub fn pipeline_scoped(
     }
     Ok(Runner {
         root: m.base_dir.clone(),
+        fetched_from: crate::inputs::fetched_from(&m),
         lock_path,
         stages,
         hash_memo: std::sync::Arc::new(crate::runner::HashMemo::per_call()),
