@@ -76,16 +76,21 @@ fn error_line(out: &Output) -> String {
     errors[0].to_string()
 }
 
-/// Every file of the local dataset, and the same names read from `url`.
-fn local_and_remote(dataset: &Path, url: &str) -> Vec<(String, Vec<u8>, Vec<u8>)> {
-    let remote = RemoteDir::open(url).unwrap();
-    let mut names: Vec<String> = std::fs::read_dir(dataset)
+/// The names of the files in `dir`, sorted.
+fn names_under(dir: &Path) -> Vec<String> {
+    let mut names: Vec<String> = std::fs::read_dir(dir)
         .unwrap()
         .flatten()
         .map(|e| e.file_name().to_string_lossy().into_owned())
         .collect();
     names.sort();
     names
+}
+
+/// Every file of the local dataset, and the same names read from `url`.
+fn local_and_remote(dataset: &Path, url: &str) -> Vec<(String, Vec<u8>, Vec<u8>)> {
+    let remote = RemoteDir::open(url).unwrap();
+    names_under(dataset)
         .into_iter()
         .map(|name| {
             let local = std::fs::read(dataset.join(&name)).unwrap();
@@ -194,18 +199,13 @@ fn run_with(manifest: &Path, moto: &Moto, args: &[&str]) -> Output {
 
 fn dataset_files(manifest: &Path) -> Vec<(String, Vec<u8>)> {
     let dataset = manifest.parent().unwrap().join("out/dataset");
-    let mut files: Vec<(String, Vec<u8>)> = std::fs::read_dir(&dataset)
-        .unwrap()
-        .flatten()
-        .map(|e| {
-            (
-                e.file_name().to_string_lossy().into_owned(),
-                std::fs::read(e.path()).unwrap(),
-            )
+    names_under(&dataset)
+        .into_iter()
+        .map(|name| {
+            let bytes = std::fs::read(dataset.join(&name)).unwrap();
+            (name, bytes)
         })
-        .collect();
-    files.sort();
-    files
+        .collect()
 }
 
 /// A run that succeeded and logged `text`.
@@ -306,17 +306,6 @@ fn large_files_go_up_in_parts_and_come_back_whole() {
         .unwrap();
     assert_eq!(blake3, blake3::hash(&bytes).to_hex().to_string());
     assert!(std::fs::read(&to).unwrap() == bytes);
-}
-
-/// The names of the files in `dir`, sorted.
-fn names_under(dir: &Path) -> Vec<String> {
-    let mut names: Vec<String> = std::fs::read_dir(dir)
-        .unwrap()
-        .flatten()
-        .map(|e| e.file_name().to_string_lossy().into_owned())
-        .collect();
-    names.sort();
-    names
 }
 
 /// Assert that the datasets of two manifests hold the same files with the same bytes, except that their
