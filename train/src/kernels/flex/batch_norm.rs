@@ -75,22 +75,20 @@ pub fn batch_norm_leaky_relu(
 /// `LeakyReLU(scale·x + shift)` with channel `p mod C`'s `(scale, shift)` on plane `p`: BatchNorm's output pass.
 fn affine_leaky_relu(values: &[f32], affine: &[(f32, f32)], plane: usize, slope: f64) -> Vec<f32> {
     let slope = slope as f32;
-    let mut out = vec![0.0f32; values.len()];
-    out.par_chunks_mut(plane)
-        .zip(values.par_chunks(plane))
-        .enumerate()
-        .for_each(|(p, (y, x))| {
-            let (scale, shift) = affine[p % affine.len()];
-            vectorized(
-                #[inline(always)]
-                || {
-                    y.iter_mut()
-                        .zip(x)
-                        .for_each(|(y, &x)| *y = leaky_relu(scale * x + shift, slope))
-                },
-            );
-        });
-    out
+    let fill = |p: usize, y: &mut [std::mem::MaybeUninit<f32>]| {
+        let (scale, shift) = affine[p % affine.len()];
+        let x = &values[p * plane..][..y.len()];
+        vectorized(
+            #[inline(always)]
+            || {
+                y.iter_mut().zip(x).for_each(|(y, &x)| {
+                    y.write(leaky_relu(scale * x + shift, slope));
+                })
+            },
+        );
+    };
+    // SAFETY: `fill` writes every element of its plane.
+    unsafe { par_written(values.len(), plane, fill) }
 }
 
 /// Inference-mode BatchNorm + LeakyReLU: the running statistics folded into one `(scale, shift)` per channel
@@ -187,10 +185,9 @@ pub fn batch_norm_leaky_relu_backward(
         })
         .collect();
     let count = (xs.len() / c) as f64;
-    let mut dx = vec![0.0f32; xs.len()];
-    dx.par_chunks_mut(plane).enumerate().for_each(|(p, dx)| {
+    let fill = |p: usize, dx: &mut [std::mem::MaybeUninit<f32>]| {
         let k = p % c;
-        let r = p * plane..(p + 1) * plane;
+        let r = p * plane..p * plane + dx.len();
         let (d_beta, d_gamma) = sums[k];
         let s = inv_std[k];
         // ∂x = γσ⁻¹ (g − mean(g) − x̂·mean(g·x̂))
@@ -202,11 +199,13 @@ pub fn batch_norm_leaky_relu_backward(
             #[inline(always)]
             || {
                 for (dx, (&x, &dy)) in dx.iter_mut().zip(xs[r.clone()].iter().zip(&dys[r])) {
-                    *dx = a * (dz(ab, x, dy) - b - (x - m) * e);
+                    dx.write(a * (dz(ab, x, dy) - b - (x - m) * e));
                 }
             },
         );
-    });
+    };
+    // SAFETY: `fill` writes every element of its plane.
+    let dx = unsafe { par_written(xs.len(), plane, fill) };
     NormGrads {
         x: from_vec(dx, &shape),
         gamma: from_vec(sums.iter().map(|s| s.1 as f32).collect(), &[c]),

@@ -204,35 +204,72 @@ pub(super) fn conv_operands(
     Some((xc, wc, third, shape))
 }
 
+/// Where a [`matmul`] puts its product: over memory it need not read (which may be uninitialised), or added to
+/// initialised values. Separate borrows because only the second may be read.
+pub(super) enum Dst<'a> {
+    Write(&'a mut [std::mem::MaybeUninit<f32>]),
+    Add(&'a mut [f32]),
+}
+
+impl<'a> Dst<'a> {
+    /// Initialised memory to write over.
+    pub(super) fn overwrite(d: &'a mut [f32]) -> Self {
+        // SAFETY: a `&mut [f32]` seen as possibly uninitialised; gemm writes only floats into it, so it stays
+        // initialised.
+        Dst::Write(unsafe { &mut *(d as *mut [f32] as *mut [std::mem::MaybeUninit<f32>]) })
+    }
+
+    /// Initialised memory to add to (`accumulate`) or to write over.
+    pub(super) fn init(d: &'a mut [f32], accumulate: bool) -> Self {
+        if accumulate {
+            Dst::Add(d)
+        } else {
+            Dst::overwrite(d)
+        }
+    }
+
+    /// The same destination from element `start` on.
+    pub(super) fn from(&mut self, start: usize) -> Dst<'_> {
+        match self {
+            Dst::Write(d) => Dst::Write(&mut d[start..]),
+            Dst::Add(d) => Dst::Add(&mut d[start..]),
+        }
+    }
+}
+
 /// `dst (m × n) = [dst +] lhs (m × k) · rhs (k × n)`, each matrix given as (row stride, column stride).
 #[allow(clippy::too_many_arguments)]
 pub(super) fn matmul(
     [m, n, k]: [usize; 3],
-    dst: &mut [f32],
+    dst: Dst<'_>,
     dst_strides: [usize; 2],
-    accumulate: bool,
     lhs: &[f32],
     lhs_strides: [usize; 2],
     rhs: &[f32],
     rhs_strides: [usize; 2],
 ) {
+    let (dst_ptr, dst_len, accumulate) = match dst {
+        Dst::Write(d) => (d.as_mut_ptr().cast::<f32>(), d.len(), false),
+        Dst::Add(d) => (d.as_mut_ptr(), d.len(), true),
+    };
     let last = |[rs, cs]: [usize; 2], rows: usize, cols: usize| {
         (rows.max(1) - 1) * rs + (cols.max(1) - 1) * cs
     };
     assert!(
-        last(dst_strides, m, n) < dst.len().max(1)
+        last(dst_strides, m, n) < dst_len.max(1)
             && last(lhs_strides, m, k) < lhs.len().max(1)
             && last(rhs_strides, k, n) < rhs.len().max(1),
         "matmul operands out of bounds"
     );
-    // SAFETY: the assertion above keeps every element gemm touches inside the three slices, and `dst` is
-    // borrowed mutably, so it aliases neither operand.
+    // SAFETY: the assertion above keeps every element gemm touches inside the three slices; `dst` is borrowed
+    // mutably, so it aliases neither operand; and gemm reads `dst` only when accumulating (`read_dst`), which
+    // only [`Dst::Add`], initialised memory, asks for.
     unsafe {
         gemm::gemm(
             m,
             n,
             k,
-            dst.as_mut_ptr(),
+            dst_ptr,
             dst_strides[1] as isize,
             dst_strides[0] as isize,
             accumulate,
@@ -265,22 +302,35 @@ pub fn conv2d(
     from_vec(y, &[s.batch, s.c_out, s.height, s.width])
 }
 
-/// `Y = W·col(X) (+ b)` for every sample of contiguous `xs` with weights `w` (`c_out × taps`).
+/// `Y = W·col(X) (+ b)` for every sample of contiguous `xs` with weights `w` (`c_out × taps`). The output is never
+/// zeroed: gemm writes it, or adds to the bias planes written first.
 pub(super) fn convolve(s: &ConvShape, xs: &[f32], w: &[f32], bias: Option<&[f32]>) -> Vec<f32> {
     let (plane_in, plane_out) = s.planes();
-    let mut y = vec![0.0f32; s.batch * plane_out];
-    y.par_chunks_mut(plane_out)
+    let hw = s.positions();
+    let mut y = Vec::with_capacity(s.batch * plane_out);
+    y.spare_capacity_mut()[..s.batch * plane_out]
+        .par_chunks_mut(plane_out)
         .zip(xs.par_chunks(plane_in))
         .for_each(|(y, x)| {
-            if let Some(bias) = bias {
-                y.chunks_mut(s.positions())
-                    .zip(bias)
-                    .for_each(|(plane, &b)| plane.fill(b));
-            }
+            let y = match bias {
+                Some(bias) => {
+                    y.chunks_mut(hw)
+                        .zip(bias)
+                        .for_each(|(plane, &b)| plane.fill(std::mem::MaybeUninit::new(b)));
+                    // SAFETY: every element was just written (`c_out` planes of `hw`, one bias each).
+                    Dst::Add(unsafe {
+                        &mut *(y as *mut [std::mem::MaybeUninit<f32>] as *mut [f32])
+                    })
+                }
+                None => Dst::Write(y),
+            };
             with_scratch([s.block_len(), 0], |buffer, _| {
-                convolve_sample(s, x, w, y, bias.is_some(), buffer);
+                convolve_sample(s, x, w, y, buffer);
             });
         });
+    // SAFETY: each sample's `c_out × hw` output was written whole: the bias planes, or without a bias the gemm of
+    // every row block, whose `c_out × block` columns tile the planes (the blocks cover every output row).
+    unsafe { y.set_len(s.batch * plane_out) };
     y
 }
 
@@ -290,8 +340,7 @@ pub(super) fn convolve_sample(
     s: &ConvShape,
     x: &[f32],
     w: &[f32],
-    y: &mut [f32],
-    accumulate: bool,
+    mut y: Dst<'_>,
     buffer: &mut [f32],
 ) {
     let (hw, taps) = (s.positions(), s.taps());
@@ -302,9 +351,8 @@ pub(super) fn convolve_sample(
         // Y[:, block] (c_out × n) [+]= W (c_out × taps) · col (taps × n)
         matmul(
             [s.c_out, n, taps],
-            &mut y[start..],
+            y.from(start),
             [hw, 1],
-            accumulate,
             w,
             [taps, 1],
             s.block_columns(x, rows, buffer),
@@ -411,11 +459,11 @@ pub(super) fn weight_grad_sample(
         // A pointwise convolution's single block is the whole plane, with row stride `hw`.
         let col_stride = if s.is_pointwise() { hw } else { n };
         // ∂W (c_out × taps) [+]= ∂Y[:, block] (c_out × n) · colᵀ (n × taps), stored column-major
+        // The first block's product is written over whatever `dw_t` held; the others add to it.
         matmul(
             [s.c_out, taps, n],
-            dw_t,
+            Dst::init(&mut *dw_t, b > 0),
             [1, s.c_out],
-            b > 0,
             dy_t,
             [1, s.c_out],
             s.block_columns(x, rows, col),

@@ -15,26 +15,33 @@ pub fn join_channels(a: FloatTensor<Flex>, b: FloatTensor<Flex>, slope: f64) -> 
         return stock::join_channels::<Flex>(a, b, slope);
     }
     let slope = slope as f32;
-    let mut out = vec![0.0f32; a_shape[0] * (sample_a + sample_b)];
-    out.par_chunks_mut(sample_a + sample_b)
-        .zip(
-            slice(&ac)
-                .par_chunks(sample_a)
-                .zip(slice(&bc).par_chunks(sample_b)),
-        )
-        .for_each(|(out, (a, b))| {
-            let (out_a, out_b) = out.split_at_mut(sample_a);
-            vectorized(
-                #[inline(always)]
-                || {
-                    out_a
-                        .iter_mut()
-                        .zip(a)
-                        .for_each(|(y, &x)| *y = leaky_relu(x, slope))
-                },
-            );
-            out_b.copy_from_slice(b);
+    let (a, b) = (slice(&ac), slice(&bc));
+    let fill = |n: usize, out: &mut [std::mem::MaybeUninit<f32>]| {
+        let (out_a, out_b) = out.split_at_mut(sample_a);
+        let (a, b) = (
+            &a[n * sample_a..][..sample_a],
+            &b[n * sample_b..][..sample_b],
+        );
+        vectorized(
+            #[inline(always)]
+            || {
+                out_a.iter_mut().zip(a).for_each(|(y, &x)| {
+                    y.write(leaky_relu(x, slope));
+                })
+            },
+        );
+        out_b.iter_mut().zip(b).for_each(|(y, &x)| {
+            y.write(x);
         });
+    };
+    // SAFETY: `fill` writes both parts of its sample, `sample_a + sample_b` elements.
+    let out = unsafe {
+        par_written(
+            a_shape[0] * (sample_a + sample_b),
+            sample_a + sample_b,
+            fill,
+        )
+    };
     let mut shape = a_shape;
     shape[1] += b_shape[1];
     from_vec(out, &shape)
@@ -57,30 +64,34 @@ pub fn join_channels_backward(
         return stock::join_channels_backward::<Flex>(a, grad, slope);
     }
     let slope = slope as f32;
-    let (mut grad_a, mut grad_b) = (
-        vec![0.0f32; shape[0] * sample_a],
-        vec![0.0f32; shape[0] * sample_b],
-    );
-    grad_a
-        .par_chunks_mut(sample_a)
-        .zip(grad_b.par_chunks_mut(sample_b))
-        .zip(
-            slice(&gc)
-                .par_chunks(sample)
-                .zip(slice(&ac).par_chunks(sample_a)),
-        )
-        .for_each(|((grad_a, grad_b), (g, a))| {
-            vectorized(
-                #[inline(always)]
-                || {
-                    grad_a
-                        .iter_mut()
-                        .zip(g[..sample_a].iter().zip(a))
-                        .for_each(|(d, (&g, &a))| *d = leaky_relu_grad(a, g, slope))
-                },
-            );
-            grad_b.copy_from_slice(&g[sample_a..]);
+    let (g, a) = (slice(&gc), slice(&ac));
+    let fill_a = |n: usize, grad_a: &mut [std::mem::MaybeUninit<f32>]| {
+        let (g, a) = (&g[n * sample..][..sample_a], &a[n * sample_a..][..sample_a]);
+        vectorized(
+            #[inline(always)]
+            || {
+                grad_a
+                    .iter_mut()
+                    .zip(g.iter().zip(a))
+                    .for_each(|(d, (&g, &a))| {
+                        d.write(leaky_relu_grad(a, g, slope));
+                    })
+            },
+        );
+    };
+    let fill_b = |n: usize, grad_b: &mut [std::mem::MaybeUninit<f32>]| {
+        let g = &g[n * sample + sample_a..][..sample_b];
+        grad_b.iter_mut().zip(g).for_each(|(d, &g)| {
+            d.write(g);
         });
+    };
+    // SAFETY: each `fill` writes every element of its sample's part.
+    let (grad_a, grad_b) = unsafe {
+        (
+            par_written(shape[0] * sample_a, sample_a, fill_a),
+            par_written(shape[0] * sample_b, sample_b, fill_b),
+        )
+    };
     let mut b_shape = shape;
     b_shape[1] -= a_shape[1];
     (from_vec(grad_a, &a_shape), from_vec(grad_b, &b_shape))

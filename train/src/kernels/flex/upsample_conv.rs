@@ -71,7 +71,7 @@ pub fn upsample_conv2d(
             with_scratch([block, s.c_out * hw], |col, y_ab| {
                 for (p, k) in kernels.iter().enumerate() {
                     let (a, b) = (p / 2, p % 2);
-                    convolve_sample(&phase_shape(&s, a, b), x, k, y_ab, false, col);
+                    convolve_sample(&phase_shape(&s, a, b), x, k, Dst::overwrite(y_ab), col);
                     for (o, plane) in y_ab.chunks(hw).enumerate() {
                         let shift = bias.map_or(0.0, |b| b[o]);
                         let out = &mut y[o * 4 * hw..(o + 1) * 4 * hw];
@@ -139,7 +139,7 @@ pub fn upsample_conv2d_x_grad(
                 for (p, k) in turned.iter().enumerate() {
                     let (a, b) = (p / 2, p % 2);
                     gather_phase(dy, &s, a, b, dy_ab);
-                    convolve_sample(&adjoint(a, b), dy_ab, k, dx, p > 0, col);
+                    convolve_sample(&adjoint(a, b), dy_ab, k, Dst::init(dx, p > 0), col);
                 }
             });
         });
