@@ -5,8 +5,8 @@
 //!
 //! Only the parameter maps carry a gradient; the geometry is a constant of the batch. So the geometric terms
 //! `T_k · V_sun` (zero where the surface faces away) are evaluated once per batch on the host, by the scalar f64
-//! reference itself ([`dataset::science::geometry::crop_pixel_geometry`], [`BrdfModel::terms`]) in parallel over samples,
-//! and uploaded as one `[N, P, 128, 128]` tensor; on the device the layer is one multiply-and-sum forward and
+//! reference itself ([`dataset::science::geometry::crop_pixel_geometry`], [`BrdfModel::terms`]) as [`HostTerms`]
+//! (in a fit, by the loader thread ahead of the step), and uploaded as one `[N, P, 128, 128]` tensor; on the device the layer is one multiply-and-sum forward and
 //! one multiply backward. One home for the geometry (the reference), no f32 rounding of near-degenerate
 //! geometry (M6's azimuths, Hapke's opposition peak), and no per-pixel vector algebra in tensor operations.
 
@@ -29,14 +29,26 @@ pub struct SceneTerms<B: Backend> {
 }
 
 impl<B: Backend> SceneTerms<B> {
-    /// Evaluate `model`'s terms for a host batch (f64 on the host; the device's float type decides the stored
-    /// precision) and upload them.
+    /// Evaluate `model`'s terms for a host batch (f64 on the host, both cores) and upload them.
     pub fn from_host(batch: &HostBatch, model: BrdfModel, device: &B::Device) -> Self {
-        let shape = [batch.len(), model.param_count(), CROP_PX, CROP_PX];
-        // Built in the device's float precision when that is f64 (tests), else f32 (converted on upload).
+        Self::upload(&HostTerms::evaluate(batch, model), batch, device)
+    }
+
+    /// Upload terms evaluated ahead ([`HostTerms`]) with the batch's valid mask. The device's float type decides
+    /// the stored precision: f64 (tests) as evaluated, else each value rounded once to f32.
+    pub fn upload(terms: &HostTerms, batch: &HostBatch, device: &B::Device) -> Self {
+        let shape = [batch.len(), terms.model.param_count(), CROP_PX, CROP_PX];
+        assert_eq!(
+            terms.values.len(),
+            shape.iter().product::<usize>(),
+            "scene terms evaluated for another batch"
+        );
         let terms = match Tensor::<B, 1>::zeros([1], device).dtype() {
-            burn::tensor::DType::F64 => TensorData::new(host_terms(batch, model, |t| t), shape),
-            _ => TensorData::new(host_terms(batch, model, |t| t as f32), shape),
+            burn::tensor::DType::F64 => TensorData::new(terms.values.clone(), shape),
+            _ => TensorData::new(
+                terms.values.iter().map(|&t| t as f32).collect::<Vec<f32>>(),
+                shape,
+            ),
         };
         Self {
             terms: Tensor::from_data(terms, device),
@@ -48,19 +60,34 @@ impl<B: Backend> SceneTerms<B> {
     }
 }
 
-/// `N × P × 128²` (sample, term, pixel): `T_k · V_sun` where the surface faces sun and camera, else 0, computed
-/// in f64 and stored through `store` (f32 for an f32 device). Only M6 needs the half-angle frame, so only M6
-/// pays for it.
-pub fn host_terms<T: Copy + Default + Send>(
-    batch: &HostBatch,
-    model: BrdfModel,
-    store: impl Fn(f64) -> T + Sync,
-) -> Vec<T> {
-    let (npx, p) = (CROP_PX * CROP_PX, model.param_count());
-    let mut out = vec![T::default(); batch.len() * p * npx];
-    out.par_chunks_mut(p * npx)
-        .enumerate()
-        .for_each(|(i, planes)| {
+/// A batch's geometric terms on the host, f64, `N × P × 128²` (sample, term, pixel): `T_k · V_sun` where the
+/// surface faces sun and camera, else 0. Only M6 needs the half-angle frame, so only M6 pays for it.
+///
+/// A fit evaluates them in its loader thread ([`HostTerms::evaluate_serial`]) while the previous step runs: the
+/// step leaves a core idle while it runs single-threaded parts (autodiff bookkeeping, the optimiser), and the
+/// terms (transcendental Hapke per pixel) were a twentieth of the step's work. Same function, same values.
+#[derive(Clone, Debug, PartialEq)]
+pub struct HostTerms {
+    pub model: BrdfModel,
+    pub values: Vec<f64>,
+}
+
+impl HostTerms {
+    /// The terms, samples in parallel (rayon).
+    pub fn evaluate(batch: &HostBatch, model: BrdfModel) -> Self {
+        Self::evaluate_with(batch, model, true)
+    }
+
+    /// The terms, one sample after another on the calling thread: for a thread that should not queue work on the
+    /// pool the step runs on.
+    pub fn evaluate_serial(batch: &HostBatch, model: BrdfModel) -> Self {
+        Self::evaluate_with(batch, model, false)
+    }
+
+    fn evaluate_with(batch: &HostBatch, model: BrdfModel, parallel: bool) -> Self {
+        let (npx, p) = (CROP_PX * CROP_PX, model.param_count());
+        let mut values = vec![0.0f64; batch.len() * p * npx];
+        let sample_terms = |(i, planes): (usize, &mut [f64])| {
             let (grid, sun, camera) = sample_frame(batch, i);
             let heights = &batch.relative_heights_m[i * DEM_PX * DEM_PX..(i + 1) * DEM_PX * DEM_PX];
             let lit = &batch.lit[i * npx..(i + 1) * npx];
@@ -69,12 +96,24 @@ pub fn host_terms<T: Copy + Default + Send>(
             for (px, (normal, view)) in frames.enumerate() {
                 if let Some(terms) = model.pixel_terms(normal, sun, view) {
                     for (k, t) in terms.into_iter().take(p).enumerate() {
-                        planes[k * npx + px] = store(t * lit[px]);
+                        planes[k * npx + px] = t * lit[px];
                     }
                 }
             }
-        });
-    out
+        };
+        if parallel {
+            values
+                .par_chunks_mut(p * npx)
+                .enumerate()
+                .for_each(sample_terms);
+        } else {
+            values
+                .chunks_mut(p * npx)
+                .enumerate()
+                .for_each(sample_terms);
+        }
+        Self { model, values }
+    }
 }
 
 /// Rendered I/F `[N, 1, 128, 128]` = Σ_k LeakyReLU(p_k) · T_k (E = 1: the parameters carry the scale).
@@ -158,6 +197,33 @@ mod tests {
     use crate::testing::{hard_case_samples, synthetic_samples, test_params};
 
     type Cpu = burn::backend::Flex;
+
+    #[test]
+    fn terms_evaluated_ahead_on_one_thread_are_the_pool_s_bits() {
+        let mut samples = synthetic_samples(3, 11);
+        samples.extend(hard_case_samples());
+        let batch = HostBatch::from_samples(&samples, &InputNormalisation::relief(20.0));
+        for model in BrdfModel::ALL {
+            let (pool, serial) = (
+                HostTerms::evaluate(&batch, model),
+                HostTerms::evaluate_serial(&batch, model),
+            );
+            assert_eq!(
+                pool.values.len(),
+                batch.len() * model.param_count() * CROP_PX * CROP_PX
+            );
+            assert!(
+                pool.values.iter().any(|&t| t != 0.0),
+                "{model:?}: no lit, visible pixel in the batch"
+            );
+            let same_bits = pool
+                .values
+                .iter()
+                .zip(&serial.values)
+                .all(|(a, b)| a.to_bits() == b.to_bits());
+            assert!(same_bits && pool.model == serial.model, "{model:?}");
+        }
+    }
 
     #[test]
     fn batched_layer_equals_scalar_reference_in_f32() {

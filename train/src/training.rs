@@ -27,7 +27,7 @@ use crate::data::{for_each_sample_group, steep_row_weights, STEEP_SLOPE_DEG};
 use crate::kernels::{TrainBackend, TrainOps};
 use crate::metrics::{AggregateMetrics, MetricsAccumulator};
 use crate::model::{UNet, UNetConfig};
-use crate::renderer_layer::{render_loss, SceneTerms};
+use crate::renderer_layer::{render_loss, HostTerms, SceneTerms};
 use crate::replicas::Replica;
 use dataset::contract::schema::{Split, CROP_PX};
 
@@ -105,7 +105,17 @@ pub fn train_loss<B: TrainBackend>(
     batch: &HostBatch,
     device: &B::Device,
 ) -> Tensor<B, 1> {
-    let scene = SceneTerms::<B>::from_host(batch, model, device);
+    train_loss_with_terms(net, batch, &HostTerms::evaluate(batch, model), device)
+}
+
+/// [`train_loss`] with the batch's scene terms evaluated ahead (a fit's loader thread does).
+pub fn train_loss_with_terms<B: TrainBackend>(
+    net: &UNet<B>,
+    batch: &HostBatch,
+    terms: &HostTerms,
+    device: &B::Device,
+) -> Tensor<B, 1> {
+    let scene = SceneTerms::<B>::upload(terms, batch, device);
     let image = Tensor::<B, 4>::from_data(
         TensorData::new(batch.image.clone(), [batch.len(), 1, 128, 128]),
         device,
@@ -493,7 +503,8 @@ fn train_replica<B: TrainBackend>(
         (!show_progress && replica.leads()).then(|| ProgressLog::new(cursor.step));
     while cursor.epoch < config.epochs {
         let epoch = cursor.epoch;
-        let stream = EpochStream::start(
+        let model = config.model;
+        let stream = EpochStream::start_with(
             source.clone(),
             Split::Train,
             // Each replica takes its share of every step's crops.
@@ -506,6 +517,10 @@ fn train_replica<B: TrainBackend>(
             epoch as u64,
             cursor.next_batch,
             replica,
+            move |batch| {
+                let terms = HostTerms::evaluate_serial(&batch, model);
+                (batch, terms)
+            },
         )?;
         let stream_batches = stream.batches;
         let bar = if show_progress {
@@ -520,12 +535,12 @@ fn train_replica<B: TrainBackend>(
         );
         bar.set_prefix(format!("{}/{}", epoch + 1, config.epochs));
         bar.set_position(cursor.next_batch as u64);
-        for batch in stream {
-            let batch = batch?;
+        for prepared in stream {
+            let (batch, terms) = prepared?;
             // Dropout masks from (seed, step): a resumed run draws exactly what an uninterrupted one would.
             B::seed(device, keyed_u64(seed, "dropout", cursor.step));
             let step_started = Instant::now();
-            let loss = train_loss(&net, config.model, &batch, device);
+            let loss = train_loss_with_terms(&net, &batch, &terms, device);
             let loss_value: f64 = loss
                 .clone()
                 .into_data()

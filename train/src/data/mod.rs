@@ -44,17 +44,18 @@ pub fn augmentation_for(seed: u64, epoch: u64, position: usize) -> Dihedral {
     Dihedral::from_index(index)
 }
 
-/// Batches of one epoch from `start_batch` on, produced by a background thread (bounded queue of 2). A replica
-/// of a data-parallel fit gets its stride of the epoch's rows; every replica gets as many as the others (the
-/// epoch's rows cut to a multiple of the replica count), so all take the same steps.
-pub struct EpochStream {
-    receiver: Receiver<Result<HostBatch>>,
+/// Batches of one epoch from `start_batch` on, produced by a background thread (bounded queue of 2), each passed
+/// through the consumer's `prepare` there (a fit evaluates the renderer's terms ahead; `T` is then the batch
+/// with them). A replica of a data-parallel fit gets its stride of the epoch's rows; every replica gets as many
+/// as the others (the epoch's rows cut to a multiple of the replica count), so all take the same steps.
+pub struct EpochStream<T = HostBatch> {
+    receiver: Receiver<Result<T>>,
     worker: Option<JoinHandle<()>>,
     pub batches: usize,
 }
 
 impl EpochStream {
-    // What to read (source, split, stream, input, weights) and where in the run (epoch, batch, replica).
+    /// The host batches themselves ([`EpochStream::start_with`] with nothing prepared).
     #[allow(clippy::too_many_arguments)]
     pub fn start(
         source: Arc<dyn SampleSource>,
@@ -65,6 +66,35 @@ impl EpochStream {
         epoch: u64,
         start_batch: usize,
         replica: Replica,
+    ) -> Result<Self> {
+        Self::start_with(
+            source,
+            split,
+            config,
+            input,
+            row_weights,
+            epoch,
+            start_batch,
+            replica,
+            |batch| batch,
+        )
+    }
+}
+
+impl<T: Send + 'static> EpochStream<T> {
+    // What to read (source, split, stream, input, weights), where in the run (epoch, batch, replica), and what
+    // the loader thread makes of each batch.
+    #[allow(clippy::too_many_arguments)]
+    pub fn start_with(
+        source: Arc<dyn SampleSource>,
+        split: Split,
+        config: StreamConfig,
+        input: InputNormalisation,
+        row_weights: Option<Arc<[f64]>>,
+        epoch: u64,
+        start_batch: usize,
+        replica: Replica,
+        prepare: impl Fn(HostBatch) -> T + Send + 'static,
     ) -> Result<Self> {
         let Replica { rank, world } = replica;
         let groups = source.row_groups(split)?;
@@ -141,7 +171,7 @@ impl EpochStream {
                     });
                 }
                 if sender
-                    .send(Ok(HostBatch::from_samples(&samples, &input)))
+                    .send(Ok(prepare(HostBatch::from_samples(&samples, &input))))
                     .is_err()
                 {
                     return; // the consumer stopped early
@@ -156,8 +186,8 @@ impl EpochStream {
     }
 }
 
-impl Iterator for EpochStream {
-    type Item = Result<HostBatch>;
+impl<T> Iterator for EpochStream<T> {
+    type Item = Result<T>;
     fn next(&mut self) -> Option<Self::Item> {
         match self.receiver.recv() {
             Ok(item) => Some(item),
