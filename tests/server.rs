@@ -590,6 +590,7 @@ fn trainer_over_http_gets_the_same_first_epoch_batches_as_from_local_files() {
         0,
         0,
         Replica::SOLE,
+        std::convert::identity,
     )
     .unwrap()
     .map(Result::unwrap)
@@ -603,6 +604,7 @@ fn trainer_over_http_gets_the_same_first_epoch_batches_as_from_local_files() {
         0,
         0,
         Replica::SOLE,
+        std::convert::identity,
     )
     .unwrap()
     .map(Result::unwrap)

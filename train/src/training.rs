@@ -504,7 +504,7 @@ fn train_replica<B: TrainBackend>(
     while cursor.epoch < config.epochs {
         let epoch = cursor.epoch;
         let model = config.model;
-        let stream = EpochStream::start_with(
+        let stream = EpochStream::start(
             source.clone(),
             Split::Train,
             // Each replica takes its share of every step's crops.

@@ -114,6 +114,7 @@ fn two_replicas_take_the_steps_of_their_averaged_gradients_and_repeat_bit_for_bi
             0,
             1,
             replica,
+            std::convert::identity,
         )
         .unwrap()
         .map(Result::unwrap)

@@ -477,6 +477,7 @@ fn steep_weighted_epochs_draw_steep_crops_in_proportion_to_their_weight() {
             epoch,
             0,
             Replica::SOLE,
+            std::convert::identity,
         )
         .unwrap()
         .flat_map(|b| b.unwrap().sample_ids)
@@ -511,6 +512,7 @@ fn steep_weighted_epochs_draw_steep_crops_in_proportion_to_their_weight() {
         0,
         0,
         Replica::SOLE,
+        std::convert::identity,
     )
     .err()
     .expect("refused")

@@ -54,38 +54,11 @@ pub struct EpochStream<T = HostBatch> {
     pub batches: usize,
 }
 
-impl EpochStream {
-    /// The host batches themselves ([`EpochStream::start_with`] with nothing prepared).
-    #[allow(clippy::too_many_arguments)]
-    pub fn start(
-        source: Arc<dyn SampleSource>,
-        split: Split,
-        config: StreamConfig,
-        input: InputNormalisation,
-        row_weights: Option<Arc<[f64]>>,
-        epoch: u64,
-        start_batch: usize,
-        replica: Replica,
-    ) -> Result<Self> {
-        Self::start_with(
-            source,
-            split,
-            config,
-            input,
-            row_weights,
-            epoch,
-            start_batch,
-            replica,
-            |batch| batch,
-        )
-    }
-}
-
 impl<T: Send + 'static> EpochStream<T> {
     // What to read (source, split, stream, input, weights), where in the run (epoch, batch, replica), and what
-    // the loader thread makes of each batch.
+    // the loader thread makes of each batch (`std::convert::identity` for the host batch itself).
     #[allow(clippy::too_many_arguments)]
-    pub fn start_with(
+    pub fn start(
         source: Arc<dyn SampleSource>,
         split: Split,
         config: StreamConfig,
