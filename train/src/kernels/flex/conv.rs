@@ -204,27 +204,20 @@ pub(super) fn conv_operands(
     Some((xc, wc, third, shape))
 }
 
-/// Where a [`matmul`] puts its product: over memory it need not read (which may be uninitialised), or added to
-/// initialised values. Separate borrows because only the second may be read.
+/// Where a [`matmul`] puts its product: written over `dst`'s values, or added to them. Both are initialised
+/// memory: gemm's edge tiles copy `dst` into a temporary even when they do not add to it.
 pub(super) enum Dst<'a> {
-    Write(&'a mut [std::mem::MaybeUninit<f32>]),
+    Write(&'a mut [f32]),
     Add(&'a mut [f32]),
 }
 
 impl<'a> Dst<'a> {
-    /// Initialised memory to write over.
-    pub(super) fn overwrite(d: &'a mut [f32]) -> Self {
-        // SAFETY: a `&mut [f32]` seen as possibly uninitialised; gemm writes only floats into it, so it stays
-        // initialised.
-        Dst::Write(unsafe { &mut *(d as *mut [f32] as *mut [std::mem::MaybeUninit<f32>]) })
-    }
-
-    /// Initialised memory to add to (`accumulate`) or to write over.
+    /// Added to when `accumulate`, else written over.
     pub(super) fn init(d: &'a mut [f32], accumulate: bool) -> Self {
         if accumulate {
             Dst::Add(d)
         } else {
-            Dst::overwrite(d)
+            Dst::Write(d)
         }
     }
 
@@ -249,7 +242,7 @@ pub(super) fn matmul(
     rhs_strides: [usize; 2],
 ) {
     let (dst_ptr, dst_len, accumulate) = match dst {
-        Dst::Write(d) => (d.as_mut_ptr().cast::<f32>(), d.len(), false),
+        Dst::Write(d) => (d.as_mut_ptr(), d.len(), false),
         Dst::Add(d) => (d.as_mut_ptr(), d.len(), true),
     };
     let last = |[rs, cs]: [usize; 2], rows: usize, cols: usize| {
@@ -261,9 +254,8 @@ pub(super) fn matmul(
             && last(rhs_strides, k, n) < rhs.len().max(1),
         "matmul operands out of bounds"
     );
-    // SAFETY: the assertion above keeps every element gemm touches inside the three slices; `dst` is borrowed
-    // mutably, so it aliases neither operand; and gemm reads `dst` only when accumulating (`read_dst`), which
-    // only [`Dst::Add`], initialised memory, asks for.
+    // SAFETY: the assertion above keeps every element gemm touches inside the three slices, and `dst` is
+    // borrowed mutably, so it aliases neither operand.
     unsafe {
         gemm::gemm(
             m,
@@ -302,36 +294,25 @@ pub fn conv2d(
     from_vec(y, &[s.batch, s.c_out, s.height, s.width])
 }
 
-/// `Y = W·col(X) (+ b)` for every sample of contiguous `xs` with weights `w` (`c_out × taps`). The output is never
-/// zeroed: gemm writes it, or adds to the bias planes written first.
+/// `Y = W·col(X) (+ b)` for every sample of contiguous `xs` with weights `w` (`c_out × taps`). With a bias the
+/// output is never zeroed: the bias planes are written first and gemm adds to them.
 pub(super) fn convolve(s: &ConvShape, xs: &[f32], w: &[f32], bias: Option<&[f32]>) -> Vec<f32> {
     let (plane_in, plane_out) = s.planes();
     let hw = s.positions();
-    let mut y = Vec::with_capacity(s.batch * plane_out);
-    y.spare_capacity_mut()[..s.batch * plane_out]
-        .par_chunks_mut(plane_out)
-        .zip(xs.par_chunks(plane_in))
-        .for_each(|(y, x)| {
-            let y = match bias {
-                Some(bias) => {
-                    y.chunks_mut(hw)
-                        .zip(bias)
-                        .for_each(|(plane, &b)| plane.fill(std::mem::MaybeUninit::new(b)));
-                    // SAFETY: every element was just written (`c_out` planes of `hw`, one bias each).
-                    Dst::Add(unsafe {
-                        &mut *(y as *mut [std::mem::MaybeUninit<f32>] as *mut [f32])
-                    })
-                }
-                None => Dst::Write(y),
-            };
-            with_scratch([s.block_len(), 0], |buffer, _| {
-                convolve_sample(s, x, w, y, buffer);
-            });
+    let fill = |n: usize, y: &mut [std::mem::MaybeUninit<f32>]| {
+        // Zeros without a bias: gemm overwrites them, but its edge tiles copy `dst` before they do.
+        y.chunks_mut(hw).enumerate().for_each(|(o, plane)| {
+            plane.fill(std::mem::MaybeUninit::new(bias.map_or(0.0, |b| b[o])))
         });
-    // SAFETY: each sample's `c_out × hw` output was written whole: the bias planes, or without a bias the gemm of
-    // every row block, whose `c_out × block` columns tile the planes (the blocks cover every output row).
-    unsafe { y.set_len(s.batch * plane_out) };
-    y
+        // SAFETY: every element was just written (`c_out` planes of `hw`).
+        let y = unsafe { &mut *(y as *mut [std::mem::MaybeUninit<f32>] as *mut [f32]) };
+        with_scratch([s.block_len(), 0], |buffer, _| {
+            let x = &xs[n * plane_in..(n + 1) * plane_in];
+            convolve_sample(s, x, w, Dst::init(y, bias.is_some()), buffer);
+        });
+    };
+    // SAFETY: `fill` writes each sample's `c_out × hw` output whole before gemm runs on it.
+    unsafe { par_written(s.batch * plane_out, plane_out, fill) }
 }
 
 /// One sample's `y (c_out × hw) [+]= W·col(x)`, block by block, with `buffer` ([`ConvShape::block_len`]) for the

@@ -71,7 +71,7 @@ pub fn upsample_conv2d(
             with_scratch([block, s.c_out * hw], |col, y_ab| {
                 for (p, k) in kernels.iter().enumerate() {
                     let (a, b) = (p / 2, p % 2);
-                    convolve_sample(&phase_shape(&s, a, b), x, k, Dst::overwrite(y_ab), col);
+                    convolve_sample(&phase_shape(&s, a, b), x, k, Dst::Write(y_ab), col);
                     for (o, plane) in y_ab.chunks(hw).enumerate() {
                         let shift = bias.map_or(0.0, |b| b[o]);
                         let out = &mut y[o * 4 * hw..(o + 1) * 4 * hw];
