@@ -1,75 +1,100 @@
-"""Writes docs/results/36-speed-vs-error.json from the evaluations and step-time fits it names (run from the repository root after docs/scripts/step_times.sh and the `eval` commands in the record)."""
+"""Updates the rows of docs/results/36-speed-vs-error.json from the test evaluations and step-time fits it names (run
+from the repository root after docs/scripts/step_times.sh and the `eval` commands in the record).
+
+The record is the store: a row whose evaluation is not on this machine (`out/` is rebuilt on a new checkout) keeps
+the figures the record already holds, and the script says so. A row whose evaluation is here is written afresh from
+its `metrics.json`, after its run's `config.json` is checked against the row's width, rate and length. The step
+times are those of the AMD EPYC sitting (`out/speed/w*.log` when present, else the record's rows), so every row's
+CPU-hours share one machine. The title, intro, plot and notes are prose kept in the record by hand."""
 import json
+import os
 import re
 import sys
 
-def ratio(path):
-    m = json.load(open(path))
-    return m['learned_over_hapke_paper_sse'], m
-def sps(log):
-    vals = re.findall(r'samples_per_s="([0-9.]+)"', open(log).read())
-    return float(vals[-1])
-s = {w: 8.0 / sps(f'out/speed/w{w}.log') for w in (4, 8, 16)}
-runs = [
-  # (label, run, width, lr, steps, eval dir)
-  ('w4 4k lr1e-4', 'h1-w4', 4, '1e-4', 4000, 'out/evals/h1-w4-test'),
-  ('w8 4k lr1e-4', 'h1', 8, '1e-4', 4000, 'out/evals/h1-test'),
-  ('w8 4k', 'h1-lr1e-3', 8, '1e-3', 4000, 'out/evals/h1-lr1e-3-test'),
-  ('w8 8k', 'h1-lr1e-3-2ep', 8, '1e-3', 8000, 'out/evals/h1-lr1e-3-2ep-test'),
-  ('w8 16k (shipped)', 'h1-lr1e-3-4ep', 8, '1e-3', 16000, 'out/evals/shipped16k-test'),
-]
-out = []
-for label, run, w, lr, steps, ev in runs:
-    try:
-        r, m = ratio(ev + '/metrics.json')
-    except FileNotFoundError:
-        print('missing', ev, file=sys.stderr); continue
-    cpu_h = steps * s[w] * 2 / 3600
-    out.append(dict(label=label, run=run, width=w, lr=lr, steps=steps, crops=steps*8, s_per_step=round(s[w],4),
-                    cpu_hours=round(cpu_h,3), ratio=round(r,4), ckpt=m['learned_checkpoints']))
-DATA = {"s_per_step": {str(k): v for k, v in s.items()}, "rows": out}
+RECORD = 'docs/results/36-speed-vs-error.json'
+AMD = 'session of 2026-11-26 (seventh), AMD EPYC 2-core build machine, release build'
+INTEL = ('session of 2026-11-28 (seventeenth), Intel Xeon (AVX-512) 2-core build machine, release build; CPU-hours '
+         'at the AMD step time of its width, like the rows above')
+EVAL = 'g2r-train eval --run {run} --data out/tycho-dataset/dataset --split test'
+SHIPPED = 'train/shipped/tycho-full-h1'
 
-data = DATA
-s = data['s_per_step']
-rows = []
-for r in data['rows']:
-    ck = r['ckpt'][0] if r['ckpt'] else ''
-    fig = {'width': r['width'], 'steps': r['steps'], 'crops_seen': r['crops'], 's_per_step': round(r['s_per_step'], 3),
-           'cpu_hours': r['cpu_hours'], 'test_learned_over_paper_hapke_sse': round(r['ratio'], 3)}
-    rows.append({
-        'cells': [f"H1, width {r['width']}, cosine lr {r['lr']}, {r['steps']:,} steps ({r['crops']:,} crops)" + (' — **the shipped model**' if 'shipped' in r['label'] else ''),
-                  '{crops_seen}', '{cpu_hours:.2}', '**{test_learned_over_paper_hapke_sse:.3}**', f"`{ck}`"],
-        'command': (f"`g2r-train eval --run train/shipped/tycho-full-h1 --data out/tycho-dataset/dataset --split test --world out/tycho-world`" if 'shipped' in r['label']
-                    else f"`g2r-train eval --run out/runs/{r['run']} --data out/tycho-dataset/dataset --split test" + (" --world out/tycho-world`" if r['run']=='h1' else " --panels 0`")),
-        'measured': 'session of 2026-11-26 (seventh), AMD EPYC 2-core build machine, release build' if r['run'] != 'h1' else 'test score: session of 2026-11-26 (first); step time: the seventh',
-        'figures': fig,
-        'point': {'w8 4k lr1e-4': '', 'w8 4k': 'w8 4k (lr 1e-4 and 1e-3)'}.get(r['label'], r['label']),
-    })
-w16 = round(s['16'], 3)
-rows.append({'cells': ['H1, width 16: step time only (not trained at publication scale yet)', 'n/a', 'n/a', 'not measured', 'n/a'],
-             'command': 'the step-time fits below', 'measured': 'session of 2026-11-26 (seventh), AMD EPYC 2-core build machine, release build',
-             'figures': {'width': 16, 's_per_step': w16}})
-rec = {
-  'title': 'Speed against error at publication scale (tycho-full, world v3)',
-  'intro': ("Test error (learned / paper-Hapke SSE on the whole tycho-full test split, 7,482 crops) against the CPU time the fit took, "
-            "for each width and training length trained so far. CPU-hours = steps × s/step × 2 cores: the s/step of each width measured "
-            "in one quiet sitting, alone on the cores (`docs/scripts/step_times.sh`: fits of the shipped recipe at each width, 225–750 steps each, "
-            "the last logged samples/s): width 4 {w4} s, width 8 {w8} s, width 16 {w16} s per step of 8 crops. Each run is scored at "
-            "the checkpoint its validation chose (the weight average, except the shipped model: the raw network). The lengths and "
-            "the rate were chosen on validation (world-v3 section); these test scores were taken after, for this table only. `docs/scripts/speed_vs_error.py` writes this record from those evaluations and fits.").format(
-            w4=round(s['4'],3), w8=round(s['8'],3), w16=w16),
-  'columns': ['run', 'crops seen', 'CPU-hours (2-core AMD EPYC)', 'test learned / paper-Hapke SSE', 'checkpoint'],
-  'rows': rows,
-  'plot': {'file': 'speed-vs-error.png', 'title': 'tycho-full test: error against training cost', 'x': 'cpu_hours',
-           'x_label': 'CPU-hours of the fit (2-core AMD EPYC)', 'y': 'test_learned_over_paper_hapke_sse',
-           'y_label': 'learned / paper-Hapke SSE (test; lower is better, paper 0.62)'},
-  'notes': ("Each doubling of the training at width 8 and lr 1e-3 buys 9–27 % on test (1.106 → 0.804 → 0.729) for twice the "
-            "CPU time; width 4 is 2.2× cheaper per step than width 8 and 29 % worse at the same length and recipe of its day (1.422 against 1.103). "
-            "Width 16 costs {r16:.1f}× width 8 per step, so its 16,000 steps would take about {w16h:.1f} h of wall time here (before validation), at the edge of the 2.5 h budget of "
-            "one shipped fit; it is not trained yet. The paper's 20 epochs (20 × 8,507 steps of batch 8 over the 68,055 train crops) would take "
-            "about {paper_h:.1f} h of wall time at width 8 on this machine ({paper_cpu:.0f} CPU-hours); no GPU was lent to this session, so the GPU figure is "
-            "not measured. At the measured step time the shipped fit's 16,000 steps take about {shipped_h:.1f} h alone on the cores (an estimate: the fit itself ran across sessions, sharing the cores), within the 2.5 h budget.").format(
-            r16=s['16']/s['8'], w16h=16000*s['16']/3600, paper_h=20*8507*s['8']/3600, paper_cpu=2*20*8507*s['8']/3600, shipped_h=16000*s['8']/3600)
-}
-open('docs/results/36-speed-vs-error.json', 'w').write(json.dumps(rec, indent=2, ensure_ascii=False) + '\n')
-print(json.dumps(data, indent=1))
+# (point: the plot's label, empty where a row shares its x with the one above; width, lr, steps, run, eval dir, what the cells add to the run's name, extra eval flags, measured)
+ROWS = [
+    ('w4 4k lr1e-4', 4, '1e-4', 4000, 'out/runs/h1-w4', 'out/evals/h1-w4-test', '', ' --panels 0', AMD),
+    ('', 8, '1e-4', 4000, 'out/runs/h1', 'out/evals/h1-test', '', ' --world out/tycho-world',
+     'test score: session of 2026-11-26 (first); step time: the seventh'),
+    ('w8 4k (lr 1e-4 and 1e-3)', 8, '1e-3', 4000, 'out/runs/h1-lr1e-3', 'out/evals/h1-lr1e-3-test', '',
+     ' --panels 0', AMD),
+    ('w8 8k', 8, '1e-3', 8000, 'out/runs/h1-lr1e-3-2ep', 'out/evals/h1-lr1e-3-2ep-test', '', ' --panels 0', AMD),
+    ('w8 16k', 8, '1e-3', 16000, SHIPPED, 'out/evals/shipped16k-test',
+     ' — the shipped model until the 32,000-step one', ' --world out/tycho-world', AMD),
+    ('w8 32k (shipped; third run)', 8, '1e-3', 32000, SHIPPED, 'out/evals/shipped32k-test', ' — **the shipped model**',
+     ' --world out/tycho-world --out out/evals/shipped32k-test',
+     'session of 2026-11-27 (eleventh), AMD EPYC 2-core build machine, release build; CPU-hours at the same step '
+     'time as the rows above (0.224 s)'),
+    ('', 8, '1e-3', 32000, 'out/runs/h1-intel-8ep', 'out/evals/intel32k-test',
+     ' — the shipped command run a third time', ' --world out/tycho-world --out out/evals/intel32k-test',
+     INTEL.replace('seventeenth', 'sixteenth')),
+    ('w16 12k', 16, '1e-3', 12000, 'out/runs/h1-w16-3ep', 'out/evals/w16-12k-test', '',
+     ' --world out/tycho-world --out out/evals/w16-12k-test', INTEL),
+]
+
+
+def amd_step_times(record):
+    """s/step by width: from the AMD step-time logs when present, else from the record's rows."""
+    logs = {w: f'out/speed/w{w}.log' for w in (4, 8, 16)}
+    if all(os.path.exists(p) for p in logs.values()):
+        return {w: 8.0 / float(re.findall(r'samples_per_s="([0-9.]+)"', open(p).read())[-1])
+                for w, p in logs.items()}
+    times = {}
+    for row in record['rows']:
+        f = row['figures']
+        times.setdefault(int(f['width']), f['s_per_step'])
+    return times
+
+
+def checked_config(run, width, lr, steps):
+    config = json.load(open(os.path.join(run, 'config.json')))
+    last = [json.loads(line) for line in open(os.path.join(run, 'metrics.jsonl'))][-1]
+    found = (config['base_width'], config['learning_rate'], last['steps'])
+    if found != (width, float(lr), steps):
+        sys.exit(f'{run}: width, rate and steps are {found}, the row says {(width, float(lr), steps)}')
+
+
+def main():
+    record = json.load(open(RECORD))
+    kept = {r['command']: r for r in record['rows'] if 'cpu_hours' in r['figures']}
+    s = amd_step_times(record)
+    rows = []
+    for point, width, lr, steps, run, ev, suffix, flags, measured in ROWS:
+        metrics = os.path.join(ev, 'metrics.json')
+        command = f'`{EVAL.format(run=run)}{flags}`'
+        if not os.path.exists(metrics):
+            if command not in kept:
+                print(f'{run}: no {metrics} and no row in the record; left out', file=sys.stderr)
+                continue
+            print(f'{run}: no {metrics}; the record\'s figures kept', file=sys.stderr)
+            rows.append(dict(kept[command], point=point))
+            continue
+        checked_config(run, width, lr, steps)
+        m = json.load(open(metrics))
+        ck = m['learned_checkpoints'][0] if m['learned_checkpoints'] else ''
+        rows.append({
+            'cells': [f'H1, width {width}, cosine lr {lr}, {steps:,} steps ({steps * 8:,} crops){suffix}',
+                      '{crops_seen}', '{cpu_hours:.2}', '**{test_learned_over_paper_hapke_sse:.3}**', f'`{ck}`'],
+            'command': command,
+            'measured': measured,
+            'figures': {'width': width, 'steps': steps, 'crops_seen': steps * 8,
+                        's_per_step': round(s[width], 3), 'cpu_hours': round(steps * s[width] * 2 / 3600, 3),
+                        'test_learned_over_paper_hapke_sse': round(m['learned_over_hapke_paper_sse'], 4)},
+            'point': point,
+        })
+    # A width with a step time but no trained row yet keeps its step-time-only row.
+    trained = {r['figures']['width'] for r in rows}
+    rows += [r for r in record['rows'] if 'cpu_hours' not in r['figures'] and r['figures']['width'] not in trained]
+    record['rows'] = rows
+    open(RECORD, 'w').write(json.dumps(record, indent=2, ensure_ascii=False) + '\n')
+
+
+if __name__ == '__main__':
+    main()
