@@ -35,8 +35,8 @@ ROWS = [
     ('', 8, '1e-3', 32000, 'out/runs/h1-intel-8ep', 'out/evals/intel32k-test',
      ' — the shipped command run a third time', ' --world out/tycho-world --out out/evals/intel32k-test',
      INTEL.replace('seventeenth', 'sixteenth')),
-    ('w16 12k', 16, '1e-3', 12000, 'out/runs/h1-w16-3ep', 'out/evals/w16-12k-test', '',
-     ' --world out/tycho-world --out out/evals/w16-12k-test', INTEL),
+    ('w16 4k', 16, '1e-3', 4000, 'out/runs/h1-w16-1ep', 'out/evals/w16-4k-test', '',
+     ' --panels 0 --out out/evals/w16-4k-test', INTEL),
 ]
 
 
