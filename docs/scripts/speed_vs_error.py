@@ -18,7 +18,8 @@ INTEL = ('session of 2026-11-28 (seventeenth), Intel Xeon (AVX-512) 2-core build
 EVAL = 'g2r-train eval --run {run} --data out/tycho-dataset/dataset --split test'
 SHIPPED = 'train/shipped/tycho-full-h1'
 
-# (point: the plot's label, empty where a row shares its x with the one above; width, lr, steps, run, eval dir, what the cells add to the run's name, extra eval flags, measured)
+# (point: the plot's label, empty where a row shares its x with the one above; width, lr, steps, run, eval dir (None:
+# the record's figures stand), what the cells add to the run's name, extra eval flags, measured)
 ROWS = [
     ('w4 4k lr1e-4', 4, '1e-4', 4000, 'out/runs/h1-w4', 'out/evals/h1-w4-test', '', ' --panels 0', AMD),
     ('', 8, '1e-4', 4000, 'out/runs/h1', 'out/evals/h1-test', '', ' --world out/tycho-world',
@@ -26,7 +27,8 @@ ROWS = [
     ('w8 4k (lr 1e-4 and 1e-3)', 8, '1e-3', 4000, 'out/runs/h1-lr1e-3', 'out/evals/h1-lr1e-3-test', '',
      ' --panels 0', AMD),
     ('w8 8k', 8, '1e-3', 8000, 'out/runs/h1-lr1e-3-2ep', 'out/evals/h1-lr1e-3-2ep-test', '', ' --panels 0', AMD),
-    ('w8 16k', 8, '1e-3', 16000, SHIPPED, 'out/evals/shipped16k-test',
+    # The 16,000-step checkpoint was replaced by the 32,000-step one in the same folder: its row is the record's.
+    ('w8 16k', 8, '1e-3', 16000, SHIPPED, None,
      ' — the shipped model until the 32,000-step one', ' --world out/tycho-world', AMD),
     ('w8 32k (shipped; third run)', 8, '1e-3', 32000, SHIPPED, 'out/evals/shipped32k-test', ' — **the shipped model**',
      ' --world out/tycho-world --out out/evals/shipped32k-test',
@@ -67,13 +69,14 @@ def main():
     s = amd_step_times(record)
     rows = []
     for point, width, lr, steps, run, ev, suffix, flags, measured in ROWS:
-        metrics = os.path.join(ev, 'metrics.json')
+        metrics = os.path.join(ev, 'metrics.json') if ev else None
         command = f'`{EVAL.format(run=run)}{flags}`'
-        if not os.path.exists(metrics):
+        if not (metrics and os.path.exists(metrics)):
             if command not in kept:
                 print(f'{run}: no {metrics} and no row in the record; left out', file=sys.stderr)
                 continue
-            print(f'{run}: no {metrics}; the record\'s figures kept', file=sys.stderr)
+            why = f'no {metrics}' if metrics else 'its checkpoint is gone'
+            print(f'{run}: {why}; the record\'s figures kept', file=sys.stderr)
             rows.append(dict(kept[command], point=point))
             continue
         checked_config(run, width, lr, steps)
