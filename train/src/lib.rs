@@ -6,7 +6,9 @@
 //!   [`averaging`] (the weight average) and [`calibration`] (uniform least-squares fits);
 //! - [`prediction`] (inference-mode renderings, symmetry means, ensembles) → [`evaluation`] (against baselines,
 //!   [`baseline`], and the oracle; [`features`] matching) and [`inference`] (parameter GeoTIFFs from a DEM);
-//! - [`report`] (speed against error, [`plot`]), [`views`] (the novel-view ray caster), [`mod@bench`];
+//! - [`replicas`]: data-parallel fits (`fit --replicas`) over the same loop;
+//! - [`report`] (speed against error, [`plot`]), [`results_page`] (docs/results.md from its records), [`views`] (the
+//!   novel-view ray caster), [`mod@bench`];
 //! - [`testing`]: fixtures for tests and benches; [`backend`]: which Burn backend a job runs on.
 
 pub mod augment;

@@ -44,7 +44,8 @@ pub struct HapkeParams {
 }
 
 impl HapkeParams {
-    /// Representative lunar highland/mare soil (docs/design.md, Photometry ranges; θ̄ from a Moon-wide fit).
+    /// Representative lunar highland/mare soil: each parameter inside the usual lunar range (w 0.2–0.5, b 0.2–0.3,
+    /// c 0.3–0.9, B_S0 1.5–3, h_S 0.05–0.1); θ̄ from a Moon-wide fit.
     pub fn lunar_typical() -> Self {
         Self {
             w: 0.32,
