@@ -39,6 +39,7 @@ fn help_lists_every_command() {
         "bench",
         "models",
         "model-choice",
+        "compare-evals",
         "results-page",
     ] {
         assert!(
@@ -250,4 +251,68 @@ fn results_page_writes_the_page_and_check_fails_when_it_differs() {
     std::fs::write(d.join("README.md"), filled.replace("| x |", "| y |")).unwrap();
     let (ok, stderr) = train_cli(&check);
     assert!(!ok && error_line(&stderr).contains("README.md"), "{stderr}");
+}
+
+/// `compare-evals` on two `metrics.json` of the same crops writes its comparison; on crops that differ it fails
+/// with one line naming both files and the fix, and writes nothing.
+#[test]
+fn compare_evals_pairs_the_same_crops_and_refuses_others() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let metrics = |ids: &[&str], learned: f64| {
+        let images: Vec<String> = ids
+            .iter()
+            .enumerate()
+            .map(|(k, id)| {
+                format!(
+                    r#"{{"sample_id":"{id}","ortho_id":"M{}","metrics":{{"learned":{{"sse":{learned}}},"hapke_paper":{{"sse":2.0}}}}}}"#,
+                    k % 2
+                )
+            })
+            .collect();
+        format!(r#"{{"split":"val","per_image":[{}]}}"#, images.join(","))
+    };
+    for (name, ids, learned) in [
+        ("base", &["a", "b", "c", "d"][..], 1.0),
+        ("better", &["d", "c", "b", "a"][..], 0.5),
+        ("other", &["a", "b", "c", "e"][..], 0.5),
+    ] {
+        std::fs::create_dir(d.join(name)).unwrap();
+        std::fs::write(d.join(name).join("metrics.json"), metrics(ids, learned)).unwrap();
+    }
+    let path = |name: &str| d.join(name).to_string_lossy().into_owned();
+    let out = path("cmp");
+    let (ok, stderr) = train_cli(&[
+        "compare-evals",
+        &path("base"),
+        &path("better"),
+        "--out",
+        &out,
+    ]);
+    assert!(ok, "{stderr}");
+    let written: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(d.join("cmp/comparison.json")).unwrap())
+            .unwrap();
+    assert_eq!(written["candidate_over_base"], 0.5);
+    assert_eq!(written["base_over_hapke_paper"], 0.5);
+    assert!(std::fs::read_to_string(d.join("cmp/comparison.md"))
+        .unwrap()
+        .contains("the candidate is better"));
+
+    let refused = path("refused");
+    let (ok, stderr) = train_cli(&[
+        "compare-evals",
+        &path("base"),
+        &path("other"),
+        "--out",
+        &refused,
+    ]);
+    let line = error_line(&stderr);
+    assert!(!ok);
+    assert!(
+        line.contains(&path("base")) && line.contains(&path("other")),
+        "{stderr}"
+    );
+    assert!(line.contains("--max-samples"), "{stderr}");
+    assert!(!d.join("refused").exists());
 }

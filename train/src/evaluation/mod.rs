@@ -12,6 +12,7 @@
 //!   albedo component no terrain can predict (docs/design.md, Synthetic world): about as far as a model that reads the terrain perfectly
 //!   could go, so the gap to it is the part of the error a DEM-driven model can still remove.
 
+mod comparison;
 mod methods;
 mod model_choice;
 mod model_form;
@@ -19,6 +20,7 @@ mod panels;
 mod tables;
 mod truth;
 
+pub use comparison::*;
 pub use methods::*;
 pub use model_choice::*;
 pub use model_form::*;

@@ -308,6 +308,24 @@ pub enum Command {
         #[arg(long)]
         symmetry_mean: bool,
     },
+    /// Can two evaluations of the same crops be told apart? Pairs them crop by crop and bootstraps the candidate's
+    /// learned SSE over the base's by whole orthos (the crops of one ortho share sun, view and ground, so the ortho
+    /// is what varies between held-out tiles): prints the ratio, its 95 % interval and whether it holds 1; with
+    /// --out, writes comparison.json and comparison.md.
+    CompareEvals {
+        /// The base: an `eval --out` directory (or its metrics.json).
+        base: PathBuf,
+        /// The candidate, evaluated on the same split with the same --max-samples.
+        candidate: PathBuf,
+        /// Ortho resamples.
+        #[arg(long, default_value_t = 4000)]
+        resamples: usize,
+        /// Seed of the resampling stream.
+        #[arg(long, default_value_t = 42)]
+        seed: u64,
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
     /// Which BRDF model each kind of ground needs, with no network in the way: per crop, each candidate's
     /// model-form oracle (the best geometry-blind coefficients for the true material at every pixel: what its form
     /// attains) and its uniform fit, grouped by terrain class and unit; per ground, the cheapest candidate whose

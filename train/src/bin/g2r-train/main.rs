@@ -94,6 +94,32 @@ fn run(cli: Cli) -> Result<()> {
                 out.display()
             );
         }
+        Command::CompareEvals {
+            base,
+            candidate,
+            resamples,
+            seed,
+            out,
+        } => {
+            let names = (base.display().to_string(), candidate.display().to_string());
+            let names = (names.0.as_str(), names.1.as_str());
+            let comparison = train::evaluation::compare_evals(
+                &train::evaluation::read_eval_record(&base)?,
+                &train::evaluation::read_eval_record(&candidate)?,
+                names,
+                resamples,
+                seed,
+            )?;
+            let markdown = train::evaluation::comparison_markdown(&comparison, names);
+            print!("{markdown}");
+            if let Some(out) = out {
+                train::evaluation::write_comparison(&comparison, &markdown, &out)?;
+                println!(
+                    "\nwrote {}/comparison.json and comparison.md",
+                    out.display()
+                );
+            }
+        }
         Command::ModelChoice {
             data,
             split,
