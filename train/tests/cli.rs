@@ -298,6 +298,7 @@ fn compare_evals_pairs_the_same_crops_and_refuses_others() {
     assert!(std::fs::read_to_string(d.join("cmp/comparison.md"))
         .unwrap()
         .contains("the candidate is better"));
+    assert!(d.join("cmp/provenance.json").exists());
 
     let refused = path("refused");
     let (ok, stderr) = train_cli(&[

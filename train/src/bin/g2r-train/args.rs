@@ -311,7 +311,7 @@ pub enum Command {
     /// Can two evaluations of the same crops be told apart? Pairs them crop by crop and bootstraps the candidate's
     /// learned SSE over the base's by whole orthos (the crops of one ortho share sun, view and ground, so the ortho
     /// is what varies between held-out tiles): prints the ratio, its 95 % interval and whether it holds 1; with
-    /// --out, writes comparison.json and comparison.md.
+    /// --out, writes comparison.json, comparison.md and provenance.json.
     CompareEvals {
         /// The base: an `eval --out` directory (or its metrics.json).
         base: PathBuf,

@@ -114,6 +114,7 @@ fn run(cli: Cli) -> Result<()> {
             print!("{markdown}");
             if let Some(out) = out {
                 train::evaluation::write_comparison(&comparison, &markdown, &out)?;
+                dataset::provenance::Provenance::capture().write(&out.join("provenance.json"))?;
                 println!(
                     "\nwrote {}/comparison.json and comparison.md",
                     out.display()
