@@ -1,7 +1,8 @@
-//! Where and when a measurement was taken, written next to it (`provenance.json` of `eval` and `report`, the
-//! `provenance` of `bench`'s record, `run-record.json` of `g2r-pipeline run`), so a figure quoted later carries
-//! its command, commit, machine and date from the record rather than from memory. Kept out of the measured outputs
-//! themselves (`metrics.json`, the dataset), which stay byte-identical from run to run.
+//! Where and when a measurement was taken, written next to it (`provenance.json` of `eval`, `report`,
+//! `model-choice` and `compare-evals --out`, the `provenance` of `bench`'s record, `run-record.json` of
+//! `g2r-pipeline run`), so a figure quoted later carries its command, commit, machine and date from the record
+//! rather than from memory. Kept out of the measured outputs themselves (`metrics.json`, the dataset), which stay
+//! byte-identical from run to run.
 
 use hifitime::Epoch;
 

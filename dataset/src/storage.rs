@@ -14,6 +14,8 @@ use anyhow::{bail, Context, Result};
 use object_store::path::Path as ObjectPath;
 use object_store::{ObjectStore, ObjectStoreExt, PutMode, PutOptions, PutPayload, RetryConfig};
 
+use crate::contract::publication::{DOCUMENT_FILES, MANIFEST_FILE};
+
 /// Whether `location` names object storage rather than a local path.
 pub fn is_url(location: &str) -> bool {
     [
@@ -454,8 +456,6 @@ impl DatasetLocation {
 }
 
 /// The files of a published dataset besides its shards, uploaded when present; `manifest.json` goes last.
-const DATASET_DOCUMENTS: [&str; 4] = ["README.md", "croissant.json", "summary.json", "map.png"];
-
 /// Copy the published dataset in `dir` to `remote`: verify it against its manifest, refuse a destination that
 /// already holds a manifest, upload every shard and document, then `manifest.json` last with a conditional put.
 /// A reader that finds the manifest finds every shard it lists; a failure before that leaves no manifest, and
@@ -465,10 +465,10 @@ pub fn upload_dataset(dir: &std::path::Path, remote: &RemoteDir) -> Result<u64> 
     if let Some(problem) = manifest.verify(dir).into_iter().next() {
         bail!("{problem}; the local dataset does not match its manifest, so nothing was uploaded (re-run publish)");
     }
-    if remote.size("manifest.json").is_ok() {
+    if remote.size(MANIFEST_FILE).is_ok() {
         bail!(
             "{}: a dataset is already published there; choose a new prefix (a published dataset is never overwritten)",
-            remote.url_of("manifest.json")
+            remote.url_of(MANIFEST_FILE)
         );
     }
     let names = manifest
@@ -476,7 +476,7 @@ pub fn upload_dataset(dir: &std::path::Path, remote: &RemoteDir) -> Result<u64> 
         .iter()
         .map(|shard| shard.path.clone())
         .chain(
-            DATASET_DOCUMENTS
+            DOCUMENT_FILES
                 .iter()
                 .filter(|name| dir.join(name).exists())
                 .map(|name| name.to_string()),
@@ -488,9 +488,9 @@ pub fn upload_dataset(dir: &std::path::Path, remote: &RemoteDir) -> Result<u64> 
         uploaded += bytes.len() as u64;
         remote.put(&name, bytes)?;
     }
-    let text = std::fs::read(dir.join("manifest.json"))?;
+    let text = std::fs::read(dir.join(MANIFEST_FILE))?;
     uploaded += text.len() as u64;
-    remote.put_new("manifest.json", text)?;
+    remote.put_new(MANIFEST_FILE, text)?;
     Ok(uploaded)
 }
 
@@ -498,18 +498,18 @@ pub fn upload_dataset(dir: &std::path::Path, remote: &RemoteDir) -> Result<u64> 
 /// lists with their hashes (not the card or other documents, which it does not hash). A rerun of a build that was
 /// uploaded before finds it so; a prefix with another dataset's manifest is refused by [`upload_dataset`].
 pub fn holds_dataset(dir: &std::path::Path, remote: &RemoteDir) -> Result<bool> {
-    let local = std::fs::read(dir.join("manifest.json"))
-        .with_context(|| format!("{}: cannot read", dir.join("manifest.json").display()))?;
-    Ok(remote.get_if_exists("manifest.json")?.as_ref() == Some(&local))
+    let local = std::fs::read(dir.join(MANIFEST_FILE))
+        .with_context(|| format!("{}: cannot read", dir.join(MANIFEST_FILE).display()))?;
+    Ok(remote.get_if_exists(MANIFEST_FILE)?.as_ref() == Some(&local))
 }
 
 /// The published manifest at `remote`.
 pub fn remote_manifest(remote: &RemoteDir) -> Result<crate::contract::manifest::DatasetManifest> {
-    let text = String::from_utf8(remote.get("manifest.json")?)
-        .with_context(|| format!("{}: not UTF-8", remote.url_of("manifest.json")))?;
+    let text = String::from_utf8(remote.get(MANIFEST_FILE)?)
+        .with_context(|| format!("{}: not UTF-8", remote.url_of(MANIFEST_FILE)))?;
     Ok(crate::contract::manifest::DatasetManifest::parse(
         &text,
-        std::path::Path::new(&remote.url_of("manifest.json")),
+        std::path::Path::new(&remote.url_of(MANIFEST_FILE)),
     )?)
 }
 

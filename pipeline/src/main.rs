@@ -26,7 +26,7 @@ fn tune_allocator() {
     version,
     about = "Turn a lunar DEM + orthoimages into DEM-image pair shards; generate a synthetic lunar world",
     long_about = "Turn a lunar DEM + orthoimages + acquisition metadata into Parquet shards of DEM-image pairs \
-(erode -> sample -> split -> project -> publish), and generate a seeded synthetic lunar world with a hidden \
+(ingest -> erode -> sample -> split -> project -> publish), and generate a seeded synthetic lunar world with a hidden \
 ground truth to run it on.\n\nLogs go to stderr (RUST_LOG=debug for more); progress bars show on a terminal."
 )]
 struct Cli {

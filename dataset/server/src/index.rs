@@ -9,6 +9,7 @@ use anyhow::{bail, Context, Result};
 
 use dataset::contract::manifest::DatasetManifest;
 use dataset::contract::planner::RowGroupRef;
+use dataset::contract::publication::{CARD_FILE, MANIFEST_FILE, SUMMARY_FILE};
 use dataset::contract::schema::Sample;
 use dataset::contract::shard::ShardFile;
 use dataset::storage::DatasetLocation;
@@ -64,13 +65,13 @@ impl DatasetIndex {
     /// when `verify_hashes`: every shard read once), read all footers and row metadata (from a bucket: only the
     /// metadata columns' bytes).
     pub fn load(location: DatasetLocation, verify_hashes: bool) -> Result<Self> {
-        let Some(manifest_bytes) = location.read_if_exists("manifest.json")? else {
+        let Some(manifest_bytes) = location.read_if_exists(MANIFEST_FILE)? else {
             bail!(
                 "{}: no manifest.json: point at a published dataset, a directory or its object-storage URL (g2r-pipeline run writes OUT/dataset)",
                 location.describe()
             );
         };
-        let manifest_path = location.describe_file("manifest.json");
+        let manifest_path = location.describe_file(MANIFEST_FILE);
         let manifest_text = std::str::from_utf8(&manifest_bytes)
             .with_context(|| format!("{manifest_path}: not UTF-8; re-publish the dataset"))?;
         let manifest = DatasetManifest::parse(manifest_text, Path::new(&manifest_path))?;
@@ -91,10 +92,10 @@ impl DatasetIndex {
             }
         }
         let summary: serde_json::Value = location
-            .read_if_exists("summary.json")?
+            .read_if_exists(SUMMARY_FILE)?
             .and_then(|bytes| serde_json::from_slice(&bytes).ok())
             .unwrap_or(serde_json::Value::Null);
-        let card = match location.read_if_exists("README.md")? {
+        let card = match location.read_if_exists(CARD_FILE)? {
             Some(bytes) => String::from_utf8_lossy(&bytes).into_owned(),
             None => dataset::contract::publication::dataset_card(&manifest, &summary),
         };

@@ -116,8 +116,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 (shards, dataset::storage::verify_remote(&remote)?)
             } else {
                 let dir = PathBuf::from(&dir);
-                let manifest =
-                    dataset::contract::manifest::DatasetManifest::load(&dir.join("manifest.json"))?;
+                let manifest = dataset::contract::manifest::DatasetManifest::load_dir(&dir)?;
                 (manifest.shards.len(), manifest.verify(&dir))
             };
             for p in &problems {
@@ -139,8 +138,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             );
         }
         Command::Publish { dir } => {
-            let manifest =
-                dataset::contract::manifest::DatasetManifest::load(&dir.join("manifest.json"))?;
+            let manifest = dataset::contract::manifest::DatasetManifest::load_dir(&dir)?;
             let problems = manifest.verify(&dir);
             if !problems.is_empty() {
                 for p in &problems {

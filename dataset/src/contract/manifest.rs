@@ -92,7 +92,7 @@ pub enum ManifestError {
 impl DatasetManifest {
     /// The manifest of a published dataset directory (`dir/manifest.json`).
     pub fn load_dir(dir: &Path) -> Result<Self, ManifestError> {
-        let path = dir.join("manifest.json");
+        let path = dir.join(crate::contract::publication::MANIFEST_FILE);
         if !path.exists() {
             return Err(ManifestError::NoManifest {
                 dir: dir.to_path_buf(),

@@ -1,5 +1,5 @@
 //! Epoch planning: which rows a training epoch visits and in what order, as a pure function of
-//! (seed, epoch, rank, world). The trainer and (later) the dataset server both use it, so streaming from local
+//! (seed, epoch, rank, world). The trainer and the dataset server both use it, so streaming from local
 //! shards and over HTTP yields the same batches.
 //!
 //! Order = row groups shuffled, then rows shuffled within consecutive windows of `window_groups` row groups.

@@ -8,6 +8,19 @@ use std::path::Path;
 use crate::contract::manifest::{write_json_atomic, DatasetManifest};
 use crate::contract::schema::{sample_schema, schema_markdown, SCHEMA_VERSION};
 
+/// The published dataset's index of shards and checksums; written last, it is what makes a dataset finished.
+pub const MANIFEST_FILE: &str = "manifest.json";
+/// The dataset card.
+pub const CARD_FILE: &str = "README.md";
+/// The Croissant JSON-LD description.
+pub const CROISSANT_FILE: &str = "croissant.json";
+/// The publish stage's counts: pairs per split, ortho and tile, rejections by reason.
+pub const SUMMARY_FILE: &str = "summary.json";
+/// Tiles coloured by split, with the sample centres.
+pub const MAP_FILE: &str = "map.png";
+/// Every document published beside the shards except the manifest, in the order publish writes them.
+pub const DOCUMENT_FILES: [&str; 4] = [CARD_FILE, CROISSANT_FILE, SUMMARY_FILE, MAP_FILE];
+
 /// Rejected crops summed over orthos, by reason, from `summary.json`'s `rejections_by_ortho`.
 fn rejected_by_reason(summary: &serde_json::Value) -> BTreeMap<String, u64> {
     let mut rejected: BTreeMap<String, u64> = BTreeMap::new();
@@ -97,7 +110,7 @@ pub fn croissant(m: &DatasetManifest) -> serde_json::Value {
 
 /// Write `README.md` and `croissant.json` into `dir` (atomically) from `manifest` and `dir/summary.json`.
 pub fn write_descriptions(dir: &Path, manifest: &DatasetManifest) -> anyhow::Result<()> {
-    let summary_path = dir.join("summary.json");
+    let summary_path = dir.join(SUMMARY_FILE);
     let summary: serde_json::Value = match std::fs::read_to_string(&summary_path) {
         Ok(text) => serde_json::from_str(&text).map_err(|e| {
             anyhow::anyhow!(
@@ -109,10 +122,10 @@ pub fn write_descriptions(dir: &Path, manifest: &DatasetManifest) -> anyhow::Res
         Err(e) => return Err(anyhow::anyhow!("{}: {e}", summary_path.display())),
     };
     crate::contract::manifest::write_text_atomic(
-        &dir.join("README.md"),
+        &dir.join(CARD_FILE),
         &dataset_card(manifest, &summary),
     )?;
-    write_json_atomic(&dir.join("croissant.json"), &croissant(manifest))?;
+    write_json_atomic(&dir.join(CROISSANT_FILE), &croissant(manifest))?;
     Ok(())
 }
 

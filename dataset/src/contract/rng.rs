@@ -1,5 +1,6 @@
-//! Seeded, purpose-keyed random streams: every draw in the project (world, stages, trainer) comes from a ChaCha stream whose key is
-//! blake3(seed, purpose, index), so adding an ortho or a crater never reshuffles the others.
+//! Seeded, purpose-keyed random streams: every draw in the project (world, stages, trainer) comes from here, a
+//! ChaCha stream whose key is blake3(seed, purpose, index) or a stateless draw keyed the same way, so adding an
+//! ortho or a crater never reshuffles the others.
 
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -27,6 +28,19 @@ pub fn mix64(mut z: u64) -> u64 {
     z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
     z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
     z ^ (z >> 31)
+}
+
+/// A uniform number in [0, 1) for (`seed`, `purpose`, a 2-D cell), without a stream: the first 8 bytes of
+/// blake3(seed, purpose, col, row). The split stage draws each tile's split with it; that draw decides every
+/// published dataset's split, so its key layout (no separator after the purpose, unlike [`keyed_rng`]) is kept.
+pub fn keyed_cell_fraction(seed: u64, purpose: &str, cell: (i64, i64)) -> f64 {
+    let mut hasher = blake3::Hasher::new();
+    hasher.update(&seed.to_le_bytes());
+    hasher.update(purpose.as_bytes());
+    hasher.update(&cell.0.to_le_bytes());
+    hasher.update(&cell.1.to_le_bytes());
+    let bytes = hasher.finalize();
+    u64::from_le_bytes(bytes.as_bytes()[..8].try_into().expect("8 bytes")) as f64 / 2f64.powi(64)
 }
 
 /// Draw `index` of the stateless stream keyed by `key` (a [`keyed_u64`]): SplitMix64's output at that position.

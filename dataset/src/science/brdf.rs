@@ -19,7 +19,7 @@
 //!
 //! Convention (the reference renderer's): `f` returns the reflected fraction *including* the cos i factor, and the
 //! image is `I = E · V_sun · f(p; geometry)`. Raw per-pixel parameters pass through LeakyReLU(0.01) inside `f`.
-//! Terms are ordered (cos i, cos g, …) — the GeoTIFF band descriptions name them in this order.
+//! Terms are in [`BrdfModel::term_names`] order — the GeoTIFF band descriptions name them in this order.
 //! A surface facing away from the sun (cos i ≤ 0) or from the camera (cos e ≤ 0) reflects nothing toward it: f = 0.
 
 use glam::DVec3;

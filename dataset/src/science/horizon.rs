@@ -7,6 +7,9 @@
 //! - [`HorizonGrid::sweep_visible_fraction`]: the raster version, O(cells × disk samples): propagates a
 //!   "shadow surface" one pixel at a time away from the source. Tests hold it to the reference.
 //!
+//! The stages call neither directly: [`visibility_window`] cuts the part of a [`HeightField`] that can hold
+//! blockers for one crop and sweeps only that (the projection stage and the synthetic world's orthos use it).
+//!
 //! Directions are given on the grid: a horizontal unit step toward the source in (col, row) pixels (rows grow
 //! southward) and the source elevation angle above the local horizontal.
 
@@ -135,10 +138,6 @@ impl<'a> HorizonGrid<'a> {
             max_height_m,
             max_slope_tan: max_rise * std::f64::consts::SQRT_2,
         }
-    }
-
-    pub fn max_slope_deg(&self) -> f64 {
-        self.max_slope_tan.atan().to_degrees()
     }
 
     /// True when the source's lowest point is above the steepest slope: nothing can cast a shadow (exact skip).

@@ -18,10 +18,10 @@ pub mod geometry;
 // Whether the sun and camera see it: cast shadows, visibility.
 pub mod horizon;
 
-// How bright it is: the BRDF models (M1–M6, L2–L4, H1, H3, Lunar-Lambert) in f64.
+// How bright it is: the BRDF models (M1–M6, L2–L4, H1, H3) in f64.
 pub mod brdf;
 
-// Hapke's model in full, the reference the BRDF models are measured against.
+// Hapke's model in full, the reference the BRDF models are measured against, and Lunar-Lambert.
 pub mod hapke;
 
 // Fitting a model's coefficients: small linear least squares, unconstrained and non-negative.

@@ -15,6 +15,7 @@ pub mod table;
 use std::path::PathBuf;
 
 use anyhow::Context;
+use dataset::contract::publication::{DOCUMENT_FILES, MANIFEST_FILE};
 use dataset::science::raster::Raster;
 
 use crate::manifest::PipelineManifest;
@@ -303,16 +304,11 @@ pub fn pipeline_scoped(
             "split": serde_json::to_value(&m.split)?,
         }),
         // manifest.json last: the runner renames in this order, and the manifest is what makes a dataset finished.
-        outputs: [
-            "README.md",
-            "croissant.json",
-            "summary.json",
-            "map.png",
-            "manifest.json",
-        ]
-        .iter()
-        .map(|f| layout.dataset.join(f))
-        .collect(),
+        outputs: DOCUMENT_FILES
+            .iter()
+            .chain([&MANIFEST_FILE])
+            .map(|f| layout.dataset.join(f))
+            .collect(),
         run: Box::new(move |out| {
             let dem = dem6.get()?;
             let bounds = dem.transform.bounds(dem.width, dem.height);
@@ -354,10 +350,8 @@ pub fn pipeline_scoped(
         }),
         // Shards are listed by manifest.json, not declared up front: a missing or altered shard makes publish stale.
         check: Some(Box::new(move || {
-            let manifest = dataset::contract::manifest::DatasetManifest::load(
-                &check_dir.join("manifest.json"),
-            )
-            .ok()?;
+            let manifest =
+                dataset::contract::manifest::DatasetManifest::load_dir(&check_dir).ok()?;
             manifest.verify(&check_dir).into_iter().next()
         })),
     };

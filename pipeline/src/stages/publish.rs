@@ -121,7 +121,7 @@ pub fn run(
     out: &PublishOutputs,
 ) -> anyhow::Result<()> {
     // The dataset stops looking finished before any shard changes: its manifest goes first (written back last).
-    let published = dataset_dir.join("manifest.json");
+    let published = dataset_dir.join(dataset::contract::publication::MANIFEST_FILE);
     if published.exists() {
         std::fs::remove_file(&published)?;
     }

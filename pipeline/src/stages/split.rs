@@ -33,14 +33,7 @@ pub fn tile_id(tile: (i64, i64)) -> String {
 
 /// The split of a tile: a keyed hash of (seed, tile index) mapped to [0, 1) against the target fractions.
 pub fn split_of_tile(tile: (i64, i64), seed: u64, params: &SplitParams) -> Split {
-    let mut hasher = blake3::Hasher::new();
-    hasher.update(&seed.to_le_bytes());
-    hasher.update(b"split-tile");
-    hasher.update(&tile.0.to_le_bytes());
-    hasher.update(&tile.1.to_le_bytes());
-    let bytes = hasher.finalize();
-    let u = u64::from_le_bytes(bytes.as_bytes()[..8].try_into().expect("8 bytes")) as f64
-        / 2f64.powi(64);
+    let u = dataset::contract::rng::keyed_cell_fraction(seed, "split-tile", tile);
     if u < params.test_fraction {
         Split::Test
     } else if u < params.test_fraction + params.val_fraction {
@@ -217,6 +210,29 @@ mod tests {
                 .collect::<Vec<_>>(),
             "seed matters"
         );
+    }
+
+    #[test]
+    fn published_splits_do_not_move() {
+        // Tiles of the published tycho-full dataset (seed 42, manifests/tycho-full.toml), read from its shards'
+        // sample centres: the draw's key layout decides every published split, so it must never change silently.
+        let p = SplitParams {
+            tile_size_m: 2560.0,
+            val_fraction: 0.103,
+            test_fraction: 0.1,
+            guard_band_m: 0.0,
+        };
+        let published = [
+            ((-8, -513), Split::Train),
+            ((-7, -518), Split::Train),
+            ((-7, -512), Split::Val),
+            ((-5, -508), Split::Val),
+            ((-7, -510), Split::Test),
+            ((-6, -506), Split::Test),
+        ];
+        for (tile, split) in published {
+            assert_eq!(split_of_tile(tile, 42, &p), split, "tile {tile:?}");
+        }
     }
 
     #[test]

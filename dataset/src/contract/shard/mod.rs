@@ -21,7 +21,7 @@ use crate::contract::schema::{
     sample_schema, SchemaError, FLOAT_TENSOR_COLUMNS, SCHEMA_VERSION, TENSOR_COLUMNS,
 };
 
-/// Rows per row group: ~256 samples ≈ 40 MB uncompressed, one HTTP range read for random access.
+/// Rows per row group: ~256 samples ≈ 55 MB uncompressed, one HTTP range read for random access.
 pub const ROW_GROUP_ROWS: usize = 256;
 
 #[derive(Debug, thiserror::Error)]
@@ -143,8 +143,8 @@ mod tests {
 
     #[test]
     fn shard_bytes_do_not_depend_on_how_rows_arrive() {
-        // Publish writes one row at a time, project in rejection-thinned chunks: row groups are cut at 256 rows
-        // and their columns encoded in parallel, so both must give the bytes of a single write.
+        // Project writes in rejection-thinned chunks of any size: row groups are cut at 256 rows and their columns
+        // encoded in parallel, so every way of chunking must give the bytes of a single write.
         let dir = tempfile::tempdir().unwrap();
         let samples: Vec<Sample> = (0..530).map(synthetic_sample).collect();
         let write = |name: &str, chunks: &[usize]| {

@@ -255,56 +255,6 @@ pub fn read_row_group(path: &Path, row_group: usize) -> Result<Vec<Sample>, Shar
     ShardFile::open(path)?.read_row_group(row_group)
 }
 
-/// Ids and crop centres (map metres) of every row of a shard.
-#[derive(Debug, Default)]
-pub struct SamplePositions {
-    pub sample_ids: Vec<String>,
-    pub center_x_m: Vec<f64>,
-    pub center_y_m: Vec<f64>,
-}
-
-/// (sample_id, center_x, center_y) of every row, reading only those three columns.
-pub fn read_sample_positions(path: &Path) -> Result<SamplePositions, ShardError> {
-    use arrow::array::{Array, Float64Array, StringArray};
-    let builder = ShardFile::open(path)?.builder(None, None)?;
-    let mask = parquet::arrow::ProjectionMask::columns(
-        builder.parquet_schema(),
-        ["sample_id", "center_x", "center_y"],
-    );
-    let reader = builder
-        .with_projection(mask)
-        .build()
-        .map_err(|source| ShardError::reading(path, source))?;
-    let (mut ids, mut xs, mut ys) = (Vec::new(), Vec::new(), Vec::new());
-    for batch in reader {
-        let batch = batch.map_err(|e| ShardError::reading(path, e.into()))?;
-        let bad = || ShardError::Schema {
-            path: path.to_path_buf(),
-            source: crate::contract::schema::SchemaError::Column("sample_id/center_x/center_y"),
-        };
-        let id = batch
-            .column_by_name("sample_id")
-            .and_then(|c| c.as_any().downcast_ref::<StringArray>())
-            .ok_or_else(bad)?;
-        let x = batch
-            .column_by_name("center_x")
-            .and_then(|c| c.as_any().downcast_ref::<Float64Array>())
-            .ok_or_else(bad)?;
-        let y = batch
-            .column_by_name("center_y")
-            .and_then(|c| c.as_any().downcast_ref::<Float64Array>())
-            .ok_or_else(bad)?;
-        ids.extend((0..id.len()).map(|i| id.value(i).to_string()));
-        xs.extend_from_slice(x.values());
-        ys.extend_from_slice(y.values());
-    }
-    Ok(SamplePositions {
-        sample_ids: ids,
-        center_x_m: xs,
-        center_y_m: ys,
-    })
-}
-
 /// Row count per row group, from the footer only.
 pub fn row_group_sizes(path: &Path) -> Result<Vec<usize>, ShardError> {
     Ok(ShardFile::open(path)?.row_group_sizes())
