@@ -262,7 +262,7 @@ impl UNetConfig {
         2 * (2 * block_channels + context_channels)
     }
 
-    /// Context features joined to the bottleneck input (0 without a context input).
+    /// Context features joined to the bottleneck input and to the head (0 without a context input).
     pub fn context_features(&self) -> usize {
         if self.context_channels > 0 {
             4 * self.base_width

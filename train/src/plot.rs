@@ -1,4 +1,5 @@
-//! Log–log scatter plots of time against error for `report` (PNG, drawn with imageproc).
+//! Scatter plots of time against error, log x and log or linear y, for `report` and `results-page` (PNG, drawn
+//! with imageproc).
 //!
 //! Labels need a TrueType font. None ships with the project (licences, size), so the first of a few common system
 //! fonts is used (`.ci/setup` installs DejaVu). Without one, the plot is still drawn — points, axes, decade grid —

@@ -3,7 +3,7 @@
 //!
 //! Each measured section is also drawn as a log–log PNG (see [`crate::plot`]).
 //!
-//! - **BRDF model**: each of M1–M6, L2–L4 and H1 with one least-squares coefficient set, uniform Hapke × one scale and
+//! - **BRDF model**: each of M1–M6, L2–L4, H1 and H3 with one least-squares coefficient set, uniform Hapke × one scale and
 //!   Lunar-Lambert with one albedo, all fitted on train crops, rendered on the evaluation crops: pixel MSE against
 //!   the per-pixel evaluation time of the reflectance model (geometry is shared and timed once).
 //! - **Inference overlap** (with `--run` and `--dem`): wall time and seam score of `infer` at several overlaps.

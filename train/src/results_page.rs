@@ -123,8 +123,9 @@ struct Row {
 }
 
 /// The Markdown page for the records in `dir` (the module docs give their form and order). Errors name the record
-/// file (or the directory) and what is wrong with it.
-pub fn results_markdown(dir: &Path) -> Result<String> {
+/// file (or the directory) and what is wrong with it. (The tests' view; `run_job` writes the page.)
+#[cfg(test)]
+fn results_markdown(dir: &Path) -> Result<String> {
     Ok(results_page_of(dir)?.0)
 }
 

@@ -180,8 +180,8 @@ pub fn fit<B: TrainBackend>(
     )
 }
 
-/// [`fit`] data-parallel: one replica per device, each with `config.stream.batch_size` crops a step
-/// ([`crate::replicas`]). One device is an ordinary fit, with no collective call.
+/// [`fit`] data-parallel: one replica per device, each with `config.stream.batch_size / devices.len()` crops a
+/// step ([`crate::replicas`]). One device is an ordinary fit, with no collective call.
 pub fn fit_replicated<B: TrainBackend>(
     source: Arc<dyn SampleSource>,
     config: &FitConfig,
@@ -741,7 +741,7 @@ fn outcome(
     }
 }
 
-/// `g2r-train compare-models`: one run per BRDF model (M1–M6, L2–L4, H1) with `base`'s budget, into `out/{model}`;
+/// `g2r-train compare-models`: one run per BRDF model (M1–M6, L2–L4, H1, H3) with `base`'s budget, into `out/{model}`;
 /// the table of their last epochs is written as `out/compare.md` and `out/compare.json` and returned as Markdown.
 /// Refuses before training anything if a model's directory already holds a run.
 pub fn compare_models<B: TrainBackend>(

@@ -260,12 +260,14 @@ pub fn comparison_markdown(c: &Comparison, names: (&str, &str)) -> String {
     text
 }
 
-/// Write `comparison.json` and `comparison.md` into `out` (created), each atomically.
+/// Write `comparison.json` and `comparison.md` into `out` (created), each atomically, and the `provenance.json`
+/// of this run beside them.
 pub fn write_comparison(c: &Comparison, markdown: &str, out: &Path) -> Result<()> {
     std::fs::create_dir_all(out)
         .with_context(|| format!("{}: cannot create the output directory", out.display()))?;
     dataset::contract::manifest::write_json_atomic(&out.join("comparison.json"), c)?;
     dataset::contract::manifest::write_text_atomic(&out.join("comparison.md"), markdown)?;
+    dataset::provenance::Provenance::capture().write(&out.join("provenance.json"))?;
     Ok(())
 }
 

@@ -11,6 +11,10 @@
 //! - **oracle_morphology** (with `--world`, worlds that carry `truth/w_morphology.tif`): the same without the
 //!   albedo component no terrain can predict (docs/design.md, Synthetic world): about as far as a model that reads the terrain perfectly
 //!   could go, so the gap to it is the part of the error a DEM-driven model can still remove.
+//!
+//! These are the headline's; `methods::METHODS` lists every method an evaluation scores (with the per-image
+//! normalised learned model, the run's model with uniform coefficients, and the oracles on the true DEM and of
+//! the model's form).
 
 mod comparison;
 mod methods;

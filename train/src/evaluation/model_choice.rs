@@ -310,7 +310,8 @@ pub fn model_choice_markdown(report: &ModelChoiceReport) -> String {
     md
 }
 
-/// Write `model-choice.json` and `model-choice.md` into `out` (atomically).
+/// Write `model-choice.json` and `model-choice.md` into `out` (atomically), and the `provenance.json` of this run
+/// beside them.
 pub fn write_model_choice(report: &ModelChoiceReport, out: &Path) -> Result<()> {
     std::fs::create_dir_all(out)?;
     dataset::contract::manifest::write_json_atomic(&out.join("model-choice.json"), report)?;
@@ -318,6 +319,7 @@ pub fn write_model_choice(report: &ModelChoiceReport, out: &Path) -> Result<()> 
         &out.join("model-choice.md"),
         &model_choice_markdown(report),
     )?;
+    dataset::provenance::Provenance::capture().write(&out.join("provenance.json"))?;
     Ok(())
 }
 

@@ -104,11 +104,6 @@ impl TruthMaps {
         })
     }
 
-    /// Whether the world carries its true DEM (the `oracle_true_dem` method).
-    pub fn has_true_dem(&self) -> bool {
-        self.true_dem.is_some()
-    }
-
     /// The terrain class and highland fraction of the delivered-DEM cell holding (x, y); `None` for worlds
     /// without `truth/terrain_class.tif` (before world v3) or outside it.
     pub fn ground_at(&self, x: f64, y: f64) -> Option<Ground> {

@@ -1,6 +1,8 @@
-//! The U-Net's hot operations as one backend extension, [`TrainOps`]: a convolution whose backward pass the
-//! backend chooses, and a training-mode BatchNorm fused with the LeakyReLU that follows it everywhere in the
-//! network, with an analytic backward pass (and the same fusion in inference mode, from the running statistics).
+//! The U-Net's hot operations as one backend extension, [`TrainOps`], each with an analytic backward pass: the
+//! convolutions (plain, pointwise over joined inputs, and upsample-then-convolve), a training-mode BatchNorm fused
+//! with the LeakyReLU that follows it everywhere in the network (and the same fusion in inference mode, from the
+//! running statistics), dropout, 2 × 2 max pooling, the channel join of a skip connection, and the masked render
+//! loss.
 //!
 //! Why: written as stock tensor operations, BatchNorm's statistics and its autodiff graph (swap_dims, reshape,
 //! broadcast sub/div/mul and their broadcast-reducing backward passes) and the stock convolution backward
@@ -10,9 +12,10 @@
 //!   operation, and a backward pass that calls the inner backend's gradient kernels;
 //! - `flex/` implements it for Flex with contiguous f32 kernels, one file per operation (im2col + gemm, one pass
 //!   per channel);
-//! - every other backend (CUDA) takes the trait's defaults: stock Burn operations, the same math.
+//! - every other backend (CUDA, wgpu) takes the trait's defaults: stock Burn operations (`stock`), the same math.
 //!
-//! The model calls [`conv2d`] and [`batch_norm_leaky_relu`] on Burn's own `Conv2d` and `BatchNorm` modules, so
+//! The model calls the free functions here ([`conv2d`], [`batch_norm_leaky_relu`], …) on Burn's own `Conv2d` and
+//! `BatchNorm` modules, so
 //! parameters, running statistics and checkpoints are exactly Burn's. Tests hold every kernel to the stock
 //! operations and Burn's autodiff (values, gradients, running statistics).
 

@@ -97,7 +97,7 @@ pub struct TrainArgs {
     #[arg(long)]
     pub elevation_input: bool,
     /// Feed each sample's context window (32 × 32 cells of the dataset's context_gsd_m, 16 km at the default
-    /// 512 m: dataset schema 1.2) through a small encoder into the U-Net's bottleneck. A 640 m crop cannot tell a
+    /// 512 m: dataset schema 1.2) through a small encoder into the U-Net's bottleneck and head. A 640 m crop cannot tell a
     /// crater floor or wall from a plain; kilometres of surrounding terrain can.
     #[arg(long)]
     pub context_input: bool,
@@ -151,7 +151,8 @@ pub struct TrainArgs {
 }
 
 /// A parser for a library enum chosen by name: its names are the possible values `--help` lists, parsed with its
-/// `FromStr` (library types carry no clap).
+/// `FromStr`. Library types carry no clap, except `BackendKind`, a `ValueEnum` so that `--help` shows what each
+/// backend needs.
 fn named<T>(names: &'static [&'static str]) -> impl clap::builder::TypedValueParser<Value = T>
 where
     T: std::str::FromStr + Clone + Send + Sync + 'static,
@@ -377,7 +378,7 @@ pub enum Command {
         #[arg(long)]
         dem_std_m: Option<f64>,
     },
-    /// Speed against error, measured in one run: BRDF models (M1-M6, L2-L4 and H1 uniform fits, Hapke, Lunar-Lambert: pixel
+    /// Speed against error, measured in one run: BRDF models (M1-M6, L2-L4, H1 and H3 uniform fits, Hapke, Lunar-Lambert: pixel
     /// MSE vs ns/pixel); with --dem the renderer (rays/pixel, shadows); with --run and --dem inference overlap
     /// (seconds vs seam score); with --ortho and --dem the projection resampling kernel (ms/crop vs error against the
     /// exact area average). Writes report.md/json and one PNG plot per section.
@@ -396,7 +397,7 @@ pub enum Command {
         /// A trained run, for the inference-overlap section (needs --dem).
         #[arg(long, requires = "dem")]
         run: Option<PathBuf>,
-        /// Which checkpoint of each run: auto (ema-last when the run kept a weight average, else best, else last),
+        /// Which checkpoint of --run: auto (ema-last when the run kept a weight average, else best, else last),
         /// best, last, ema-best or ema-last.
         #[arg(long, default_value = "auto", value_parser = named::<train::run_dir::Checkpoint>(train::run_dir::Checkpoint::NAMES))]
         checkpoint: train::run_dir::Checkpoint,

@@ -114,7 +114,6 @@ fn run(cli: Cli) -> Result<()> {
             print!("{markdown}");
             if let Some(out) = out {
                 train::evaluation::write_comparison(&comparison, &markdown, &out)?;
-                dataset::provenance::Provenance::capture().write(&out.join("provenance.json"))?;
                 println!(
                     "\nwrote {}/comparison.json and comparison.md",
                     out.display()
@@ -142,7 +141,6 @@ fn run(cli: Cli) -> Result<()> {
             };
             let report = train::evaluation::model_choice(source.as_ref(), &truth, &options)?;
             train::evaluation::write_model_choice(&report, &out)?;
-            dataset::provenance::Provenance::capture().write(&out.join("provenance.json"))?;
             print!("{}", train::evaluation::model_choice_markdown(&report));
             println!(
                 "\nwrote {}/model-choice.json and model-choice.md",
@@ -293,11 +291,12 @@ fn run(cli: Cli) -> Result<()> {
             }
         }
         Command::CompareModels { data, out, train } => {
+            train::replicas::refuse_launcher_world(|name| std::env::var(name).ok())?;
             let source = open_source(&data)?;
-            let backend = format!("{:?}", train.backend);
+            let backend = train.backend.name();
             let config = train.fit_config();
             let markdown = with_backend!(train.backend, B => {
-                train::training::compare_models::<B>(source, &config, &backend, &out)
+                train::training::compare_models::<B>(source, &config, backend, &out)
             })?;
             print!("{markdown}");
         }
