@@ -37,6 +37,11 @@ ROWS = [
     ('', 8, '1e-3', 32000, 'out/runs/h1-intel-8ep', 'out/evals/intel32k-test',
      ' — the shipped command run a third time', ' --world out/tycho-world --out out/evals/intel32k-test',
      INTEL.replace('seventeenth', 'sixteenth')),
+    ('w8 48k', 8, '1e-3', 48000, 'out/runs/h1-12ep', 'out/evals/h1-12ep-test',
+     ' — twelve epochs, turned down on validation (record 35), scored here for this table only',
+     ' --checkpoint last --panels 0 --out out/evals/h1-12ep-test',
+     'sessions of 2026-11-28 (eighteenth and nineteenth), Intel Xeon (AVX-512) 2-core build machine, release build; '
+     'CPU-hours at the AMD step time of its width, like the rows above'),
     ('w16 4k', 16, '1e-3', 4000, 'out/runs/h1-w16-1ep', 'out/evals/w16-4k-test', '',
      ' --panels 0 --out out/evals/w16-4k-test', INTEL),
 ]
