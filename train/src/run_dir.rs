@@ -17,14 +17,15 @@ use crate::data::{InputNormalisation, StreamConfig, CONTEXT_CHANNELS};
 use crate::metrics::AggregateMetrics;
 use crate::model::{UNet, UNetConfig};
 
-/// The `config.json` format this build writes: version 8 since 2026-11-27 (version 7 lacks `nonnegative_start`,
+/// The `config.json` format this build writes: version 9 since 2026-11-28 (version 8 lacks `weight_decay`, which
+/// loads as `None`: plain Adam; version 7 also lacks `nonnegative_start`,
 /// which loads as false: the head started at the unconstrained fit; version 6 also lacks `film`, which loads
 /// as false; version 5 also lacks `crop_level`, which loads as false; version 4 also lacks `head_hidden`, which loads as 0: the paper's linear head; version 3 also lacks `context_absolute`, which loads as false; version 2 also lacks `steep_weight`, which loads as 1: every crop equally likely). Version 1 (files without a
 /// `version` key) added fields one at a time, each absent in older files; those files load with the values
 /// every run had before the field existed (constant learning rate, relief input only, no context window). From
 /// version 2 on every field is written and required, and a new field means a new version with its conversion
 /// in `StoredFitConfig`.
-pub const FIT_CONFIG_VERSION: u32 = 8;
+pub const FIT_CONFIG_VERSION: u32 = 9;
 
 /// Everything that defines a run (saved as `config.json`; a resume must match it). The network's head starts
 /// at the model's uniform least-squares fit ([`crate::model::UNet::with_uniform_head`]), unconstrained or
@@ -67,6 +68,9 @@ pub struct FitConfig {
     /// Start the head at the non-negative least-squares uniform fit
     /// ([`crate::calibration::Calibration::model_uniform_nonnegative`]) rather than the unconstrained one.
     pub nonnegative_start: bool,
+    /// Decoupled weight decay (Burn's AdamW): every optimiser step first shrinks each weight by the step's learning
+    /// rate times this, then applies the Adam update. `None`: plain Adam, no decay.
+    pub weight_decay: Option<f64>,
 }
 
 /// `config.json` as any version wrote it: the fields version 1 always had, and the later ones as options
@@ -93,6 +97,8 @@ struct StoredFitConfig {
     crop_level: Option<bool>,
     film: Option<bool>,
     nonnegative_start: Option<bool>,
+    #[serde(default, deserialize_with = "present")]
+    weight_decay: Option<Option<f64>>,
 }
 
 /// A key that is in the file, whatever its value (`null` included): serde alone reads a missing `Option` field
@@ -117,7 +123,7 @@ impl TryFrom<StoredFitConfig> for FitConfig {
         let max_val_samples = stored
             .max_val_samples
             .ok_or_else(|| required("max_val_samples"))?;
-        let (lr_schedule, elevation_input, context_input, ema_decay, steep_weight, context_absolute, head_hidden, crop_level, film, nonnegative_start) = match version {
+        let (lr_schedule, elevation_input, context_input, ema_decay, steep_weight, context_absolute, head_hidden, crop_level, film, nonnegative_start, weight_decay) = match version {
             // Version 1: a field absent from the file did not exist when its run was written (and `ema_decay`
             // was left out when there was no average).
             1 => (
@@ -131,6 +137,7 @@ impl TryFrom<StoredFitConfig> for FitConfig {
                 false,
                 false,
                 false,
+                None,
             ),
             // Versions 2 on write every field they know; version 2 runs drew every crop equally, and runs before
             // version 4 fed relative context heights only.
@@ -175,6 +182,13 @@ impl TryFrom<StoredFitConfig> for FitConfig {
                         .nonnegative_start
                         .ok_or_else(|| required("nonnegative_start"))?
                 },
+                if version < 9 {
+                    None
+                } else {
+                    stored
+                        .weight_decay
+                        .ok_or_else(|| required("weight_decay"))?
+                },
             ),
             newer => {
                 return Err(format!(
@@ -201,6 +215,7 @@ impl TryFrom<StoredFitConfig> for FitConfig {
             crop_level,
             film,
             nonnegative_start,
+            weight_decay,
         })
     }
 }
@@ -676,18 +691,38 @@ mod schedule_tests {
             crop_level: true,
             film: true,
             nonnegative_start: true,
+            weight_decay: Some(0.01),
         };
         let json = serde_json::to_string(&config).unwrap();
-        assert!(json.contains(r#""version":8"#), "{json}");
+        assert!(json.contains(r#""version":9"#), "{json}");
         assert_eq!(serde_json::from_str::<FitConfig>(&json).unwrap(), config);
         let cut = json.replace(r#","context_input":true"#, "");
         let err = serde_json::from_str::<FitConfig>(&cut)
             .unwrap_err()
             .to_string();
         assert!(
-            err.contains("version 8") && err.contains("`context_input`"),
+            err.contains("version 9") && err.contains("`context_input`"),
             "{err}"
         );
+        // A run without decay writes `null`, which is not a missing key.
+        let adam = FitConfig {
+            weight_decay: None,
+            ..config.clone()
+        };
+        let adam_json = serde_json::to_string(&adam).unwrap();
+        assert!(adam_json.contains(r#""weight_decay":null"#), "{adam_json}");
+        assert_eq!(serde_json::from_str::<FitConfig>(&adam_json).unwrap(), adam);
+        let cut = json.replace(r#","weight_decay":0.01"#, "");
+        let err = serde_json::from_str::<FitConfig>(&cut)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("`weight_decay`"), "{err}");
+        // Version 8 wrote everything but `weight_decay`: its runs stepped with plain Adam.
+        let v8 = cut.replace(r#""version":9"#, r#""version":8"#);
+        let loaded = serde_json::from_str::<FitConfig>(&v8).unwrap();
+        assert!(loaded.nonnegative_start);
+        assert_eq!(loaded.weight_decay, None);
+        let json = v8;
         let cut = json.replace(r#","ema_decay":0.995"#, "");
         let err = serde_json::from_str::<FitConfig>(&cut)
             .unwrap_err()
@@ -752,12 +787,14 @@ mod schedule_tests {
         assert_eq!(loaded.steep_weight, 1.0);
         assert!(!loaded.context_absolute);
         assert_eq!(loaded.version, FIT_CONFIG_VERSION);
-        let newer = json.replace(r#""version":8"#, r#""version":9"#);
+        let newer = serde_json::to_string(&config)
+            .unwrap()
+            .replace(r#""version":9"#, r#""version":10"#);
         let err = serde_json::from_str::<FitConfig>(&newer)
             .unwrap_err()
             .to_string();
         assert!(
-            err.contains("version 9") && err.contains("update g2r-train"),
+            err.contains("version 10") && err.contains("update g2r-train"),
             "{err}"
         );
     }

@@ -1,10 +1,10 @@
-//! The fit loop: Adam on the masked MSE through the renderer layer, metrics JSONL per epoch, best-val and last
-//! checkpoints, and exact resume.
+//! The fit loop: Adam (AdamW when the run asks for weight decay) on the masked MSE through the renderer layer,
+//! metrics JSONL per epoch, best-val and last checkpoints, and exact resume.
 //!
 //! Exact resume rests on three things: (1) batches are a pure function of (seed, epoch, position)
 //! ([`crate::data`]); (2) the backend RNG, which drives dropout, is re-seeded before every step from
 //! (seed, step), so no RNG state needs saving; (3) the last checkpoint holds the model (with BatchNorm running
-//! stats and parameter ids), the Adam state keyed by those ids, and the cursor (epoch, next batch, step).
+//! stats and parameter ids), the optimiser's state keyed by those ids, and the cursor (epoch, next batch, step).
 
 use std::path::Path;
 use std::sync::Arc;
@@ -12,7 +12,7 @@ use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 use burn::module::AutodiffModule;
-use burn::optim::{AdamConfig, GradientsParams, Optimizer};
+use burn::optim::{AdamConfig, AdamWConfig, GradientsParams, Optimizer};
 use burn::prelude::*;
 use burn::record::Recorder;
 use dataset::contract::rng::keyed_u64;
@@ -221,7 +221,7 @@ pub fn fit_replicated<B: TrainBackend>(
     let recorder = Rec::new();
     let seed = config.stream.seed;
 
-    let (net, optim, cursor, history, input, average) = if resume {
+    let (net, cursor, history, input, average) = if resume {
         let saved: FitConfig = read_json(&config_path)?;
         if saved.model != config.model {
             bail!(
@@ -243,13 +243,6 @@ pub fn fit_replicated<B: TrainBackend>(
             .init::<B>(device)
             .load_file(last.join("model"), &recorder, device)
             .with_context(|| format!("{}: cannot load the model checkpoint", last.display()))?;
-        let optim =
-            AdamConfig::new()
-                .with_epsilon(1e-8)
-                .init::<B, UNet<B>>()
-                .load_record(recorder.load(last.join("optim"), device).with_context(|| {
-                    format!("{}: cannot load the optimizer state", last.display())
-                })?);
         let history = read_history(&out.join("metrics.jsonl"))?;
         // Checked against the config: a resumed run must feed the network the planes it started with.
         let input = run_input(out, config)?;
@@ -264,7 +257,7 @@ pub fn fit_replicated<B: TrainBackend>(
                     })?,
             ),
         };
-        (net, optim, cursor, history, input, average)
+        (net, cursor, history, input, average)
     } else {
         if last.exists() {
             bail!(
@@ -307,9 +300,8 @@ pub fn fit_replicated<B: TrainBackend>(
             .map(|&c| dataset::science::brdf::inverse_leaky_relu(c))
             .collect();
         let net = net.with_uniform_head(&raw, device);
-        let optim = AdamConfig::new().with_epsilon(1e-8).init::<B, UNet<B>>();
         let average = config.ema_decay.map(|_| net.valid());
-        (net, optim, Cursor::start(), Vec::new(), input, average)
+        (net, Cursor::start(), Vec::new(), input, average)
     };
     input.check_dataset(&*source)?;
     let trainable = trainable_params(&net, &net_config);
@@ -355,18 +347,74 @@ pub fn fit_replicated<B: TrainBackend>(
         show_progress,
         trainable,
     };
+    // Adam's and AdamW's updates are different types (and different arithmetic even at zero decay), so the loop
+    // is generic over the optimiser and a run without decay keeps Adam's exact steps.
     let state = ReplicaState {
         net,
-        optim,
+        optim: (),
         cursor,
         history,
         average,
     };
-    if devices.len() == 1 {
-        return train_replica::<B>(&run, state, Replica::SOLE, device);
+    let adam_epsilon = 1e-8;
+    match config.weight_decay {
+        None => launch(
+            run,
+            state,
+            AdamConfig::new()
+                .with_epsilon(adam_epsilon)
+                .init::<B, UNet<B>>(),
+            resume,
+            devices,
+        ),
+        Some(decay) => launch(
+            run,
+            state,
+            AdamWConfig::new()
+                .with_epsilon(adam_epsilon as f32)
+                .with_weight_decay(decay as f32)
+                .init::<B, UNet<B>>(),
+            resume,
+            devices,
+        ),
     }
-    train_replicas::<B>(run, state, devices)
 }
+
+/// Give the replicas their optimiser (its saved state when resuming) and train.
+fn launch<B: TrainBackend, O: FitOptimizer<B>>(
+    run: RunContext,
+    state: ReplicaState<B, ()>,
+    optim: O,
+    resume: bool,
+    devices: &[B::Device],
+) -> Result<FitOutcome> {
+    let device = &devices[0];
+    let optim = if resume {
+        let last = run.out.join("last");
+        optim.load_record(
+            Rec::new()
+                .load(last.join("optim"), device)
+                .with_context(|| format!("{}: cannot load the optimizer state", last.display()))?,
+        )
+    } else {
+        optim
+    };
+    let state = ReplicaState {
+        net: state.net,
+        optim,
+        cursor: state.cursor,
+        history: state.history,
+        average: state.average,
+    };
+    if devices.len() == 1 {
+        return train_replica::<B, O>(&run, state, Replica::SOLE, device);
+    }
+    train_replicas::<B, O>(run, state, devices)
+}
+
+/// What a fit steps with: Adam, or AdamW for a run with weight decay.
+trait FitOptimizer<B: TrainBackend>: Optimizer<UNet<B>, B> + Clone + Send + 'static {}
+impl<B: TrainBackend, O: Optimizer<UNet<B>, B> + Clone + Send + 'static> FitOptimizer<B> for O {}
 
 /// What every replica of a fit shares.
 struct RunContext {
@@ -382,9 +430,9 @@ struct RunContext {
 
 /// What each replica starts from: the same network, optimiser state and cursor on every one.
 #[derive(Clone)]
-struct ReplicaState<B: TrainBackend> {
+struct ReplicaState<B: TrainBackend, O> {
     net: UNet<B>,
-    optim: burn::optim::adaptor::OptimizerAdaptor<burn::optim::Adam, UNet<B>, B>,
+    optim: O,
     cursor: Cursor,
     history: Vec<EpochMetrics>,
     average: Option<UNet<B::InnerBackend>>,
@@ -393,9 +441,9 @@ struct ReplicaState<B: TrainBackend> {
 /// Run one thread per device and return replica 0's outcome, or the first error any replica ends with. A
 /// replica that fails leaves the others waiting in an all-reduce that cannot complete (burn-collective has no
 /// time-out or cancel); they end with the process, which the error ends.
-fn train_replicas<B: TrainBackend>(
+fn train_replicas<B: TrainBackend, O: FitOptimizer<B>>(
     run: RunContext,
-    state: ReplicaState<B>,
+    state: ReplicaState<B, O>,
     devices: &[B::Device],
 ) -> Result<FitOutcome> {
     let world = devices.len();
@@ -437,7 +485,7 @@ fn train_replicas<B: TrainBackend>(
             .name(format!("replica-{rank}"))
             .spawn(move || {
                 let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                    train_replica::<B>(&run, state, replica, &device)
+                    train_replica::<B, O>(&run, state, replica, &device)
                 }))
                 .unwrap_or_else(|_| Err(anyhow::anyhow!("replica {rank} panicked")));
                 let _ = report.send((rank, outcome));
@@ -466,9 +514,9 @@ static COLLECTIVE_LEFT_BROKEN: std::sync::atomic::AtomicBool =
     std::sync::atomic::AtomicBool::new(false);
 
 /// One replica's epochs (the whole fit when it is the only one).
-fn train_replica<B: TrainBackend>(
+fn train_replica<B: TrainBackend, O: FitOptimizer<B>>(
     run: &RunContext,
-    state: ReplicaState<B>,
+    state: ReplicaState<B, O>,
     replica: Replica,
     device: &B::Device,
 ) -> Result<FitOutcome> {

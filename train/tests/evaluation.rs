@@ -45,6 +45,7 @@ fn m2_config() -> FitConfig {
         crop_level: false,
         film: false,
         nonnegative_start: false,
+        weight_decay: None,
         context_absolute: false,
     }
 }

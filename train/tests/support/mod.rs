@@ -44,6 +44,7 @@ pub fn config() -> FitConfig {
         crop_level: false,
         film: false,
         nonnegative_start: false,
+        weight_decay: None,
         context_absolute: false,
     }
 }

@@ -142,6 +142,12 @@ pub struct TrainArgs {
     /// (two negative) when unconstrained.
     #[arg(long)]
     pub nonnegative_start: bool,
+    /// Decoupled weight decay (AdamW): every step first shrinks each weight by the step's learning rate times
+    /// this, then takes Adam's step (0.01 is PyTorch's AdamW default: with --lr 1e-3 a weight no gradient holds
+    /// up shrinks by 1e-5 a step). A regulariser: it keeps the network from spending large weights on what only
+    /// the training tiles show. Default: plain Adam, no decay.
+    #[arg(long, value_name = "DECAY", value_parser = parse_weight_decay)]
+    pub weight_decay: Option<f64>,
     /// Train data-parallel with this many replicas in this process, each taking its share of --batch (which
     /// N must divide), their gradients averaged after every backward pass (burn-collective): on cuda, GPUs
     /// 0..N-1; on flex, threads sharing the CPU. The steps are those of one replica, except that each replica
@@ -188,6 +194,19 @@ fn parse_ema_decay(text: &str) -> Result<f64, String> {
     } else {
         Err(format!(
             "{decay} is outside [0, 1): the decay weights the old average (0.99-0.999 is usual)"
+        ))
+    }
+}
+
+fn parse_weight_decay(text: &str) -> Result<f64, String> {
+    let decay: f64 = text
+        .parse()
+        .map_err(|e| format!("{text:?} is not a number: {e}"))?;
+    if decay.is_finite() && decay > 0.0 {
+        Ok(decay)
+    } else {
+        Err(format!(
+            "{decay} is not a positive decay: each step shrinks the weights by the learning rate times it (leave the flag out for none)"
         ))
     }
 }
@@ -239,6 +258,7 @@ impl TrainArgs {
             crop_level: self.crop_level,
             film: self.film,
             nonnegative_start: self.nonnegative_start,
+            weight_decay: self.weight_decay,
         }
     }
 }
