@@ -371,7 +371,7 @@ pub fn fit_replicated<B: TrainBackend>(
             run,
             state,
             AdamWConfig::new()
-                .with_epsilon(adam_epsilon as f32)
+                .with_epsilon(adam_epsilon)
                 .with_weight_decay(decay as f32)
                 .init::<B, UNet<B>>(),
             resume,

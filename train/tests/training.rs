@@ -253,18 +253,23 @@ fn fingerprint(run: &Path, cfg: &FitConfig) -> Vec<f64> {
     fingerprint_of(run, "last/model", cfg)
 }
 
-/// [`fingerprint`] of the checkpoint at `checkpoint` (relative to the run, without extension).
-fn fingerprint_of(run: &Path, checkpoint: &str, cfg: &FitConfig) -> Vec<f64> {
+/// The network saved at `checkpoint` (relative to the run, without extension).
+fn load_checkpoint(run: &Path, checkpoint: &str, cfg: &FitConfig) -> train::model::UNet<Flex> {
     let device = Default::default();
-    let net = cfg
-        .net_config()
+    cfg.net_config()
         .init::<Flex>(&device)
         .load_file(
             run.join(checkpoint),
             &NamedMpkFileRecorder::<FullPrecisionSettings>::new(),
             &device,
         )
-        .unwrap();
+        .unwrap()
+}
+
+/// [`fingerprint`] of the checkpoint at `checkpoint` (relative to the run, without extension).
+fn fingerprint_of(run: &Path, checkpoint: &str, cfg: &FitConfig) -> Vec<f64> {
+    let device = Default::default();
+    let net = load_checkpoint(run, checkpoint, cfg);
     let input = train::run_dir::run_input(run, cfg).unwrap();
     predict_images(
         &net,
@@ -369,16 +374,7 @@ fn weights_and_running_stats(run: &Path, cfg: &FitConfig) -> (Vec<f32>, Vec<f32>
             }
         }
     }
-    let device = Default::default();
-    let net = cfg
-        .net_config()
-        .init::<Flex>(&device)
-        .load_file(
-            run.join("last/model"),
-            &NamedMpkFileRecorder::<FullPrecisionSettings>::new(),
-            &device,
-        )
-        .unwrap();
+    let net = load_checkpoint(run, "last/model", cfg);
     let mut collect = Collect {
         path: Vec::new(),
         weights: Vec::new(),

@@ -89,10 +89,13 @@ pub enum ManifestError {
     NoManifest { dir: PathBuf },
 }
 
+/// The published dataset's index of shards and checksums; written last, it is what makes a dataset finished.
+pub const MANIFEST_FILE: &str = "manifest.json";
+
 impl DatasetManifest {
     /// The manifest of a published dataset directory (`dir/manifest.json`).
     pub fn load_dir(dir: &Path) -> Result<Self, ManifestError> {
-        let path = dir.join(crate::contract::publication::MANIFEST_FILE);
+        let path = dir.join(MANIFEST_FILE);
         if !path.exists() {
             return Err(ManifestError::NoManifest {
                 dir: dir.to_path_buf(),

@@ -8,8 +8,9 @@ use std::path::Path;
 use crate::contract::manifest::{write_json_atomic, DatasetManifest};
 use crate::contract::schema::{sample_schema, schema_markdown, SCHEMA_VERSION};
 
-/// The published dataset's index of shards and checksums; written last, it is what makes a dataset finished.
-pub const MANIFEST_FILE: &str = "manifest.json";
+/// The manifest's own name is defined beside the manifest (which loads itself by it) and listed here with the
+/// rest of the published file names.
+pub use crate::contract::manifest::MANIFEST_FILE;
 /// The dataset card.
 pub const CARD_FILE: &str = "README.md";
 /// The Croissant JSON-LD description.
