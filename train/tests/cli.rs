@@ -172,6 +172,22 @@ fn bad_inputs_fail_with_one_line_naming_the_file_and_the_fix() {
         ),
         (
             vec![
+                "fit".into(),
+                "--data".into(),
+                path("no-dataset"),
+                "--out".into(),
+                path("run"),
+                "--weight-decay".into(),
+                "0".into(),
+            ],
+            vec![
+                "--weight-decay",
+                "not a positive decay",
+                "leave the flag out",
+            ],
+        ),
+        (
+            vec![
                 "model-choice".into(),
                 "--data".into(),
                 path("data"),
