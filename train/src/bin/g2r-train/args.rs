@@ -144,8 +144,8 @@ pub struct TrainArgs {
     pub nonnegative_start: bool,
     /// Decoupled weight decay (AdamW): every step first shrinks each weight by the step's learning rate times
     /// this, then takes Adam's step (0.01 is PyTorch's AdamW default: with --lr 1e-3 a weight no gradient holds
-    /// up shrinks by 1e-5 a step). A regulariser: it keeps the network from spending large weights on what only
-    /// the training tiles show. Default: plain Adam, no decay.
+    /// up shrinks by 1e-5 a step). A regulariser: it pulls toward zero the weights the gradients do not hold up
+    /// (at the shipped recipe 0.05 made held-out tiles worse: docs/results.md). Default: plain Adam, no decay.
     #[arg(long, value_name = "DECAY", value_parser = parse_weight_decay)]
     pub weight_decay: Option<f64>,
     /// Train data-parallel with this many replicas in this process, each taking its share of --batch (which
