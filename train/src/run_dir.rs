@@ -17,15 +17,15 @@ use crate::data::{InputNormalisation, StreamConfig, CONTEXT_CHANNELS};
 use crate::metrics::AggregateMetrics;
 use crate::model::{UNet, UNetConfig};
 
-/// The `config.json` format this build writes: version 9 since 2026-11-28 (version 8 lacks `weight_decay`, which
-/// loads as `None`: plain Adam; version 7 also lacks `nonnegative_start`,
+/// The `config.json` format this build writes: version 10 since 2026-11-28 (version 9 lacks `also_train_on`,
+/// which loads as empty: one dataset; version 8 also lacks `weight_decay`, which loads as `None`: plain Adam; version 7 also lacks `nonnegative_start`,
 /// which loads as false: the head started at the unconstrained fit; version 6 also lacks `film`, which loads
 /// as false; version 5 also lacks `crop_level`, which loads as false; version 4 also lacks `head_hidden`, which loads as 0: the paper's linear head; version 3 also lacks `context_absolute`, which loads as false; version 2 also lacks `steep_weight`, which loads as 1: every crop equally likely). Version 1 (files without a
 /// `version` key) added fields one at a time, each absent in older files; those files load with the values
 /// every run had before the field existed (constant learning rate, relief input only, no context window). From
 /// version 2 on every field is written and required, and a new field means a new version with its conversion
 /// in `StoredFitConfig`.
-pub const FIT_CONFIG_VERSION: u32 = 9;
+pub const FIT_CONFIG_VERSION: u32 = 10;
 
 /// Everything that defines a run (saved as `config.json`; a resume must match it). The network's head starts
 /// at the model's uniform least-squares fit ([`crate::model::UNet::with_uniform_head`]), unconstrained or
@@ -71,6 +71,10 @@ pub struct FitConfig {
     /// Decoupled weight decay (Burn's AdamW): every optimiser step first shrinks each weight by the step's learning
     /// rate times this, then applies the Adam update. `None`: plain Adam, no decay.
     pub weight_decay: Option<f64>,
+    /// The dataset names (manifest `name`) of the publications whose train splits were pooled with `--data`'s
+    /// ([`crate::data::PooledSource`]), in order; empty: `--data`'s alone. Names, not paths, so a run resumes
+    /// from wherever the datasets now lie.
+    pub also_train_on: Vec<String>,
 }
 
 /// `config.json` as any version wrote it: the fields version 1 always had, and the later ones as options
@@ -99,6 +103,7 @@ struct StoredFitConfig {
     nonnegative_start: Option<bool>,
     #[serde(default, deserialize_with = "present")]
     weight_decay: Option<Option<f64>>,
+    also_train_on: Option<Vec<String>>,
 }
 
 /// A key that is in the file, whatever its value (`null` included): serde alone reads a missing `Option` field
@@ -196,6 +201,13 @@ impl TryFrom<StoredFitConfig> for FitConfig {
                 ))
             }
         };
+        let also_train_on = if version < 10 {
+            Vec::new()
+        } else {
+            stored
+                .also_train_on
+                .ok_or_else(|| required("also_train_on"))?
+        };
         Ok(Self {
             version: FIT_CONFIG_VERSION,
             model: stored.model,
@@ -216,6 +228,7 @@ impl TryFrom<StoredFitConfig> for FitConfig {
             film,
             nonnegative_start,
             weight_decay,
+            also_train_on,
         })
     }
 }
@@ -692,18 +705,30 @@ mod schedule_tests {
             film: true,
             nonnegative_start: true,
             weight_decay: Some(0.01),
+            also_train_on: vec!["g2r-tycho-full-seed44".into()],
         };
         let json = serde_json::to_string(&config).unwrap();
-        assert!(json.contains(r#""version":9"#), "{json}");
+        assert!(json.contains(r#""version":10"#), "{json}");
         assert_eq!(serde_json::from_str::<FitConfig>(&json).unwrap(), config);
         let cut = json.replace(r#","context_input":true"#, "");
         let err = serde_json::from_str::<FitConfig>(&cut)
             .unwrap_err()
             .to_string();
         assert!(
-            err.contains("version 9") && err.contains("`context_input`"),
+            err.contains("version 10") && err.contains("`context_input`"),
             "{err}"
         );
+        let cut = json.replace(r#","also_train_on":["g2r-tycho-full-seed44"]"#, "");
+        let err = serde_json::from_str::<FitConfig>(&cut)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("`also_train_on`"), "{err}");
+        // Version 9 wrote everything but `also_train_on`: its runs trained on one dataset.
+        let v9 = cut.replace(r#""version":10"#, r#""version":9"#);
+        let loaded = serde_json::from_str::<FitConfig>(&v9).unwrap();
+        assert!(loaded.also_train_on.is_empty());
+        assert_eq!(loaded.weight_decay, Some(0.01));
+        let json = v9;
         // A run without decay writes `null`, which is not a missing key.
         let adam = FitConfig {
             weight_decay: None,

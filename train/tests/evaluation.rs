@@ -46,6 +46,7 @@ fn m2_config() -> FitConfig {
         film: false,
         nonnegative_start: false,
         weight_decay: None,
+        also_train_on: Vec::new(),
         context_absolute: false,
     }
 }

@@ -57,6 +57,7 @@ fn config(
         film: false,
         nonnegative_start: false,
         weight_decay: None,
+        also_train_on: Vec::new(),
         context_absolute: false,
     }
 }
@@ -630,4 +631,111 @@ fn steep_weighted_epochs_draw_steep_crops_in_proportion_to_their_weight() {
     .expect("refused")
     .to_string();
     assert!(err.contains("--max-train-samples"), "{err}");
+}
+
+/// `fit --also-train-on`: a pool of two publications trains exactly as one publication holding both train
+/// splits, shard after shard (the same row groups in the same order give the same epoch plan, batches and
+/// steps), while its validation split is the first publication's alone. Its train rows read back as each member
+/// holds them, and a dataset pooled twice is refused.
+#[test]
+fn a_pool_of_publications_trains_as_one_holding_both_train_splits() {
+    use dataset::contract::schema::{Sample, Split};
+    use train::data::{for_each_sample_group, PooledSource};
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    let with_split = |mut samples: Vec<Sample>, split: Split| {
+        samples.iter_mut().for_each(|s| s.split = split);
+        samples
+    };
+    let (first_train, more_train) = (
+        with_split(synthetic_samples(12, 5), Split::Train),
+        with_split(synthetic_samples(10, 7), Split::Train),
+    );
+    let (first_val, more_val) = (
+        with_split(synthetic_samples(4, 6), Split::Val),
+        with_split(synthetic_samples(3, 8), Split::Val),
+    );
+    let publish = |name: &str, splits: &[(&str, Vec<Vec<Sample>>)]| {
+        let dir = tmp.path().join(name);
+        dataset::testing::write_dataset(&dir, name, splits, serde_json::Value::Null).unwrap();
+        Arc::new(LocalSource::open(&dir).unwrap()) as Arc<dyn SampleSource>
+    };
+    let first = publish(
+        "first",
+        &[
+            ("train", vec![first_train.clone()]),
+            ("val", vec![first_val.clone()]),
+        ],
+    );
+    let more = publish(
+        "more",
+        &[("train", vec![more_train.clone()]), ("val", vec![more_val])],
+    );
+    let both = publish(
+        "both",
+        &[
+            ("train", vec![first_train.clone(), more_train.clone()]),
+            ("val", vec![first_val.clone()]),
+        ],
+    );
+    let pool: Arc<dyn SampleSource> =
+        Arc::new(PooledSource::new(first.clone(), vec![more.clone()]).unwrap());
+
+    let rows = |source: &dyn SampleSource, split: Split| {
+        let mut rows = Vec::new();
+        for_each_sample_group(source, split, None, |group| {
+            rows.extend(group.iter().map(|s| s.dem_m.clone()))
+        })
+        .unwrap();
+        rows
+    };
+    let expected: Vec<_> = first_train
+        .iter()
+        .chain(&more_train)
+        .map(|s| s.dem_m.clone())
+        .collect();
+    assert_eq!(rows(&*pool, Split::Train), expected);
+    assert_eq!(
+        rows(&*pool, Split::Val),
+        first_val
+            .iter()
+            .map(|s| s.dem_m.clone())
+            .collect::<Vec<_>>()
+    );
+    let sizes = |source: &dyn SampleSource| -> Vec<usize> {
+        source
+            .row_groups(Split::Train)
+            .unwrap()
+            .iter()
+            .map(|g| g.rows)
+            .collect()
+    };
+    assert_eq!(sizes(&*pool), sizes(&*both));
+
+    let err = PooledSource::new(first.clone(), vec![more.clone(), more.clone()])
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(
+        err.contains("\"more\"") && err.contains("--also-train-on"),
+        "{err}"
+    );
+
+    let device = Default::default();
+    let cfg = config(BrdfModel::M2, 2, 1e-3, 16, false);
+    let pooled_cfg = FitConfig {
+        also_train_on: vec!["more".into()],
+        ..cfg.clone()
+    };
+    let (on_pool, on_both) = (tmp.path().join("on-pool"), tmp.path().join("on-both"));
+    fit::<Ad>(pool, &pooled_cfg, &on_pool, false, None, &device, false).unwrap();
+    fit::<Ad>(both, &cfg, &on_both, false, None, &device, false).unwrap();
+    assert_eq!(
+        fingerprint(&on_pool, &pooled_cfg),
+        fingerprint(&on_both, &cfg)
+    );
+    let saved: FitConfig =
+        serde_json::from_str(&std::fs::read_to_string(on_pool.join("config.json")).unwrap())
+            .unwrap();
+    assert_eq!(saved.also_train_on, ["more"]);
 }

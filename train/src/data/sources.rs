@@ -225,3 +225,111 @@ pub fn open_source(data: &str) -> Result<Arc<dyn SampleSource>> {
         Ok(Arc::new(LocalSource::open(Path::new(data))?))
     }
 }
+
+/// Several publications trained on as one (`fit --also-train-on`): the train split is every member's row groups,
+/// the first member's then each further one's in turn; validation and test are the first member's alone, so a
+/// run is still chosen on, and scored against, the held-out tiles of the dataset it names first. Shard names
+/// carry their member's place in the pool (`1:train-00003.parquet`), so the row-group list is one fixed order and
+/// the same (seed, epoch) gives the same batches.
+pub struct PooledSource {
+    members: Vec<Arc<dyn SampleSource>>,
+}
+
+impl PooledSource {
+    /// `first` pooled with `more`. Every member must be published under the first's schema, with its own
+    /// dataset name (the run's config records the names).
+    pub fn new(first: Arc<dyn SampleSource>, more: Vec<Arc<dyn SampleSource>>) -> Result<Self> {
+        let (schema, mut names) = (
+            first.manifest().schema_version.clone(),
+            vec![first.manifest().name.clone()],
+        );
+        for member in &more {
+            let manifest = member.manifest();
+            if manifest.schema_version != schema {
+                bail!(
+                    "{}: dataset schema {} cannot be trained on beside {}'s {schema}: re-run `g2r-pipeline run` on \
+                     the older one",
+                    member.describe(),
+                    manifest.schema_version,
+                    first.describe()
+                );
+            }
+            if names.contains(&manifest.name) {
+                bail!(
+                    "{}: a dataset named {:?} is already in the pool: give each publication its own \
+                     [dataset] name, or drop the repeated --also-train-on",
+                    member.describe(),
+                    manifest.name
+                );
+            }
+            names.push(manifest.name.clone());
+        }
+        let members = std::iter::once(first).chain(more).collect();
+        Ok(Self { members })
+    }
+
+    /// The dataset names of the members after the first, in pool order.
+    pub fn further_names(&self) -> Vec<String> {
+        self.members[1..]
+            .iter()
+            .map(|m| m.manifest().name.clone())
+            .collect()
+    }
+
+    /// The member a row group belongs to, and its shard name there.
+    fn member_of<'a>(&self, shard: &'a str) -> Result<(&dyn SampleSource, &'a str)> {
+        let place = shard
+            .split_once(':')
+            .and_then(|(place, name)| Some((place.parse::<usize>().ok()?, name)));
+        match place {
+            Some((place, name)) if place < self.members.len() => {
+                Ok((self.members[place].as_ref(), name))
+            }
+            _ => bail!(
+                "{shard}: not a row group of this pool of {} datasets",
+                self.members.len()
+            ),
+        }
+    }
+}
+
+impl SampleSource for PooledSource {
+    fn describe(&self) -> String {
+        let all: Vec<String> = self.members.iter().map(|m| m.describe()).collect();
+        all.join(" + ")
+    }
+
+    fn manifest(&self) -> &DatasetManifest {
+        self.members[0].manifest()
+    }
+
+    fn row_groups(&self, split: Split) -> Result<Vec<RowGroupRef>> {
+        // Validation and test: the first member's held-out tiles only.
+        let pooled = if split == Split::Train {
+            self.members.len()
+        } else {
+            1
+        };
+        let mut groups = Vec::new();
+        for (place, member) in self.members.iter().enumerate().take(pooled) {
+            groups.extend(
+                member
+                    .row_groups(split)?
+                    .into_iter()
+                    .map(|group| RowGroupRef {
+                        shard: format!("{place}:{}", group.shard),
+                        ..group
+                    }),
+            );
+        }
+        Ok(groups)
+    }
+
+    fn read_row_group(&self, group: &RowGroupRef) -> Result<Vec<Sample>> {
+        let (member, shard) = self.member_of(&group.shard)?;
+        member.read_row_group(&RowGroupRef {
+            shard: shard.to_string(),
+            ..group.clone()
+        })
+    }
+}

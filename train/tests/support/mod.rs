@@ -45,6 +45,7 @@ pub fn config() -> FitConfig {
         film: false,
         nonnegative_start: false,
         weight_decay: None,
+        also_train_on: Vec::new(),
         context_absolute: false,
     }
 }

@@ -154,6 +154,13 @@ pub struct TrainArgs {
     /// normalises its BatchNorm layers over its own crops. Needs --no-dropout. --resume may change N.
     #[arg(long, value_name = "N", default_value_t = 1, value_parser = parse_replicas)]
     pub replicas: usize,
+    /// Also train on this publication's train split (repeat the flag for more): a directory, server URL or
+    /// object-storage prefix, as for --data. Validation and the run's choice stay on --data's held-out tiles.
+    /// Another world of the same preset (`g2r-pipeline synth --seed`) shows the network the same kinds of terrain
+    /// over other units: on a crater wall, one world's training tiles let it learn where that world's units lie,
+    /// and more worlds make it read them from the terrain instead. Each dataset needs its own [dataset] name.
+    #[arg(long, value_name = "DATA")]
+    pub also_train_on: Vec<String>,
 }
 
 /// A parser for a library enum chosen by name: its names are the possible values `--help` lists, parsed with its
@@ -259,6 +266,8 @@ impl TrainArgs {
             film: self.film,
             nonnegative_start: self.nonnegative_start,
             weight_decay: self.weight_decay,
+            // Named once the datasets are open (`main.rs`, `training_source`).
+            also_train_on: Vec::new(),
         }
     }
 }

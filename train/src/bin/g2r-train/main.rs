@@ -11,24 +11,42 @@ use clap::Parser;
 use dataset::science::brdf::BrdfModel;
 use train::backend::Inner;
 use train::backend::ReplicaDevice;
-use train::data::{open_source, SampleSource};
+use train::data::{open_source, PooledSource, SampleSource};
+use train::run_dir::FitConfig;
 use train::training::fit_replicated;
 use train::with_backend;
 
 use args::{Cli, Command, TrainArgs};
 
+/// `--data`, pooled with `--also-train-on`'s publications when there are any, and the run's config, which names
+/// them.
+fn training_source(data: &str, args: &TrainArgs) -> Result<(Arc<dyn SampleSource>, FitConfig)> {
+    let (first, mut config) = (open_source(data)?, args.fit_config());
+    if args.also_train_on.is_empty() {
+        return Ok((first, config));
+    }
+    let more = args
+        .also_train_on
+        .iter()
+        .map(|data| open_source(data))
+        .collect::<Result<Vec<_>>>()?;
+    let pool = PooledSource::new(first, more)?;
+    config.also_train_on = pool.further_names();
+    Ok((Arc::new(pool), config))
+}
+
 fn run_fit(
     source: Arc<dyn SampleSource>,
+    config: &FitConfig,
     args: &TrainArgs,
     out: &std::path::Path,
     resume: bool,
     stop: Option<u64>,
 ) -> Result<train::training::FitOutcome> {
-    let config = args.fit_config();
     train::replicas::refuse_launcher_world(|name| std::env::var(name).ok())?;
     with_backend!(args.backend, B => {
         let devices: Vec<_> = (0..args.replicas).map(<B as ReplicaDevice>::replica_device).collect();
-        fit_replicated::<B>(source, &config, out, resume, stop, &devices, std::io::stderr().is_terminal())
+        fit_replicated::<B>(source, config, out, resume, stop, &devices, std::io::stderr().is_terminal())
     })
 }
 
@@ -271,8 +289,8 @@ fn run(cli: Cli) -> Result<()> {
             stop_after_steps,
             train,
         } => {
-            let source = open_source(&data)?;
-            let outcome = run_fit(source, &train, &out, resume, stop_after_steps)?;
+            let (source, config) = training_source(&data, &train)?;
+            let outcome = run_fit(source, &config, &train, &out, resume, stop_after_steps)?;
             println!(
                 "{}: {} steps, {} trainable parameters, {:.3} s/step; metrics in {}",
                 out.display(),
@@ -292,9 +310,8 @@ fn run(cli: Cli) -> Result<()> {
         }
         Command::CompareModels { data, out, train } => {
             train::replicas::refuse_launcher_world(|name| std::env::var(name).ok())?;
-            let source = open_source(&data)?;
+            let (source, config) = training_source(&data, &train)?;
             let backend = train.backend.name();
-            let config = train.fit_config();
             let markdown = with_backend!(train.backend, B => {
                 train::training::compare_models::<B>(source, &config, backend, &out)
             })?;
