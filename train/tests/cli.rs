@@ -188,6 +188,18 @@ fn bad_inputs_fail_with_one_line_naming_the_file_and_the_fix() {
         ),
         (
             vec![
+                "fit".into(),
+                "--data".into(),
+                path("data"),
+                "--out".into(),
+                path("run"),
+                "--also-train-on".into(),
+                path("data"),
+            ],
+            vec!["data", "\"synthetic\" is already in the pool", "--also-train-on"],
+        ),
+        (
+            vec![
                 "model-choice".into(),
                 "--data".into(),
                 path("data"),
