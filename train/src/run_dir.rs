@@ -812,14 +812,16 @@ mod schedule_tests {
         assert_eq!(loaded.steep_weight, 1.0);
         assert!(!loaded.context_absolute);
         assert_eq!(loaded.version, FIT_CONFIG_VERSION);
-        let newer = serde_json::to_string(&config)
-            .unwrap()
-            .replace(r#""version":9"#, r#""version":10"#);
+        let next = FIT_CONFIG_VERSION + 1;
+        let newer = serde_json::to_string(&config).unwrap().replace(
+            &format!(r#""version":{FIT_CONFIG_VERSION}"#),
+            &format!(r#""version":{next}"#),
+        );
         let err = serde_json::from_str::<FitConfig>(&newer)
             .unwrap_err()
             .to_string();
         assert!(
-            err.contains("version 10") && err.contains("update g2r-train"),
+            err.contains(&format!("version {next}")) && err.contains("update g2r-train"),
             "{err}"
         );
     }

@@ -196,7 +196,11 @@ fn bad_inputs_fail_with_one_line_naming_the_file_and_the_fix() {
                 "--also-train-on".into(),
                 path("data"),
             ],
-            vec!["data", "\"synthetic\" is already in the pool", "--also-train-on"],
+            vec![
+                "data",
+                "\"synthetic\" is already in the pool",
+                "--also-train-on",
+            ],
         ),
         (
             vec![
