@@ -249,6 +249,45 @@ impl FitConfig {
             .with_crop_level(self.crop_level)
             .with_film(self.film)
     }
+
+    /// The settings in which `given` differs from `self`, one `name: saved → given` entry each (nested names
+    /// joined by dots, values as in `config.json`, in name order), for the resume refusal: a field name is its flag's name with
+    /// `_` for `-`.
+    pub fn differences(&self, given: &FitConfig) -> Vec<String> {
+        fn walk(
+            path: &str,
+            saved: &serde_json::Value,
+            given: &serde_json::Value,
+            out: &mut Vec<String>,
+        ) {
+            match (saved, given) {
+                (serde_json::Value::Object(a), serde_json::Value::Object(b)) => {
+                    for (key, value) in a {
+                        let name = if path.is_empty() {
+                            key.clone()
+                        } else {
+                            format!("{path}.{key}")
+                        };
+                        walk(
+                            &name,
+                            value,
+                            b.get(key).unwrap_or(&serde_json::Value::Null),
+                            out,
+                        );
+                    }
+                }
+                _ if saved != given => out.push(format!("{path}: {saved} → {given}")),
+                _ => {}
+            }
+        }
+        let as_json =
+            |c: &FitConfig| serde_json::to_value(c).expect("a FitConfig serialises to JSON");
+        let mut out = Vec::new();
+        walk("", &as_json(self), &as_json(given), &mut out);
+        // In name order whatever serde_json's map type is.
+        out.sort();
+        out
+    }
 }
 
 /// How the learning rate changes over a run's optimiser steps.
@@ -675,6 +714,25 @@ mod schedule_tests {
         let config: FitConfig = serde_json::from_str(&later).unwrap();
         assert_eq!(config.lr_schedule, LrSchedule::Cosine);
         assert!(config.elevation_input && !config.context_input);
+    }
+
+    #[test]
+    fn a_resume_refusal_names_exactly_the_settings_that_differ() {
+        let oldest = r#"{"model":"m2","epochs":3,"learning_rate":0.001,"base_width":4,"dropout":true,
+            "stream":{"seed":42,"batch_size":8,"window_groups":4,"augment":true,"max_samples":null},
+            "max_val_samples":null}"#;
+        let saved: FitConfig = serde_json::from_str(oldest).unwrap();
+        assert!(saved.differences(&saved.clone()).is_empty());
+        let mut given = saved.clone();
+        given.stream.seed = 43;
+        given.also_train_on = vec!["g2r-tycho-full-seed44".into()];
+        assert_eq!(
+            saved.differences(&given),
+            [
+                r#"also_train_on: [] → ["g2r-tycho-full-seed44"]"#,
+                "stream.seed: 42 → 43"
+            ]
+        );
     }
 
     #[test]

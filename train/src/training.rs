@@ -234,8 +234,9 @@ pub fn fit_replicated<B: TrainBackend>(
         }
         if saved != *config {
             bail!(
-                "{}: the run was started with different settings ({saved:?}); resume with the same flags or use a new --out",
-                config_path.display()
+                "{}: the run was started with other settings ({}); resume with the same flags or use a new --out",
+                config_path.display(),
+                saved.differences(config).join(", ")
             );
         }
         let cursor: Cursor = read_json(&last.join("cursor.json"))?;

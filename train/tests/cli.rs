@@ -233,6 +233,70 @@ fn bad_inputs_fail_with_one_line_naming_the_file_and_the_fix() {
     }
 }
 
+/// A resume with other flags than the run started with is refused by one line that names each setting that
+/// differs, saved and given, and leaves the run's checkpoint as it was.
+#[test]
+fn a_resume_with_other_flags_names_each_setting_that_differs() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    train::testing::write_synthetic_dataset(
+        &d.join("data"),
+        train::testing::synthetic_samples(4, 1),
+        train::testing::synthetic_samples(2, 2),
+    );
+    let (data, run) = (
+        d.join("data").to_string_lossy().into_owned(),
+        d.join("run").to_string_lossy().into_owned(),
+    );
+    let fit = |lr: &str, seed: &str, resume: bool| {
+        let mut args = vec![
+            "fit",
+            "--data",
+            &data,
+            "--out",
+            &run,
+            "--model",
+            "m2",
+            "--width",
+            "4",
+            "--batch",
+            "2",
+            "--epochs",
+            "1",
+            "--window",
+            "1",
+            "--no-dropout",
+            "--lr",
+            lr,
+            "--seed",
+            seed,
+        ];
+        if resume {
+            args.push("--resume");
+        }
+        train_cli(&args)
+    };
+    let (ok, stderr) = fit("1e-3", "5", false);
+    assert!(ok, "{stderr}");
+    let checkpoint = std::fs::read(d.join("run/last/model.mpk")).unwrap();
+    let (ok, stderr) = fit("2e-3", "6", true);
+    assert!(!ok, "a resume with another --lr and --seed succeeded");
+    let line = error_line(&stderr);
+    for needle in [
+        "config.json",
+        "learning_rate: 0.001 → 0.002",
+        "stream.seed: 5 → 6",
+        "use a new --out",
+    ] {
+        assert!(line.contains(needle), "`{needle}` not in `{line}`");
+    }
+    assert!(!line.contains("epochs"), "{line}");
+    assert_eq!(
+        std::fs::read(d.join("run/last/model.mpk")).unwrap(),
+        checkpoint
+    );
+}
+
 #[test]
 fn results_page_writes_the_page_and_check_fails_when_it_differs() {
     let dir = tempfile::tempdir().unwrap();
