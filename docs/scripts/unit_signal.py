@@ -9,6 +9,12 @@ the crater's profile is known. docs/crater-diagnosis.md quotes the output.
 
     python3 docs/scripts/unit_signal.py out/tycho-dataset/dataset out/tycho-world
 
+With a second dataset and its world, the regressions fitted on the first's train crops are scored on the second's
+validation crops instead: whether what the features say about the unit holds on another world.
+
+    python3 docs/scripts/unit_signal.py out/tycho-dataset/dataset out/tycho-world \
+        out/tycho-dataset43/dataset out/tycho-world43
+
 Needs numpy, pyarrow and tifffile (+ imagecodecs for the GeoTIFF's compression). Reads about 70k crops (≈ 1 min).
 """
 import glob
@@ -102,10 +108,11 @@ def auc(score, highland):
     return (ranks[: len(pos)].sum() - len(pos) * (len(pos) + 1) / 2) / (len(pos) * len(neg))
 
 
-def main(data, world):
+def main(data, world, score_data, score_world):
     truth_at, centre, radius = load_truth(world)
-    train, val = load_split(data, "train", truth_at), load_split(data, "val", truth_at)
-    print(f"train crops {len(train['x'])}, validation crops {len(val['x'])}")
+    score_truth_at, score_centre, score_radius = load_truth(score_world)
+    train, val = load_split(data, "train", truth_at), load_split(score_data, "val", score_truth_at)
+    print(f"train crops {len(train['x'])} ({data}), validation crops {len(val['x'])} ({score_data})")
     print("| ground | features | λ | R² (val) | AUC highland vs mare (val) |")
     print("|---|---|---|---|---|")
     for cls, name in CLASSES.items():
@@ -113,7 +120,7 @@ def main(data, world):
         y = val["highland"][in_val]
         for kind in KINDS:
             x_train = features(train, kind, centre, radius)[in_train]
-            x_val = features(val, kind, centre, radius)[in_val]
+            x_val = features(val, kind, score_centre, score_radius)[in_val]
             # λ chosen on validation R²: this measures how much the features can carry, not a model to ship.
             best = None
             for lam in LAMBDAS:
@@ -126,6 +133,10 @@ def main(data, world):
 
 
 if __name__ == "__main__":
-    if len(sys.argv) != 3:
-        sys.exit("usage: unit_signal.py DATASET_DIR WORLD_DIR (e.g. out/tycho-dataset/dataset out/tycho-world)")
-    main(sys.argv[1], sys.argv[2])
+    if len(sys.argv) not in (3, 5):
+        sys.exit(
+            "usage: unit_signal.py DATASET_DIR WORLD_DIR [SCORE_DATASET_DIR SCORE_WORLD_DIR] "
+            "(e.g. out/tycho-dataset/dataset out/tycho-world)"
+        )
+    args = sys.argv[1:]
+    main(*args, *(args if len(args) == 2 else []))
