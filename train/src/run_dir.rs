@@ -696,18 +696,20 @@ mod schedule_tests {
         assert_eq!(LrSchedule::Constant.rate(1e-3, 77, 100), 1e-3);
     }
 
+    /// The oldest `config.json` layout (version 1, before any optional field).
+    const OLDEST: &str = r#"{"model":"m2","epochs":3,"learning_rate":0.001,"base_width":4,"dropout":true,
+        "stream":{"seed":42,"batch_size":8,"window_groups":4,"augment":true,"max_samples":null},
+        "max_val_samples":null}"#;
+
     #[test]
     fn version_1_configs_load_with_the_values_runs_had_before_each_field() {
         // The oldest layout, and one with `head_init` (version 1 wrote it; it is not read any more).
-        let oldest = r#"{"model":"m2","epochs":3,"learning_rate":0.001,"base_width":4,"dropout":true,
-            "stream":{"seed":42,"batch_size":8,"window_groups":4,"augment":true,"max_samples":null},
-            "max_val_samples":null}"#;
-        let config: FitConfig = serde_json::from_str(oldest).unwrap();
+        let config: FitConfig = serde_json::from_str(OLDEST).unwrap();
         assert_eq!(config.version, FIT_CONFIG_VERSION);
         assert_eq!(config.lr_schedule, LrSchedule::Constant);
         assert!(!config.elevation_input && !config.context_input);
         assert_eq!(config.ema_decay, None);
-        let later = oldest.replace(
+        let later = OLDEST.replace(
             r#""max_val_samples":null"#,
             r#""max_val_samples":null,"lr_schedule":"cosine","head_init":"zero","elevation_input":true"#,
         );
@@ -718,10 +720,7 @@ mod schedule_tests {
 
     #[test]
     fn a_resume_refusal_names_exactly_the_settings_that_differ() {
-        let oldest = r#"{"model":"m2","epochs":3,"learning_rate":0.001,"base_width":4,"dropout":true,
-            "stream":{"seed":42,"batch_size":8,"window_groups":4,"augment":true,"max_samples":null},
-            "max_val_samples":null}"#;
-        let saved: FitConfig = serde_json::from_str(oldest).unwrap();
+        let saved: FitConfig = serde_json::from_str(OLDEST).unwrap();
         assert!(saved.differences(&saved.clone()).is_empty());
         let mut given = saved.clone();
         given.stream.seed = 43;
