@@ -250,9 +250,9 @@ impl FitConfig {
             .with_film(self.film)
     }
 
-    /// The settings in which `given` differs from `self`, one `name: saved → given` entry each (nested names
-    /// joined by dots, values as in `config.json`, in name order), for the resume refusal: a field name is its flag's name with
-    /// `_` for `-`.
+    /// The settings in which `given` differs from `self`, one `name: saved → given` entry each, in name order,
+    /// for the resume refusal. Names and values are `config.json`'s (nested names joined by dots); most names are
+    /// their flag's with `_` for `-` (`--lr` is `learning_rate`, `--width` is `base_width`).
     pub fn differences(&self, given: &FitConfig) -> Vec<String> {
         fn walk(
             path: &str,
