@@ -139,4 +139,5 @@ if __name__ == "__main__":
             "(e.g. out/tycho-dataset/dataset out/tycho-world)"
         )
     args = sys.argv[1:]
-    main(*args, *(args if len(args) == 2 else []))
+    # Without a second pair, score on the first dataset's own validation crops.
+    main(*(args * 2 if len(args) == 2 else args))
