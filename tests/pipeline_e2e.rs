@@ -306,3 +306,76 @@ fn partitioned_builds_publish_the_same_bytes_as_one_process() {
     assert_eq!(merge(&m, 2).unwrap(), vec!["publish"]);
     assert_eq!(published(&dir.join("interrupted")), reference);
 }
+
+#[test]
+fn a_crater_catalogue_frames_every_sample_and_a_missing_one_is_named() {
+    let tmp = tempfile::tempdir().unwrap();
+    world(tmp.path());
+    let dem = dataset::science::raster::read_raster(&tmp.path().join("world/dem/dem.tif")).unwrap();
+    let (x0, y0, x1, y1) = dem.transform.bounds(dem.width, dem.height);
+    let centre = ((x0 + x1) / 2.0, (y0 + y1) / 2.0);
+    let radius_m = (x1 - x0) / 4.0;
+    let (lon, lat) = dem.crs.to_lonlat_deg(centre.0, centre.1).unwrap();
+    std::fs::write(
+        tmp.path().join("craters.csv"),
+        format!(
+            "lon_deg,lat_deg,diameter_m\n{lon:.12},{lat:.12},{}\n",
+            2.0 * radius_m
+        ),
+    )
+    .unwrap();
+    let with_catalogue = |catalogue: &str| {
+        pipeline::manifest::tiny_manifest_toml(9, 2.0)
+            .replace(
+                "ortho_dir = \"world/ortho\"",
+                &format!("ortho_dir = \"world/ortho\"\ncrater_catalogue = \"{catalogue}\""),
+            )
+            .replace("[project]", "[project]\ncrater_min_diameter_m = 100.0")
+    };
+    let path = tmp.path().join("tiny.toml");
+    std::fs::write(&path, with_catalogue("craters.csv")).unwrap();
+    run(&path, None);
+    let mut samples = Vec::new();
+    for entry in std::fs::read_dir(tmp.path().join("out/dataset"))
+        .unwrap()
+        .flatten()
+    {
+        if entry.path().extension().is_some_and(|e| e == "parquet") {
+            let file = dataset::contract::shard::ShardFile::open(&entry.path()).unwrap();
+            for group in 0..file.row_group_sizes().len() {
+                for batch in file.read_batches(group, None, true).unwrap() {
+                    samples.extend(dataset::contract::schema::batch_to_samples(&batch).unwrap());
+                }
+            }
+        }
+    }
+    assert!(samples.len() > 10, "{} samples", samples.len());
+    for s in &samples {
+        let crater = s
+            .crater
+            .unwrap_or_else(|| panic!("{} has no crater frame", s.sample_id));
+        // The tiny world's map is true to scale at its centre: ρ is the map distance over the radius.
+        let rho = (s.center_x_m - centre.0).hypot(s.center_y_m - centre.1) / radius_m;
+        assert!(
+            (crater.rho - rho).abs() < 1e-3 * rho.max(1.0),
+            "{}: {crater:?}, ρ {rho}",
+            s.sample_id
+        );
+        assert!(
+            crater.relative_height_m.is_finite(),
+            "{}: {crater:?}",
+            s.sample_id
+        );
+    }
+    // A catalogue that is not there is named, with the manifest key to fix.
+    std::fs::write(&path, with_catalogue("missing.csv")).unwrap();
+    let m = PipelineManifest::load(&path).unwrap();
+    let err = pipeline::stages::pipeline(&m, indicatif::ProgressBar::hidden())
+        .err()
+        .expect("a missing catalogue is refused")
+        .to_string();
+    assert!(
+        err.contains("missing.csv") && err.contains("inputs.crater_catalogue"),
+        "{err}"
+    );
+}

@@ -579,6 +579,7 @@ fn trainer_over_http_gets_the_same_first_epoch_batches_as_from_local_files() {
             gsd_m: 512.0,
             std_m: 150.0,
             absolute: false,
+            crater_rms_m: None,
         }),
     };
     let from_local: Vec<_> = EpochStream::start(
@@ -782,6 +783,7 @@ fn a_schema_1_1_dataset_serves_and_streams_its_rows_without_context() {
         .iter()
         .map(|s| Sample {
             context: None,
+            crater: None,
             ..s.clone()
         })
         .collect();
@@ -806,7 +808,8 @@ fn a_schema_1_1_dataset_serves_and_streams_its_rows_without_context() {
     expected.sort_by(|a, b| a.sample_id.cmp(&b.sample_id));
     assert_eq!(streamed, expected);
 
-    // The JSON views describe the dataset as it is: its own schema, no context tensor, no context preview.
+    // The JSON views describe the dataset as it is: its own schema (neither the context nor the crater columns of
+    // schemas 1.2 and 1.3), no context tensor, no context preview.
     let client = HttpClient::new(&url).unwrap();
     let info: serde_json::Value = client.get_json("/v1/info").unwrap();
     let columns: Vec<&str> = info["schema"]
@@ -817,9 +820,14 @@ fn a_schema_1_1_dataset_serves_and_streams_its_rows_without_context() {
         .collect();
     assert_eq!(
         columns.len(),
-        dataset::contract::schema::sample_schema().fields().len() - 2
+        dataset::contract::schema::sample_schema().fields().len() - 4
     );
-    assert!(columns.contains(&"dem") && !columns.iter().any(|c| c.starts_with("context_")));
+    assert!(
+        columns.contains(&"dem")
+            && !columns
+                .iter()
+                .any(|c| dataset::testing::is_newer_than_1_1(c))
+    );
     let page: serde_json::Value = client
         .get_json("/v1/rows?split=train&length=1&tensors=base64")
         .unwrap();

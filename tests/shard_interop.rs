@@ -2,6 +2,7 @@
 
 use std::process::Command;
 
+use dataset::contract::crater_frame::CraterPosition;
 use dataset::contract::schema::{ContextWindow, Sample, Split, CONTEXT_PX, CROP_PX, DEM_PX};
 use dataset::contract::shard::ShardWriter;
 
@@ -46,6 +47,10 @@ fn sample(i: usize) -> Sample {
                 .map(|k| if k == 0 { f32::NAN } else { k as f32 - 1500.0 })
                 .collect(),
         }),
+        crater: Some(CraterPosition {
+            rho: 0.8125,
+            relative_height_m: -137.5,
+        }),
     }
 }
 
@@ -66,7 +71,7 @@ f = pq.ParquetFile(sys.argv[1])
 t = pq.read_table(sys.argv[1])
 assert t.num_rows == 300, t.num_rows
 assert f.metadata.num_row_groups == 2, f.metadata.num_row_groups
-assert f.schema_arrow.metadata[b"g2r.schema_version"] == b"1.2.0", f.schema_arrow.metadata
+assert f.schema_arrow.metadata[b"g2r.schema_version"] == b"1.3.0", f.schema_arrow.metadata
 assert t.column("map_to_en")[0].values.to_pylist() == [1.0, 0.0, 0.0, 1.0]
 assert t.column("enu_origin_height_m").to_pylist()[0] == 0.0
 dem = t.column("dem")[3].values.to_numpy()
@@ -80,6 +85,8 @@ assert t.schema.field("dem").metadata[b"unit"] == b"m"
 ctx = t.column("context_dem")[2].values.to_numpy().reshape(32, 32)
 assert ctx[0, 0] != ctx[0, 0] and ctx[1, 3] == 35 - 1500.0, ctx[:2, :4]
 assert t.column("context_gsd_m").to_pylist()[0] == 512.0
+assert t.column("crater_rho").to_pylist()[0] == 0.8125 and t.column("crater_relative_height_m").to_pylist()[0] == -137.5
+assert t.schema.field("crater_relative_height_m").metadata[b"unit"] == b"m"
 encodings = f.metadata.row_group(0).column(t.schema.get_field_index("dem")).encodings
 print("ok", encodings)
 "#;

@@ -41,6 +41,11 @@ pub struct Inputs {
     /// Directory of orthoimages (`*.tif`) each with its acquisition metadata (`*.json`): a path, or an
     /// object-storage prefix whose objects directly under it are the folder's files.
     pub ortho_dir: PathBuf,
+    /// A crater catalogue CSV (`dataset::contract::crater_frame::read_catalogue`: `lon_deg,lat_deg,diameter_m`,
+    /// or Robbins 2018's columns), a local path. With one, every sample carries its place in the frame of the
+    /// nearest large crater (`crater_rho`, `crater_relative_height_m`); without, those columns hold NaN.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub crater_catalogue: Option<PathBuf>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -160,6 +165,23 @@ impl PipelineManifest {
             anyhow::bail!(
                 "{}: publish.rows_per_shard = {rows}: use 1 to {group} or a multiple of {group} (a shard is whole row groups of {group} rows)",
                 path.display()
+            );
+        }
+        if let Some(catalogue) = &manifest.inputs.crater_catalogue {
+            if dataset::storage::is_url(&catalogue.to_string_lossy()) {
+                anyhow::bail!(
+                    "{}: inputs.crater_catalogue = \"{}\": the catalogue is read from a local path; copy it next to the manifest",
+                    path.display(),
+                    catalogue.display()
+                );
+            }
+        }
+        let min_diameter_m = manifest.project.crater_min_diameter_m;
+        if !(min_diameter_m.is_finite() && min_diameter_m > 0.0) {
+            anyhow::bail!(
+                "{}: project.crater_min_diameter_m = {min_diameter_m}: use a positive diameter in metres (default {})",
+                path.display(),
+                dataset::contract::crater_frame::DEFAULT_MIN_DIAMETER_M
             );
         }
         let context_gsd_m = manifest.project.context_gsd_m;

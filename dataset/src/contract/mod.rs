@@ -1,6 +1,7 @@
 //! The data contract, on the [`crate::science`] core, in the order data flows: what arrives with each image
 //! ([`acquisition`]) and where the synthetic world keeps it ([`world`]); the seeded draw streams every stage
-//! takes its randomness from ([`rng`]); the terrain [`context`] cut around each crop; one DEM–image pair as a row
+//! takes its randomness from ([`rng`]); the terrain [`context`] cut around each crop and its
+//! [`crater_frame`]; one DEM–image pair as a row
 //! ([`schema`]); rows in Parquet [`shard`]s and on the server's [`wire`]; the [`manifest`] that lists and hashes them; the dataset card and
 //! Croissant of a [`publication`]; and the epoch [`planner`] that reads a publication back in training order.
 
@@ -15,6 +16,9 @@ pub mod rng;
 
 // The terrain context cut around each crop.
 pub mod context;
+
+// Where a crop lies in the frame of the nearest large catalogued crater.
+pub mod crater_frame;
 
 // One DEM–image pair as a Parquet row.
 pub mod schema;

@@ -10,9 +10,13 @@ use arrow::array::{
 };
 use arrow::datatypes::{DataType, Field, Schema, SchemaRef};
 
+use crate::contract::crater_frame::CraterPosition;
+
 /// Bumped on any incompatible change; readers refuse other major versions.
 /// 1.2: `context_dem` + `context_gsd_m` added (readers of 1.2 still read 1.1 shards, without context).
-pub const SCHEMA_VERSION: &str = "1.2.0";
+/// 1.3: `crater_rho` + `crater_relative_height_m` added, NaN where the dataset was built without a crater
+/// catalogue (readers of 1.3 still read 1.1 and 1.2 shards, without a crater frame).
+pub const SCHEMA_VERSION: &str = "1.3.0";
 /// Crop edge in pixels (the network's input/output size).
 pub const CROP_PX: usize = 128;
 /// DEM edge in pixels: the crop plus a 1-pixel apron on every side, so border normals are exact.
@@ -126,6 +130,9 @@ pub struct Sample {
     /// The terrain around the crop. Always written; `None` when read from a schema 1.1 shard (or when only the
     /// metadata columns were read).
     pub context: Option<ContextWindow>,
+    /// Where the crop lies in the frame of the nearest large catalogued crater ([`crate::contract::crater_frame`]);
+    /// `None` when the dataset was built without a crater catalogue, or read from a shard older than schema 1.3.
+    pub crater: Option<CraterPosition>,
 }
 
 impl Sample {
@@ -313,6 +320,18 @@ pub fn sample_schema() -> SchemaRef {
             "context_dem cell size",
             "m",
         ),
+        field(
+            "crater_rho",
+            DataType::Float64,
+            "ground distance of the crop centre from the nearest catalogued large crater's centre, in its radii; NaN without a crater catalogue",
+            "1",
+        ),
+        field(
+            "crater_relative_height_m",
+            DataType::Float64,
+            "crop mean height minus that crater's azimuthal median DEM profile at crater_rho (at 3 radii past them); NaN without a crater catalogue",
+            "m",
+        ),
     ];
     let metadata = HashMap::from([
         ("g2r.schema_version".to_string(), SCHEMA_VERSION.to_string()),
@@ -446,6 +465,12 @@ pub fn samples_to_batch(samples: &[Sample]) -> Result<RecordBatch, SchemaError> 
             DataType::Float32,
         ),
         f64s(contexts().map(|c| c.gsd_m)),
+        f64s(samples.iter().map(|s| s.crater.map_or(f64::NAN, |c| c.rho))),
+        f64s(
+            samples
+                .iter()
+                .map(|s| s.crater.map_or(f64::NAN, |c| c.relative_height_m)),
+        ),
     ];
     Ok(RecordBatch::try_new(sample_schema(), columns)?)
 }
@@ -535,6 +560,14 @@ fn decode(batch: &RecordBatch, tensors: bool) -> Result<Vec<Sample>, SchemaError
         }
         _ => None,
     };
+    // Absent from shards older than schema 1.3; NaN in datasets built without a crater catalogue.
+    let crater = match (
+        batch.column_by_name("crater_rho"),
+        batch.column_by_name("crater_relative_height_m"),
+    ) {
+        (Some(_), Some(_)) => Some((f("crater_rho")?, f("crater_relative_height_m")?)),
+        _ => None,
+    };
     let (sun, _) = list_values::<Float64Array>(batch, "sun_dir_enu")?;
     let (cam, _) = list_values::<Float64Array>(batch, "camera_pos_enu")?;
     let (att, _) = list_values::<Float64Array>(batch, "camera_att")?;
@@ -585,6 +618,14 @@ fn decode(batch: &RecordBatch, tensors: bool) -> Result<Vec<Sample>, SchemaError
                 gsd_m: gsd.value(i),
                 heights_m: slice_row(heights.values(), i, CONTEXT_PX * CONTEXT_PX),
             }),
+            crater: crater.and_then(|(rho, relative)| {
+                (rho.value(i).is_finite() && relative.value(i).is_finite()).then(|| {
+                    CraterPosition {
+                        rho: rho.value(i),
+                        relative_height_m: relative.value(i),
+                    }
+                })
+            }),
         })
         .collect())
 }
@@ -616,26 +657,57 @@ mod tests {
     use crate::testing::synthetic_sample;
 
     #[test]
-    fn a_batch_without_context_columns_reads_as_schema_1_1_samples_without_context() {
+    fn a_batch_without_newer_columns_reads_as_older_schemas_samples() {
         let samples = vec![synthetic_sample(1), synthetic_sample(2)];
+        assert!(samples.iter().all(|s| s.crater.is_some()));
         let batch = samples_to_batch(&samples).unwrap();
         assert_eq!(batch_to_samples(&batch).unwrap(), samples);
-        // Schema 1.1 had every column but the two context ones.
-        let old_columns: Vec<usize> = (0..batch.num_columns())
-            .filter(|&k| !batch.schema().field(k).name().starts_with("context_"))
-            .collect();
-        assert_eq!(old_columns.len(), batch.num_columns() - 2);
-        let old = batch_to_samples(&batch.project(&old_columns).unwrap()).unwrap();
-        for (read, written) in old.iter().zip(&samples) {
-            assert_eq!(read.context, None);
+        // Schema 1.2 had every column but the two crater ones; schema 1.1 neither the two context ones.
+        let older = |prefixes: &[&str]| {
+            let keep: Vec<usize> = (0..batch.num_columns())
+                .filter(|&k| {
+                    let name = batch.schema().field(k).name().clone();
+                    !prefixes.iter().any(|p| name.starts_with(p))
+                })
+                .collect();
+            assert_eq!(keep.len(), batch.num_columns() - 2 * prefixes.len());
+            batch_to_samples(&batch.project(&keep).unwrap()).unwrap()
+        };
+        for (read, written) in older(&["crater_"]).iter().zip(&samples) {
             assert_eq!(
                 *read,
                 Sample {
-                    context: None,
+                    crater: None,
                     ..written.clone()
                 }
             );
         }
+        for (read, written) in older(&["crater_", "context_"]).iter().zip(&samples) {
+            assert_eq!(
+                *read,
+                Sample {
+                    context: None,
+                    crater: None,
+                    ..written.clone()
+                }
+            );
+        }
+    }
+
+    #[test]
+    fn a_sample_without_a_crater_frame_is_written_as_nan_and_read_back_without_one() {
+        let mut none = synthetic_sample(3);
+        none.crater = None;
+        let batch = samples_to_batch(&[synthetic_sample(1), none.clone()]).unwrap();
+        let rho = batch
+            .column_by_name("crater_rho")
+            .unwrap()
+            .as_any()
+            .downcast_ref::<Float64Array>()
+            .unwrap();
+        assert_eq!((rho.value(0), rho.null_count()), (0.25, 0));
+        assert!(rho.value(1).is_nan());
+        assert_eq!(batch_to_samples(&batch).unwrap()[1], none);
     }
 
     #[test]

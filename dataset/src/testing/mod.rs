@@ -7,6 +7,7 @@ pub mod s3;
 use std::collections::BTreeMap;
 use std::path::Path;
 
+use crate::contract::crater_frame::CraterPosition;
 use crate::contract::manifest::{write_json_atomic, DatasetManifest};
 use crate::contract::schema::{
     ContextWindow, Sample, Split, CONTEXT_PX, CROP_PX, DEM_PX, SCHEMA_VERSION,
@@ -49,6 +50,10 @@ pub fn synthetic_sample(i: usize) -> Sample {
             heights_m: (0..CONTEXT_PX * CONTEXT_PX)
                 .map(|k| (k as f32 * 0.05 + i as f32).cos() * 200.0 - 1400.0)
                 .collect(),
+        }),
+        crater: Some(CraterPosition {
+            rho: 0.25 * i as f64,
+            relative_height_m: 10.0 * i as f64 - 40.0,
         }),
     }
 }
@@ -94,9 +99,15 @@ pub fn write_dataset(
     Ok(manifest)
 }
 
-/// Rewrite a dataset written by [`write_dataset`] as schema 1.1 wrote it: shards without the context columns and
+/// Rewrite a dataset written by [`write_dataset`] as schema 1.1 wrote it: shards without the context and crater
+/// columns and
 /// with version 1.1.0 in their metadata, and the manifest updated (version, sizes, blake3). For tests that old
 /// datasets still read and serve.
+/// Columns schema 1.1 did not have: the context window's (1.2) and the crater frame's (1.3).
+pub fn is_newer_than_1_1(column: &str) -> bool {
+    column.starts_with("context_") || column.starts_with("crater_")
+}
+
 pub fn downgrade_to_schema_1_1(dir: &Path) -> anyhow::Result<()> {
     use std::sync::Arc;
     let mut manifest = DatasetManifest::load_dir(dir)?;
@@ -105,7 +116,7 @@ pub fn downgrade_to_schema_1_1(dir: &Path) -> anyhow::Result<()> {
         let file = crate::contract::shard::ShardFile::open(&path)?;
         let schema = file.schema();
         let keep: Vec<usize> = (0..schema.fields().len())
-            .filter(|&k| !schema.field(k).name().starts_with("context_"))
+            .filter(|&k| !is_newer_than_1_1(schema.field(k).name()))
             .collect();
         let mut metadata = schema.metadata().clone();
         metadata.insert("g2r.schema_version".to_string(), "1.1.0".to_string());

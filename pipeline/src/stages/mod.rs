@@ -232,14 +232,20 @@ pub fn pipeline_scoped(
         m.project.clone(),
         provenance.clone(),
     );
+    let catalogue = m.inputs.crater_catalogue.as_ref().map(|p| m.resolve(p));
+    if let Some(path) = catalogue.as_ref().filter(|p| !p.exists()) {
+        anyhow::bail!("{}: crater catalogue not found; check inputs.crater_catalogue in the manifest (paths are relative to the manifest)", path.display());
+    }
+    let catalogue5 = catalogue.clone();
     let group_rows = row_group_rows(m.publish.rows_per_shard);
     let progress5 = progress.clone();
     let project = Stage {
         name: "project",
         // 2: projects assigned positions only, into one file per split. 3: every sample carries its context
         // window (schema 1.2). 4: context cells average blocks of pixels (dataset::contract::context), not single pixels.
-        // 5: the train DEM statistic is summed per ortho (partitions merge to the same bits).
-        code_version: "5",
+        // 5: the train DEM statistic is summed per ortho (partitions merge to the same bits). 6: every sample
+        // carries its crater frame, NaN without a catalogue (schema 1.3).
+        code_version: "6",
         // Everything projection reads: assigned positions, the DEM, and each ortho's image and metadata.
         inputs: [
             layout.assignment.clone(),
@@ -247,6 +253,7 @@ pub fn pipeline_scoped(
             dem_input.clone(),
         ]
         .into_iter()
+        .chain(catalogue)
         .chain(images.iter().cloned())
         .chain(metadata.iter().cloned())
         .collect(),
@@ -264,8 +271,13 @@ pub fn pipeline_scoped(
         run: Box::new(move |out| {
             let orthos = ingest::read(&l5.orthos, &od)?;
             let p = &out.paths;
+            let dem = dem5.get()?;
+            let crater_frames = catalogue5
+                .as_ref()
+                .map(|path| project::crater_frames(dem, path, pp.crater_min_diameter_m))
+                .transpose()?;
             project::run(
-                dem5.get()?,
+                (dem, crater_frames.as_ref()),
                 &orthos,
                 &l5.assignment,
                 &pp,

@@ -8,6 +8,7 @@
 
 use dataset::contract::acquisition::AcquisitionMetadata;
 use dataset::contract::context::ContextSampler;
+use dataset::contract::crater_frame::CraterFrames;
 use dataset::contract::schema::{crop_interior, ContextWindow, Sample, CROP_PX, DEM_PX};
 use dataset::science::crs::{CrsError, LocalFrame};
 use dataset::science::horizon::{
@@ -32,6 +33,14 @@ pub struct ProjectParams {
     /// crop, enough to hold a crater of ~10–20 km across and its ejecta.
     #[serde(default = "default_context_gsd_m")]
     pub context_gsd_m: f64,
+    /// Catalogued craters at least this wide frame the samples (`inputs.crater_catalogue`): the complex ones,
+    /// whose walls hide a unit's level (`dataset::contract::crater_frame`).
+    #[serde(default = "default_crater_min_diameter_m")]
+    pub crater_min_diameter_m: f64,
+}
+
+fn default_crater_min_diameter_m() -> f64 {
+    dataset::contract::crater_frame::DEFAULT_MIN_DIAMETER_M
 }
 
 /// See [`ProjectParams::context_gsd_m`].
@@ -241,8 +250,39 @@ impl<'a> OrthoProjector<'a> {
             acq_time: self.meta.start_time_utc.clone(),
             provenance: self.provenance.clone(),
             context: None, // cut by `run` from the whole DEM (one `ContextSampler` per stage)
+            crater: None, // placed by `run` in the DEM's crater frames, when the manifest names a catalogue
         })
     }
+}
+
+/// The frames of the catalogue's large craters on the DEM (`inputs.crater_catalogue`), with every crater counted
+/// in the log. A catalogue that frames none is refused: its columns would hold only NaN.
+pub fn crater_frames(
+    dem: &Raster,
+    catalogue: &std::path::Path,
+    min_diameter_m: f64,
+) -> anyhow::Result<CraterFrames> {
+    let craters = dataset::contract::crater_frame::read_catalogue(catalogue)?;
+    let (frames, report) = CraterFrames::new(dem, &craters, min_diameter_m)
+        .map_err(|e| anyhow::anyhow!("{}: {e:#}", catalogue.display()))?;
+    tracing::info!(
+        catalogued = report.catalogued,
+        too_small = report.too_small,
+        off_the_dem = report.off_the_dem,
+        framed = report.framed,
+        "crater frames"
+    );
+    if frames.is_empty() {
+        anyhow::bail!(
+            "{}: no crater frames the DEM ({} catalogued, {} under project.crater_min_diameter_m = {min_diameter_m} m, {} with no DEM within {} radii): lower crater_min_diameter_m or leave out inputs.crater_catalogue",
+            catalogue.display(),
+            report.catalogued,
+            report.too_small,
+            report.off_the_dem,
+            dataset::contract::crater_frame::PROFILE_RHO_MAX
+        );
+    }
+    Ok(frames)
 }
 
 /// Where the project stage writes: one sample file per split (row groups of `row_group_rows`, in assignment
@@ -323,9 +363,10 @@ impl TrainDemStatistic {
 }
 
 /// Stage: project every assigned centre, ortho by ortho (sorted), crops in parallel in chunks of one row group,
-/// and stream accepted samples into their split's file; rejections are counted per ortho and reason.
+/// and stream accepted samples into their split's file; rejections are counted per ortho and reason. With
+/// `crater_frames` (from [`crater_frames`]), each sample is placed in its crater's frame.
 pub fn run(
-    dem: &Raster,
+    (dem, crater_frames): (&Raster, Option<&CraterFrames>),
     orthos: &[super::ingest::OrthoRecord],
     assignment_path: &std::path::Path,
     params: &ProjectParams,
@@ -456,6 +497,11 @@ pub fn run(
                                 gsd_m: params.context_gsd_m,
                                 heights_m: context.window(sample.center_x_m, sample.center_y_m),
                             });
+                            sample.crater = crater_frames.and_then(|frames| {
+                                let crop_mean_m = crop_interior(&sample.dem_m).sum::<f64>()
+                                    / (CROP_PX * CROP_PX) as f64;
+                                frames.position(sample.center_x_m, sample.center_y_m, crop_mean_m)
+                            });
                             sample.split = Split::ALL[split_of[i]];
                             sample.tile_id = tiles[i].clone();
                             Ok((split_of[i], sample))
@@ -569,6 +615,7 @@ mod tests {
             max_occluded_fraction: 0.01,
             sun_disk_samples: 4,
             context_gsd_m: DEFAULT_CONTEXT_GSD_M,
+            crater_min_diameter_m: default_crater_min_diameter_m(),
         }
     }
 

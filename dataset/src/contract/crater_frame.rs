@@ -1,0 +1,447 @@
+//! The crater frame of a crop: where it lies relative to the nearest large catalogued crater, and how high it
+//! stands against that crater's own mean profile. One home for it: the project stage computes it for the
+//! published samples and `g2r-train infer` for crops of a new DEM, both through [`CraterFrames`].
+//!
+//! Why: on a complex crater's wall the crater's profile (kilometres of relief over a few kilometres) swamps the
+//! few hundred metres by which mare lies below highland, so a crop's height alone no longer tells the unit under
+//! it, as it does on the plains. Against the crater's *azimuthal median profile* taken from the same DEM, it does
+//! again: the crop's height minus the profile's height at its normalised radius is the unit's offset
+//! (docs/crater-diagnosis.md measures how much of the unit this reads on two worlds' held-out walls).
+//!
+//! The catalogue gives each crater's centre and diameter, as the Moon's published catalogues do (Robbins 2018:
+//! `LAT_CIRC_IMG`, `LON_CIRC_IMG`, `DIAM_CIRC_IMG` in km); nothing else is taken from it. The profile is the
+//! median height of the DEM's pixels in rings of [`PROFILE_BIN_RHO`] radii out to [`PROFILE_RHO_MAX`] radii,
+//! with ground distances from the map through the local scale at the crater's centre.
+
+use std::path::Path;
+
+use anyhow::{bail, Context, Result};
+
+use crate::science::crs::LocalFrame;
+use crate::science::raster::Raster;
+
+/// The profile reaches this many radii: past the ejecta blanket, onto the plains around.
+pub const PROFILE_RHO_MAX: f64 = 3.0;
+/// Ring width of the profile, in radii (45 m on an 18 km crater).
+pub const PROFILE_BIN_RHO: f64 = 0.005;
+/// Craters smaller than this are left out of the frame by default: lunar craters turn complex (terraced walls,
+/// flat floors) at about 15–20 km across, and a simple crater's relief does not swamp a unit's offset.
+pub const DEFAULT_MIN_DIAMETER_M: f64 = 15_000.0;
+
+/// One catalogue entry: centre (planetocentric, east-positive) and rim diameter.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CatalogueCrater {
+    pub lon_deg: f64,
+    pub lat_deg: f64,
+    pub diameter_m: f64,
+}
+
+/// Reads a crater catalogue CSV: either this project's columns `lon_deg`, `lat_deg`, `diameter_m`, or the Robbins
+/// (2018) lunar catalogue's `LON_CIRC_IMG`, `LAT_CIRC_IMG` (degrees) and `DIAM_CIRC_IMG` (km). Other columns are
+/// ignored; longitudes may run 0–360 or −180–180.
+pub fn read_catalogue(path: &Path) -> Result<Vec<CatalogueCrater>> {
+    let fix = "give a CSV with columns lon_deg,lat_deg,diameter_m (or Robbins 2018's LON_CIRC_IMG,LAT_CIRC_IMG,DIAM_CIRC_IMG)";
+    let mut reader = csv::ReaderBuilder::new()
+        .comment(Some(b'#'))
+        .trim(csv::Trim::All)
+        .from_path(path)
+        .with_context(|| format!("{}: cannot read the crater catalogue", path.display()))?;
+    let headers = reader
+        .headers()
+        .with_context(|| format!("{}: no header row; {fix}", path.display()))?
+        .clone();
+    let find = |name: &str| headers.iter().position(|h| h == name);
+    let (lon, lat, diameter, metres_per_unit) = match (
+        find("lon_deg"),
+        find("lat_deg"),
+        find("diameter_m"),
+        find("LON_CIRC_IMG"),
+        find("LAT_CIRC_IMG"),
+        find("DIAM_CIRC_IMG"),
+    ) {
+        (Some(lon), Some(lat), Some(d), ..) => (lon, lat, d, 1.0),
+        (.., Some(lon), Some(lat), Some(d)) => (lon, lat, d, 1000.0),
+        _ => bail!(
+            "{}: columns {:?} name no crater centre and diameter; {fix}",
+            path.display(),
+            headers.iter().collect::<Vec<_>>()
+        ),
+    };
+    let mut craters = Vec::new();
+    for (k, record) in reader.records().enumerate() {
+        let record =
+            record.with_context(|| format!("{}: unreadable row; {fix}", path.display()))?;
+        let line = record.position().map_or(k + 2, |p| p.line() as usize);
+        let value = |i: usize, what: &str| -> Result<f64> {
+            let text = record.get(i).unwrap_or("");
+            text.parse::<f64>()
+                .ok()
+                .filter(|v| v.is_finite())
+                .with_context(|| {
+                    format!("{}:{line}: {what} '{text}' is not a number", path.display())
+                })
+        };
+        let crater = CatalogueCrater {
+            lon_deg: wrap_lon_deg(value(lon, "longitude")?),
+            lat_deg: value(lat, "latitude")?,
+            diameter_m: value(diameter, "diameter")? * metres_per_unit,
+        };
+        if crater.lat_deg.abs() > 90.0 || crater.diameter_m <= 0.0 {
+            bail!(
+                "{}:{line}: latitude {} and diameter {} m: a latitude lies in −90…90 and a diameter is positive",
+                path.display(),
+                crater.lat_deg,
+                crater.diameter_m
+            );
+        }
+        craters.push(crater);
+    }
+    Ok(craters)
+}
+
+fn wrap_lon_deg(lon: f64) -> f64 {
+    (lon + 180.0).rem_euclid(360.0) - 180.0
+}
+
+/// Where a crop lies in its crater's frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CraterPosition {
+    /// Ground distance of the crop centre from the nearest catalogued crater's centre, in that crater's radii.
+    pub rho: f64,
+    /// The crop's mean height minus the crater's azimuthal median profile at `rho` (at [`PROFILE_RHO_MAX`] past
+    /// it), metres.
+    pub relative_height_m: f64,
+}
+
+/// One crater's frame on the map.
+#[derive(Debug, Clone)]
+struct Frame {
+    centre: (f64, f64),
+    /// Map offset → ground east/north metres at the centre.
+    map_to_en: [[f64; 2]; 2],
+    radius_m: f64,
+    /// Median height of each ring, metres; ring `i` spans `i..i+1` × [`PROFILE_BIN_RHO`].
+    profile_m: Vec<f64>,
+}
+
+impl Frame {
+    fn rho(&self, x: f64, y: f64) -> f64 {
+        let (dx, dy) = (x - self.centre.0, y - self.centre.1);
+        let m = self.map_to_en;
+        let (e, n) = (m[0][0] * dx + m[0][1] * dy, m[1][0] * dx + m[1][1] * dy);
+        e.hypot(n) / self.radius_m
+    }
+
+    /// The profile's height at `rho` (clamped to the profile's reach), linear between ring centres.
+    fn profile_at(&self, rho: f64) -> f64 {
+        let t = (rho.min(PROFILE_RHO_MAX) / PROFILE_BIN_RHO - 0.5).max(0.0);
+        let last = self.profile_m.len() - 1;
+        let i = (t.floor() as usize).min(last);
+        let j = (i + 1).min(last);
+        let f = (t - i as f64).clamp(0.0, 1.0);
+        self.profile_m[i] * (1.0 - f) + self.profile_m[j] * f
+    }
+}
+
+/// What building the frames did with the catalogue: every crater is counted, none silently dropped.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
+pub struct FramesReport {
+    pub catalogued: usize,
+    /// Smaller than the minimum diameter.
+    pub too_small: usize,
+    /// At least the minimum diameter, but with no DEM within [`PROFILE_RHO_MAX`] radii.
+    pub off_the_dem: usize,
+    pub framed: usize,
+}
+
+/// The frames of a DEM's large catalogued craters.
+#[derive(Debug, Clone)]
+pub struct CraterFrames {
+    frames: Vec<Frame>,
+}
+
+impl CraterFrames {
+    /// One profile per catalogued crater at least `min_diameter_m` across with DEM around it (one pass over its
+    /// square of the DEM each; the DEM is read on a stride of half a ring, which keeps the memory to a few MB).
+    pub fn new(
+        dem: &Raster,
+        catalogue: &[CatalogueCrater],
+        min_diameter_m: f64,
+    ) -> Result<(Self, FramesReport)> {
+        let mut report = FramesReport {
+            catalogued: catalogue.len(),
+            ..FramesReport::default()
+        };
+        let mut frames = Vec::new();
+        for crater in catalogue {
+            if crater.diameter_m < min_diameter_m {
+                report.too_small += 1;
+                continue;
+            }
+            let (x, y) = dem.crs.from_lonlat_deg(crater.lon_deg, crater.lat_deg)?;
+            let local = LocalFrame::new(&dem.crs, x, y, 0.0)?;
+            match profile(dem, (x, y), local.map_to_en, crater.diameter_m / 2.0) {
+                Some(frame) => {
+                    frames.push(frame);
+                    report.framed += 1;
+                }
+                None => report.off_the_dem += 1,
+            }
+        }
+        Ok((Self { frames }, report))
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.frames.is_empty()
+    }
+
+    /// The crop at map `(x, y)` with mean height `crop_mean_m` in the frame of the crater it lies nearest to, in
+    /// radii; `None` without frames.
+    pub fn position(&self, x: f64, y: f64, crop_mean_m: f64) -> Option<CraterPosition> {
+        let (rho, frame) = self
+            .frames
+            .iter()
+            .map(|f| (f.rho(x, y), f))
+            .min_by(|a, b| a.0.total_cmp(&b.0))?;
+        Some(CraterPosition {
+            rho,
+            relative_height_m: crop_mean_m - frame.profile_at(rho),
+        })
+    }
+}
+
+/// The azimuthal median profile around `centre` (map metres), or `None` when no DEM lies within its reach.
+fn profile(
+    dem: &Raster,
+    centre: (f64, f64),
+    map_to_en: [[f64; 2]; 2],
+    radius_m: f64,
+) -> Option<Frame> {
+    let mut frame = Frame {
+        centre,
+        map_to_en,
+        radius_m,
+        profile_m: Vec::new(),
+    };
+    let bins = (PROFILE_RHO_MAX / PROFILE_BIN_RHO).round() as usize;
+    let t = dem.transform;
+    let pixel_m = t.pixel_width.abs().min(t.pixel_height.abs());
+    let stride = ((PROFILE_BIN_RHO * radius_m / (2.0 * pixel_m)).floor() as usize).max(1);
+    // The map square that holds the profile's reach: ground reach through the inverse of map_to_en.
+    let m = map_to_en;
+    let det = m[0][0] * m[1][1] - m[0][1] * m[1][0];
+    let reach = PROFILE_RHO_MAX * radius_m;
+    let half_x = reach * (m[1][1].abs() + m[0][1].abs()) / det.abs();
+    let half_y = reach * (m[1][0].abs() + m[0][0].abs()) / det.abs();
+    let (c0, r0) = t.map_to_pixel(centre.0 - half_x, centre.1 + half_y);
+    let (c1, r1) = t.map_to_pixel(centre.0 + half_x, centre.1 - half_y);
+    let clamp = |v: f64, n: usize| (v.floor().max(0.0) as usize).min(n);
+    let (cols, rows) = (
+        clamp(c0.min(c1), dem.width)..clamp(c0.max(c1) + 1.0, dem.width),
+        clamp(r0.min(r1), dem.height)..clamp(r0.max(r1) + 1.0, dem.height),
+    );
+    let mut rings: Vec<Vec<f32>> = vec![Vec::new(); bins];
+    for row in rows.step_by(stride) {
+        for col in cols.clone().step_by(stride) {
+            let z = dem.get(col, row);
+            if !z.is_finite() {
+                continue;
+            }
+            let (x, y) = t.pixel_center(col as f64, row as f64);
+            let ring = (frame.rho(x, y) / PROFILE_BIN_RHO) as usize;
+            if ring < bins {
+                rings[ring].push(z);
+            }
+        }
+    }
+    let medians: Vec<Option<f64>> = rings.iter_mut().map(|ring| median(ring)).collect();
+    let filled: Vec<usize> = (0..bins).filter(|&i| medians[i].is_some()).collect();
+    let (&first, &last) = (filled.first()?, filled.last()?);
+    // A ring with no pixels (near the centre, or where the DEM has a hole) takes the line between its neighbours.
+    frame.profile_m = (0..bins)
+        .map(|i| {
+            if let Some(v) = medians[i] {
+                return v;
+            }
+            if i < first {
+                return medians[first].unwrap_or_default();
+            }
+            if i > last {
+                return medians[last].unwrap_or_default();
+            }
+            let below = filled[filled.partition_point(|&k| k < i) - 1];
+            let above = filled[filled.partition_point(|&k| k < i)];
+            let f = (i - below) as f64 / (above - below) as f64;
+            medians[below].unwrap_or_default() * (1.0 - f) + medians[above].unwrap_or_default() * f
+        })
+        .collect();
+    Some(frame)
+}
+
+/// Median of the values (the mean of the middle two for an even count); `None` for none.
+fn median(values: &mut [f32]) -> Option<f64> {
+    if values.is_empty() {
+        return None;
+    }
+    values.sort_unstable_by(f32::total_cmp);
+    let n = values.len();
+    Some(if n % 2 == 1 {
+        f64::from(values[n / 2])
+    } else {
+        (f64::from(values[n / 2 - 1]) + f64::from(values[n / 2])) / 2.0
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::science::crs::LunarCrs;
+    use crate::science::raster::GeoTransform;
+
+    /// A 20 km square DEM at 20 m on an equator-true equirectangular map, holding a crater of radius `radius_m` at
+    /// the map's centre whose height rises linearly with ρ (`slope_m` per radius) to a flat plain past ρ = 1.2,
+    /// with `offset_m` added north of the centre and east of x = radius/2 (the minority unit, under a quarter of
+    /// any ring: the median profile follows the majority's heights).
+    fn crater_dem(radius_m: f64, slope_m: f64, offset_m: f64) -> (Raster, CatalogueCrater) {
+        let crs = LunarCrs::equirectangular(0.0, 0.0);
+        let (px, n) = (20.0, 1000);
+        let transform = GeoTransform::north_up(-10_000.0, 10_000.0, px);
+        let mut dem = Raster::new(n, n, transform, crs.clone(), 0.0);
+        for row in 0..n {
+            for col in 0..n {
+                let (x, y) = transform.pixel_center(col as f64, row as f64);
+                dem.data[row * n + col] = height(x, y, radius_m, slope_m, offset_m) as f32;
+            }
+        }
+        let (lon_deg, lat_deg) = crs.to_lonlat_deg(0.0, 0.0).unwrap();
+        let crater = CatalogueCrater {
+            lon_deg,
+            lat_deg,
+            diameter_m: 2.0 * radius_m,
+        };
+        (dem, crater)
+    }
+
+    fn height(x: f64, y: f64, radius_m: f64, slope_m: f64, offset_m: f64) -> f64 {
+        let rho = x.hypot(y) / radius_m;
+        let minority = y > 0.0 && x > radius_m / 2.0;
+        -2000.0 + slope_m * rho.min(1.2) + if minority { offset_m } else { 0.0 }
+    }
+
+    #[test]
+    fn against_the_median_profile_a_minority_units_offset_reads_as_its_relative_height() {
+        let (radius, slope, offset) = (6000.0, 1600.0, 300.0);
+        let (dem, crater) = crater_dem(radius, slope, offset);
+        let (frames, report) = CraterFrames::new(&dem, &[crater], 10_000.0).unwrap();
+        assert_eq!(
+            report,
+            FramesReport {
+                catalogued: 1,
+                framed: 1,
+                ..FramesReport::default()
+            }
+        );
+        // On the wall the crater's rise (1,600 m per radius) swamps the 300 m offset; against the profile it is
+        // the offset, within a ring's rise (8 m) of the median's place in its ring.
+        for (x, y) in [(4000.0, 2000.0), (3300.0, 400.0), (5000.0, 3000.0)] {
+            let z = height(x, y, radius, slope, offset);
+            let p = frames.position(x, y, z).unwrap();
+            assert!((p.rho - x.hypot(y) / radius).abs() < 1e-6, "{p:?}");
+            assert!(
+                (p.relative_height_m - offset).abs() < 8.0,
+                "minority unit at ({x}, {y}): {p:?}"
+            );
+        }
+        for (x, y) in [(-4000.0, 2000.0), (1000.0, -3500.0), (-2000.0, -2000.0)] {
+            let z = height(x, y, radius, slope, offset);
+            let p = frames.position(x, y, z).unwrap();
+            assert!(
+                p.relative_height_m.abs() < 8.0,
+                "majority unit at ({x}, {y}): {p:?}"
+            );
+        }
+    }
+
+    #[test]
+    fn the_nearest_crater_in_radii_frames_a_crop_and_past_the_reach_the_last_ring_does() {
+        let (dem, crater) = crater_dem(2000.0, 800.0, 0.0);
+        let (lon, lat) = dem.crs.to_lonlat_deg(9000.0, 9000.0).unwrap();
+        let far = CatalogueCrater {
+            lon_deg: lon,
+            lat_deg: lat,
+            diameter_m: 20_000.0,
+        };
+        let (frames, report) = CraterFrames::new(&dem, &[crater, far], 1000.0).unwrap();
+        assert_eq!(report.framed, 2);
+        // 3 km from the small crater (ρ 1.5) and 10.8 km from the big one (ρ 1.08): the big one frames it.
+        let p = frames.position(3000.0, 0.0, 0.0).unwrap();
+        // (The map's east scale at the big crater's latitude, 0.3°, is 1 − 1.4e-5.)
+        assert!(
+            (p.rho - 9000f64.hypot(6000.0) / 10_000.0).abs() < 2e-5,
+            "{p:?}"
+        );
+        // Past the reach the height is taken against the profile's last ring: the plain's level.
+        let frames = CraterFrames::new(&dem, &[crater], 1000.0).unwrap().0;
+        let p = frames
+            .position(-9000.0, -9000.0, -2000.0 + 960.0 + 25.0)
+            .unwrap();
+        assert!(p.rho > PROFILE_RHO_MAX);
+        assert!((p.relative_height_m - 25.0).abs() < 1e-3, "{p:?}");
+    }
+
+    #[test]
+    fn small_and_off_dem_craters_are_counted_and_no_frame_means_no_position() {
+        let (dem, crater) = crater_dem(2000.0, 800.0, 0.0);
+        let off = CatalogueCrater {
+            lon_deg: crater.lon_deg + 5.0,
+            ..crater
+        };
+        let (frames, report) = CraterFrames::new(&dem, &[crater, off], 5000.0).unwrap();
+        assert_eq!(
+            report,
+            FramesReport {
+                catalogued: 2,
+                too_small: 2,
+                ..FramesReport::default()
+            }
+        );
+        assert!(frames.is_empty() && frames.position(0.0, 0.0, 0.0).is_none());
+        let report = CraterFrames::new(&dem, &[crater, off], 1000.0).unwrap().1;
+        assert_eq!((report.framed, report.off_the_dem), (1, 1));
+    }
+
+    #[test]
+    fn a_catalogue_reads_in_either_column_set_and_a_bad_row_names_its_line() {
+        let dir = tempfile::tempdir().unwrap();
+        let ours = dir.path().join("ours.csv");
+        std::fs::write(
+            &ours,
+            "# the complex crater\nlat_deg,lon_deg,diameter_m\n-43.3,348.8,18000\n",
+        )
+        .unwrap();
+        let read = read_catalogue(&ours).unwrap();
+        assert_eq!(read.len(), 1);
+        assert!((read[0].lon_deg - -11.2).abs() < 1e-9 && read[0].diameter_m == 18_000.0);
+        let robbins = dir.path().join("robbins.csv");
+        std::fs::write(
+            &robbins,
+            "CRATER_ID,LAT_CIRC_IMG,LON_CIRC_IMG,DIAM_CIRC_IMG\n00-1-000001,-43.3,-11.2,18.0\n",
+        )
+        .unwrap();
+        let robbins = read_catalogue(&robbins).unwrap();
+        assert_eq!(robbins.len(), 1);
+        assert!((robbins[0].lon_deg - read[0].lon_deg).abs() < 1e-9);
+        assert!(robbins[0].lat_deg == -43.3 && robbins[0].diameter_m == 18_000.0);
+        let bad = dir.path().join("bad.csv");
+        std::fs::write(&bad, "lon_deg,lat_deg,diameter_m\n1,2,3\n1,x,3\n").unwrap();
+        let err = format!("{:#}", read_catalogue(&bad).unwrap_err());
+        assert!(err.contains("bad.csv:3") && err.contains("'x'"), "{err}");
+        let none = dir.path().join("none.csv");
+        std::fs::write(&none, "lon,lat,d\n1,2,3\n").unwrap();
+        let err = format!("{:#}", read_catalogue(&none).unwrap_err());
+        assert!(
+            err.contains("none.csv") && err.contains("lon_deg,lat_deg,diameter_m"),
+            "{err}"
+        );
+    }
+}
