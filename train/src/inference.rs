@@ -11,6 +11,7 @@ use std::path::Path;
 
 use anyhow::{bail, Context, Result};
 use burn::prelude::*;
+use dataset::contract::crater_frame::CraterFrames;
 use dataset::contract::schema::{CONTEXT_PX, CROP_PX};
 use dataset::science::brdf::{inverse_leaky_relu, leaky_relu, BrdfModel, LEAKY_SLOPE};
 use dataset::science::raster::{BandOut, BandValues, Raster, RasterLayout};
@@ -23,12 +24,15 @@ use crate::run_dir::{load_ensemble, Checkpoint};
 /// Default overlap between neighbouring crops, pixels (a quarter crop).
 pub const DEFAULT_OVERLAP: usize = 32;
 
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 pub struct InferOptions {
     pub overlap: usize,
     pub batch_size: usize,
     /// The run's network input normalisation (`run_dir::run_input`).
     pub input: InputNormalisation,
+    /// The DEM's crater frames, for a run that feeds a crater input (`--crater-input`): built from the catalogue
+    /// the training data was published with.
+    pub crater_frames: Option<std::sync::Arc<CraterFrames>>,
 }
 
 /// Start offsets of crops of `crop` pixels along an axis of `len` pixels (`len ≥ crop`), stride `crop − overlap`,
@@ -159,6 +163,13 @@ pub fn infer_params<B: TrainOps>(
         .map(|i| taper(i, CROP_PX, options.overlap))
         .collect();
     let npx = CROP_PX * CROP_PX;
+    let crater_frames = match (options.input.crater_rms_m(), &options.crater_frames) {
+        (None, _) => None,
+        (Some(_), Some(frames)) if !frames.is_empty() => Some(frames),
+        (Some(_), _) => bail!(
+            "the run feeds each crop's height against its crater's profile (--crater-input): give --crater-catalogue, the crater catalogue its dataset was published with, with a crater on this DEM"
+        ),
+    };
     // The context windows are cut from the whole DEM, as the project stage cut the training samples'.
     let context = options
         .input
@@ -178,9 +189,15 @@ pub fn infer_params<B: TrainOps>(
                 let half = (CROP_PX / 2) as f64;
                 let (x, y) = dem.transform.pixel_edge(c0 as f64 + half, r0 as f64 + half);
                 let window = sampler.window(x, y);
+                // The crop's mean over its finite heights, as the project stage's (holes are not published).
+                let crater = crater_frames.and_then(|frames| {
+                    let finite = crop.iter().filter(|z| z.is_finite());
+                    let mean = finite.clone().sum::<f64>() / finite.count().max(1) as f64;
+                    frames.position(x, y, mean)
+                });
                 options
                     .input
-                    .push_context(&crop, &window, &mut context_input);
+                    .push_context(&crop, &window, crater.as_ref(), &mut context_input);
             }
         }
         let context_tensor = context.is_some().then(|| {
@@ -273,6 +290,8 @@ pub struct InferJob<'a> {
     pub batch_size: usize,
     /// Overrides the relief plane's DEM std of every run (default: each run's `normalisation.json`).
     pub dem_std_m: Option<f64>,
+    /// The DEM's crater frames, for runs that feed a crater input.
+    pub crater_frames: Option<std::sync::Arc<CraterFrames>>,
 }
 
 /// Every member's parameter maps over the whole DEM, averaged. `progress(member, done, total)` reports batches.
@@ -292,6 +311,7 @@ pub fn run_job<B: TrainOps>(
             overlap: job.overlap,
             batch_size: job.batch_size,
             input,
+            crater_frames: job.crater_frames.clone(),
         };
         members.push(
             infer_params::<B>(

@@ -191,6 +191,7 @@ pub fn overlap_rows<B: TrainOps>(
                 overlap,
                 batch_size: 8,
                 input: *input,
+                crater_frames: None,
             };
             let t0 = Instant::now();
             let maps = infer_params(net, model, dem, &options, device, |_, _| {})?;

@@ -17,7 +17,8 @@ use crate::data::{InputNormalisation, StreamConfig, CONTEXT_CHANNELS};
 use crate::metrics::AggregateMetrics;
 use crate::model::{UNet, UNetConfig};
 
-/// The `config.json` format this build writes: version 10 since 2026-11-28 (version 9 lacks `also_train_on`,
+/// The `config.json` format this build writes: version 11 since 2026-11-29 (version 10 lacks `crater_input`,
+/// which loads as false; version 9 also lacks `also_train_on`,
 /// which loads as empty: one dataset; version 8 also lacks `weight_decay`, which loads as `None`: plain Adam; version 7 also lacks `nonnegative_start`,
 /// which loads as false: the head started at the unconstrained fit; version 6 also lacks `film`, which loads
 /// as false; version 5 also lacks `crop_level`, which loads as false; version 4 also lacks `head_hidden`, which loads as 0: the paper's linear head; version 3 also lacks `context_absolute`, which loads as false; version 2 also lacks `steep_weight`, which loads as 1: every crop equally likely). Version 1 (files without a
@@ -25,7 +26,7 @@ use crate::model::{UNet, UNetConfig};
 /// every run had before the field existed (constant learning rate, relief input only, no context window). From
 /// version 2 on every field is written and required, and a new field means a new version with its conversion
 /// in `StoredFitConfig`.
-pub const FIT_CONFIG_VERSION: u32 = 10;
+pub const FIT_CONFIG_VERSION: u32 = 11;
 
 /// Everything that defines a run (saved as `config.json`; a resume must match it). The network's head starts
 /// at the model's uniform least-squares fit ([`crate::model::UNet::with_uniform_head`]), unconstrained or
@@ -53,6 +54,9 @@ pub struct FitConfig {
     /// Feed the context window's absolute heights too ([`crate::data::ContextNormalisation::absolute`]); needs
     /// `context_input` and `elevation_input`.
     pub context_absolute: bool,
+    /// Feed the crop's height relative to its crater's median profile as a context plane
+    /// ([`crate::data::ContextNormalisation::crater_rms_m`]); needs `context_input`.
+    pub crater_input: bool,
     /// Keep an exponential moving average of the weights with this decay ([`crate::averaging`]), validated and
     /// checkpointed beside the raw network; `None`: no average.
     pub ema_decay: Option<f64>,
@@ -104,6 +108,7 @@ struct StoredFitConfig {
     #[serde(default, deserialize_with = "present")]
     weight_decay: Option<Option<f64>>,
     also_train_on: Option<Vec<String>>,
+    crater_input: Option<bool>,
 }
 
 /// A key that is in the file, whatever its value (`null` included): serde alone reads a missing `Option` field
@@ -208,6 +213,13 @@ impl TryFrom<StoredFitConfig> for FitConfig {
                 .also_train_on
                 .ok_or_else(|| required("also_train_on"))?
         };
+        let crater_input = if version < 11 {
+            false
+        } else {
+            stored
+                .crater_input
+                .ok_or_else(|| required("crater_input"))?
+        };
         Ok(Self {
             version: FIT_CONFIG_VERSION,
             model: stored.model,
@@ -221,6 +233,7 @@ impl TryFrom<StoredFitConfig> for FitConfig {
             elevation_input,
             context_input,
             context_absolute,
+            crater_input,
             ema_decay,
             steep_weight,
             head_hidden,
@@ -239,7 +252,9 @@ impl FitConfig {
         UNetConfig::new(self.model.param_count())
             .with_in_channels(1 + usize::from(self.elevation_input))
             .with_context_channels(if self.context_input {
-                CONTEXT_CHANNELS + usize::from(self.context_absolute)
+                CONTEXT_CHANNELS
+                    + usize::from(self.context_absolute)
+                    + usize::from(self.crater_input)
             } else {
                 0
             })
@@ -755,6 +770,7 @@ mod schedule_tests {
             elevation_input: true,
             context_input: true,
             context_absolute: true,
+            crater_input: true,
             ema_decay: Some(0.995),
             steep_weight: 3.0,
             head_hidden: 32,
@@ -765,16 +781,28 @@ mod schedule_tests {
             also_train_on: vec!["g2r-tycho-full-seed44".into()],
         };
         let json = serde_json::to_string(&config).unwrap();
-        assert!(json.contains(r#""version":10"#), "{json}");
+        assert!(json.contains(r#""version":11"#), "{json}");
         assert_eq!(serde_json::from_str::<FitConfig>(&json).unwrap(), config);
+        assert_eq!(config.net_config().context_channels, CONTEXT_CHANNELS + 2);
         let cut = json.replace(r#","context_input":true"#, "");
         let err = serde_json::from_str::<FitConfig>(&cut)
             .unwrap_err()
             .to_string();
         assert!(
-            err.contains("version 10") && err.contains("`context_input`"),
+            err.contains("version 11") && err.contains("`context_input`"),
             "{err}"
         );
+        let cut = json.replace(r#","crater_input":true"#, "");
+        let err = serde_json::from_str::<FitConfig>(&cut)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("`crater_input`"), "{err}");
+        // Version 10 wrote everything but `crater_input`: its runs fed no crater plane.
+        let v10 = cut.replace(r#""version":11"#, r#""version":10"#);
+        let loaded = serde_json::from_str::<FitConfig>(&v10).unwrap();
+        assert!(!loaded.crater_input && loaded.context_absolute);
+        assert_eq!(loaded.net_config().context_channels, CONTEXT_CHANNELS + 1);
+        let json = v10;
         let cut = json.replace(r#","also_train_on":["g2r-tycho-full-seed44"]"#, "");
         let err = serde_json::from_str::<FitConfig>(&cut)
             .unwrap_err()

@@ -1,6 +1,7 @@
 //! Test and bench fixtures: synthetic samples with a known answer, hard geometric cases, parameter fields, and
 //! synthetic datasets on disk. Used by this crate's tests, `bench`, and the workspace tests; never by training.
 
+use dataset::contract::crater_frame::CraterPosition;
 use dataset::contract::schema::{ContextWindow, Sample, Split, CONTEXT_PX, CROP_PX, DEM_PX};
 use dataset::science::brdf::{render_crop, BrdfModel};
 use dataset::science::geometry::{crop_pixel_geometry, CropGrid};
@@ -127,6 +128,10 @@ pub fn synthetic_samples(n: usize, seed: u64) -> Vec<Sample> {
                 context: Some(ContextWindow {
                     gsd_m: 512.0,
                     heights_m: vec![origin_height_m as f32; CONTEXT_PX * CONTEXT_PX],
+                }),
+                crater: Some(CraterPosition {
+                    rho: 0.2 * i as f64,
+                    relative_height_m: 30.0 * i as f64 - 60.0,
                 }),
             }
         })

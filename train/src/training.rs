@@ -71,8 +71,13 @@ pub fn input_normalisation(
         if config.context_absolute && !config.elevation_input {
             bail!("an absolute context is normalised as the elevation plane: the run needs --elevation-input");
         }
+        let crater_rms_m = config
+            .crater_input
+            .then(|| ContextNormalisation::crater_rms_of_samples(&samples).with_context(on_train))
+            .transpose()?;
         input.context = Some(ContextNormalisation {
             absolute: config.context_absolute,
+            crater_rms_m,
             ..context
         });
     }

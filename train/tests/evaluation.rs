@@ -48,6 +48,7 @@ fn m2_config() -> FitConfig {
         weight_decay: None,
         also_train_on: Vec::new(),
         context_absolute: false,
+        crater_input: false,
     }
 }
 

@@ -114,6 +114,7 @@ fn infer_with(net: &UNet<B>, dem: &Raster, overlap: usize, input: InputNormalisa
         overlap,
         batch_size: 4,
         input,
+        crater_frames: None,
     };
     infer_params(
         net,
@@ -306,6 +307,7 @@ fn context_input_makes_parameters_depend_on_terrain_beyond_the_crop() {
             gsd_m: 60.0,
             std_m: 25.0,
             absolute: false,
+            crater_rms_m: None,
         }),
     };
     let with_context = random_net_with(1, CONTEXT_CHANNELS);
@@ -351,6 +353,7 @@ fn symmetry_mean_is_an_equivariant_ensemble_of_the_eight_views() {
             gsd_m: 512.0,
             std_m: 150.0,
             absolute: false,
+            crater_rms_m: None,
         }),
     };
     let net = random_net_with(1, CONTEXT_CHANNELS);

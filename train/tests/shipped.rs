@@ -25,6 +25,7 @@ fn the_shipped_model_loads_and_infers_scales_near_its_uniform_start() {
         overlap: DEFAULT_OVERLAP,
         batch_size: 4,
         input: trained.input,
+        crater_frames: None,
     };
     // 2 × 1.6 km of plain at the region's heights with a 400 m bowl.
     let dem = train::testing::bowl_dem(400, 320, -1400.0);

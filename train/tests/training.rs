@@ -59,6 +59,7 @@ fn config(
         weight_decay: None,
         also_train_on: Vec::new(),
         context_absolute: false,
+        crater_input: false,
     }
 }
 
@@ -305,6 +306,7 @@ fn stopping_and_resuming_gives_the_same_network_as_an_uninterrupted_run() {
         film: false,
         nonnegative_start: false,
         context_absolute: false,
+        crater_input: false,
         ..config(BrdfModel::M2, 2, 1e-3, 12, true)
     };
     let device = Default::default();

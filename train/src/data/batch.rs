@@ -60,7 +60,12 @@ impl HostBatch {
                         s.sample_id
                     )
                 });
-                input.push_context(&crop, &context.heights_m, &mut b.context_input);
+                input.push_context(
+                    &crop,
+                    &context.heights_m,
+                    s.crater.as_ref(),
+                    &mut b.context_input,
+                );
             }
             b.relative_heights_m
                 .extend(s.dem_m.iter().map(|&h| h as f64 - s.enu_origin_height_m));

@@ -2,6 +2,7 @@
 //! split and saved with a run so evaluation and inference feed the network what training did.
 
 use anyhow::{bail, Result};
+use dataset::contract::crater_frame::CraterPosition;
 use dataset::contract::schema::{Sample, CONTEXT_PX};
 
 use super::{crop_interior_m, SampleSource};
@@ -36,10 +37,17 @@ pub struct ContextNormalisation {
     /// before it existed have none.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub absolute: bool,
+    /// Also feed the crop's height relative to its crater's median profile (`--crater-input`; the sample's
+    /// `crater_relative_height_m`, `dataset::contract::crater_frame`) as a constant plane, over this RMS of it
+    /// over train crops. On a complex crater's wall that height tells the unit under the crop, which neither the
+    /// crop's own level nor the window's shape does (docs/crater-diagnosis.md). Runs written before it existed
+    /// have none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub crater_rms_m: Option<f64>,
 }
 
 /// Planes of the relative context input: relative height, then a mask (1 where the cell has DEM). An absolute
-/// context adds its plane between the two.
+/// context and a crater-relative height add their planes between the two, in that order.
 pub const CONTEXT_CHANNELS: usize = 2;
 
 impl ContextNormalisation {
@@ -79,7 +87,28 @@ impl ContextNormalisation {
             gsd_m,
             std_m,
             absolute: false,
+            crater_rms_m: None,
         })
+    }
+
+    /// The RMS of train samples' crater-relative heights, for `--crater-input`.
+    pub fn crater_rms_of_samples<'a>(samples: impl IntoIterator<Item = &'a Sample>) -> Result<f64> {
+        let (mut n, mut sum_sq) = (0usize, 0f64);
+        for s in samples {
+            let Some(crater) = &s.crater else {
+                bail!(
+                    "sample {} has no crater frame: publish the dataset with inputs.crater_catalogue in the pipeline manifest (schema 1.3), or train without --crater-input",
+                    s.sample_id
+                );
+            };
+            n += 1;
+            sum_sq += crater.relative_height_m.powi(2);
+        }
+        let rms = (sum_sq / n.max(1) as f64).sqrt();
+        if !(rms > 0.0 && rms.is_finite()) {
+            bail!("no train crop stands off its crater's profile: the crater input would divide by zero");
+        }
+        Ok(rms)
     }
 }
 
@@ -135,7 +164,8 @@ impl InputNormalisation {
         1 + usize::from(self.elevation.is_some())
     }
 
-    /// Refuse a dataset that cannot feed this input: a context input needs schema 1.2 or later (`context_dem`).
+    /// Refuse a dataset that cannot feed this input: a context input needs schema 1.2 or later (`context_dem`),
+    /// a crater input 1.3 (`crater_relative_height_m`).
     pub fn check_dataset(&self, source: &dyn SampleSource) -> Result<()> {
         let version = &source.manifest().schema_version;
         let minor = version
@@ -148,13 +178,25 @@ impl InputNormalisation {
                 source.describe()
             );
         }
+        if self.crater_rms_m().is_some() && minor.is_none_or(|m| m < 3) {
+            bail!(
+                "{}: dataset schema {version} has no crater frames, but the run feeds one (--crater-input): re-run `g2r-pipeline run` with inputs.crater_catalogue to publish schema 1.3",
+                source.describe()
+            );
+        }
         Ok(())
     }
 
     /// Context planes per sample (0 without a context input).
     pub fn context_channels(&self) -> usize {
-        self.context
-            .map_or(0, |c| CONTEXT_CHANNELS + usize::from(c.absolute))
+        self.context.map_or(0, |c| {
+            CONTEXT_CHANNELS + usize::from(c.absolute) + usize::from(c.crater_rms_m.is_some())
+        })
+    }
+
+    /// The crater input's scale, when the run feeds one.
+    pub fn crater_rms_m(&self) -> Option<f64> {
+        self.context.and_then(|c| c.crater_rms_m)
     }
 
     /// Append one crop's planes (`CROP_PX²` heights, row-major, metres) channel after channel. A non-finite height
@@ -175,9 +217,16 @@ impl InputNormalisation {
 
     /// Append one crop's context planes (`CONTEXT_PX²` each): the window's heights minus the crop's mean height
     /// (`heights_m`, as in [`Self::push_planes`]) over the context std, 0 where a cell has no DEM; with an
-    /// absolute context, the window's heights normalised as the elevation plane, 0 where no DEM; then the mask.
-    /// Panics when the run has no context input.
-    pub fn push_context(&self, heights_m: &[f64], context_m: &[f32], out: &mut Vec<f64>) {
+    /// absolute context, the window's heights normalised as the elevation plane, 0 where no DEM; with a crater
+    /// input, the crop's crater-relative height over its train RMS in every cell; then the mask. Panics when the
+    /// run has no context input, or feeds a crater input and `crater` is `None` (checked when a run starts).
+    pub fn push_context(
+        &self,
+        heights_m: &[f64],
+        context_m: &[f32],
+        crater: Option<&CraterPosition>,
+        out: &mut Vec<f64>,
+    ) {
         let c = self
             .context
             .expect("push_context on a run without context input");
@@ -205,6 +254,15 @@ impl InputNormalisation {
                     0.0
                 }
             }));
+        }
+        if let Some(rms) = c.crater_rms_m {
+            let crater = crater.expect(
+                "a crater input needs every sample's crater frame (checked when a run starts)",
+            );
+            out.extend(std::iter::repeat_n(
+                crater.relative_height_m / rms,
+                context_m.len(),
+            ));
         }
         out.extend(context_m.iter().map(|z| f64::from(u8::from(z.is_finite()))));
     }
@@ -278,8 +336,65 @@ mod tests {
     /// cells per plane.
     fn context_planes(input: &InputNormalisation) -> (Vec<f64>, usize) {
         let mut out = Vec::new();
-        input.push_context(&[-1200.0, f64::NAN, -1204.0], &context_window(), &mut out);
+        input.push_context(
+            &[-1200.0, f64::NAN, -1204.0],
+            &context_window(),
+            None,
+            &mut out,
+        );
         (out, CONTEXT_PX * CONTEXT_PX)
+    }
+
+    #[test]
+    fn a_crater_input_feeds_the_crops_relative_height_over_its_rms_before_the_mask() {
+        let input = InputNormalisation {
+            context: Some(ContextNormalisation {
+                gsd_m: 512.0,
+                std_m: 4.0,
+                absolute: false,
+                crater_rms_m: Some(50.0),
+            }),
+            ..InputNormalisation::relief(2.0)
+        };
+        let crater = CraterPosition {
+            rho: 0.7,
+            relative_height_m: -125.0,
+        };
+        let mut out = Vec::new();
+        input.push_context(
+            &[-1200.0, f64::NAN, -1204.0],
+            &context_window(),
+            Some(&crater),
+            &mut out,
+        );
+        let n = CONTEXT_PX * CONTEXT_PX;
+        assert_eq!((out.len(), input.context_channels()), (3 * n, 3));
+        // The relative plane as without it, then −125 / 50 in every cell, then the mask.
+        assert_eq!(out[..3], [3.0, -2.0, 0.0]);
+        assert!(out[n..2 * n].iter().all(|&v| v == -2.5));
+        assert_eq!(out[2 * n..2 * n + 4], [1.0, 1.0, 1.0, 0.0]);
+        let json = serde_json::to_string(&input.context).unwrap();
+        assert!(json.contains(r#""crater_rms_m":50.0"#), "{json}");
+        // Runs written before the crater input read as having none.
+        let old: Option<ContextNormalisation> =
+            serde_json::from_str(r#"{"gsd_m":512.0,"std_m":4.0}"#).unwrap();
+        assert_eq!(old.unwrap().crater_rms_m, None);
+    }
+
+    #[test]
+    fn the_crater_rms_is_over_train_samples_and_a_sample_without_a_frame_is_refused() {
+        // dataset::testing's sample i stands 10 i − 40 m off its crater's profile: −30, −20 and −10 m.
+        let mut samples: Vec<Sample> = (1..=3).map(dataset::testing::synthetic_sample).collect();
+        let rms = ContextNormalisation::crater_rms_of_samples(&samples).unwrap();
+        assert!((rms - (1400.0f64 / 3.0).sqrt()).abs() < 1e-12, "{rms}");
+        samples[1].crater = None;
+        let err = ContextNormalisation::crater_rms_of_samples(&samples)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains(&samples[1].sample_id) && err.contains("inputs.crater_catalogue"),
+            "{err}"
+        );
     }
 
     #[test]
@@ -289,6 +404,7 @@ mod tests {
                 gsd_m: 512.0,
                 std_m: 4.0,
                 absolute: false,
+                crater_rms_m: None,
             }),
             ..InputNormalisation::relief(2.0)
         };
@@ -321,6 +437,7 @@ mod tests {
                 gsd_m: 512.0,
                 std_m: 4.0,
                 absolute: true,
+                crater_rms_m: None,
             }),
             ..InputNormalisation::relief(2.0)
         };
@@ -338,7 +455,7 @@ mod tests {
         // The same terrain raised by 50 m: the relative plane is unchanged, the absolute one moves by 50 / 5.
         let raised: Vec<f32> = context_window().iter().map(|z| z + 50.0).collect();
         let mut moved = Vec::new();
-        input.push_context(&[-1150.0, f64::NAN, -1154.0], &raised, &mut moved);
+        input.push_context(&[-1150.0, f64::NAN, -1154.0], &raised, None, &mut moved);
         assert_eq!(moved[..n], out[..n]);
         assert_eq!(moved[n..n + 3], [12.0, 8.0, 9.6]);
         let json = serde_json::to_string(&input.context).unwrap();

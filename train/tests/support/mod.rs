@@ -47,6 +47,7 @@ pub fn config() -> FitConfig {
         weight_decay: None,
         also_train_on: Vec::new(),
         context_absolute: false,
+        crater_input: false,
     }
 }
 

@@ -106,6 +106,12 @@ pub struct TrainArgs {
     /// the crater's own profile hides the unit under it; the rim and plains around show it by their level.
     #[arg(long, requires_all = ["context_input", "elevation_input"])]
     pub context_absolute: bool,
+    /// Feed each crop's height relative to the nearest large catalogued crater's median profile (the dataset's
+    /// crater_relative_height_m: publish it with inputs.crater_catalogue in the pipeline manifest) as one more
+    /// context plane. On a complex crater's wall the crater's relief hides the few hundred metres by which mare
+    /// lies below highland; against the crater's own profile they show again.
+    #[arg(long, requires = "context_input")]
+    pub crater_input: bool,
     /// Also keep an exponential moving average of the weights with this decay (e.g. 0.995; the first steps
     /// average over about a ninth of the steps taken). It is validated beside the raw network every epoch
     /// (metrics.jsonl `ema_val`) and checkpointed as ema-best/ and last/ema; eval, infer and report load
@@ -259,6 +265,7 @@ impl TrainArgs {
             elevation_input: self.elevation_input,
             context_input: self.context_input,
             context_absolute: self.context_absolute,
+            crater_input: self.crater_input,
             ema_decay: self.ema,
             steep_weight: self.steep_weight,
             head_hidden: self.head_hidden,
@@ -406,6 +413,13 @@ pub enum Command {
         /// Override the relief plane's DEM std (default: the run's normalisation.json).
         #[arg(long)]
         dem_std_m: Option<f64>,
+        /// The crater catalogue CSV the run's dataset was published with (inputs.crater_catalogue): needed by
+        /// runs trained with --crater-input.
+        #[arg(long)]
+        crater_catalogue: Option<PathBuf>,
+        /// Craters at least this wide frame the crops (the pipeline's project.crater_min_diameter_m).
+        #[arg(long, default_value_t = dataset::contract::crater_frame::DEFAULT_MIN_DIAMETER_M, requires = "crater_catalogue")]
+        crater_min_diameter_m: f64,
     },
     /// Speed against error, measured in one run: BRDF models (M1-M6, L2-L4, H1 and H3 uniform fits, Hapke, Lunar-Lambert: pixel
     /// MSE vs ns/pixel); with --dem the renderer (rays/pixel, shadows); with --run and --dem inference overlap

@@ -172,6 +172,8 @@ fn run(cli: Cli) -> Result<()> {
             overlap,
             batch,
             dem_std_m,
+            crater_catalogue,
+            crater_min_diameter_m,
         } => {
             let progress = indicatif::ProgressBar::new(0).with_style(
                 indicatif::ProgressStyle::with_template(
@@ -180,6 +182,18 @@ fn run(cli: Cli) -> Result<()> {
                 .expect("valid template"),
             );
             let raster = dataset::science::raster::read_raster(&dem)?;
+            let crater_frames = crater_catalogue
+                .map(|path| -> anyhow::Result<_> {
+                    let craters = dataset::contract::crater_frame::read_catalogue(&path)?;
+                    let (frames, report) = dataset::contract::crater_frame::CraterFrames::new(
+                        &raster,
+                        &craters,
+                        crater_min_diameter_m,
+                    )?;
+                    tracing::info!(?report, "crater frames");
+                    Ok(std::sync::Arc::new(frames))
+                })
+                .transpose()?;
             let paths = runs.paths();
             let job = train::inference::InferJob {
                 runs: &paths,
@@ -189,6 +203,7 @@ fn run(cli: Cli) -> Result<()> {
                 overlap,
                 batch_size: batch,
                 dem_std_m,
+                crater_frames,
             };
             let maps = with_backend!(runs.backend, B => {
                 train::inference::run_job::<Inner<B>>(&job, &Default::default(), |member, done, total| {
