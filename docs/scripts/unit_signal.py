@@ -5,7 +5,11 @@ and the truth at its centre (terrain class and highland fraction, the world's tr
 regressions of the highland fraction on features of the DEM are fitted on train crops and scored on validation
 crops, per terrain class: R², and the AUC of highland (fraction ≥ 0.75) against mare (≤ 0.25) crops. One row uses
 the truth (the crop's radius in the complex crater) to bound what the DEM's level says once the crop's place on
-the crater's profile is known. docs/crater-diagnosis.md quotes the output.
+the crater's profile is known. Two rows use what a crater catalogue gives (the crater's centre and radius, here
+from the world's config, as manifests/tycho-full-craters.csv lists them): the crop's height against the crater's
+azimuthal median profile, the median DEM height in rings of 0.005 radii out to 3 radii (what the pipeline
+publishes as crater_relative_height_m, computed here independently from every DEM pixel).
+docs/crater-diagnosis.md quotes the output.
 
     python3 docs/scripts/unit_signal.py out/tycho-dataset/dataset out/tycho-world
 
@@ -49,6 +53,26 @@ def load_truth(world):
     return at, centre, cc["diameter_m"] / 2
 
 
+def median_profile(world, centre, radius, step=0.005, reach=3.0):
+    """The delivered DEM's median height in rings of `step` radii around the crater, out to `reach` radii, as a
+    function of ρ (linear between ring centres, the end rings' heights beyond them)."""
+    page = tifffile.TiffFile(f"{world}/dem/dem.tif").pages[0]
+    dem = page.asarray().astype(np.float64)
+    tie, scale = page.tags["ModelTiepointTag"].value, page.tags["ModelPixelScaleTag"].value
+    x = tie[3] + (np.arange(dem.shape[1]) + 0.5) * scale[0]
+    y = tie[4] - (np.arange(dem.shape[0]) + 0.5) * scale[0]
+    rho = np.hypot(x[None, :] - centre[0], y[:, None] - centre[1]) / radius
+    keep = np.isfinite(dem) & (dem > -30000) & (rho < reach)  # GeoTIFF nodata is -32768
+    ring, z = (rho[keep] / step).astype(int), dem[keep]
+    order = np.argsort(ring, kind="stable")
+    ring, z = ring[order], z[order]
+    edges = np.searchsorted(ring, np.arange(int(round(reach / step)) + 1))
+    medians = np.array([np.median(z[a:b]) if b > a else np.nan for a, b in zip(edges[:-1], edges[1:])])
+    centres = (np.arange(len(medians)) + 0.5) * step
+    filled = np.isfinite(medians)
+    return lambda r: np.interp(np.minimum(r, reach), centres[filled], medians[filled])
+
+
 def load_split(data, split, truth_at):
     parts = {k: [] for k in ("x", "y", "z", "ctx")}
     for path in sorted(glob.glob(f"{data}/{split}-*.parquet")):
@@ -66,8 +90,9 @@ def load_split(data, split, truth_at):
     return d
 
 
-def features(d, kind, centre, radius):
+def features(d, kind, centre, radius, profile):
     z = d["z"][:, None]
+    rho = np.hypot(d["x"] - centre[0], d["y"] - centre[1]) / radius
     quantiles = np.percentile(d["ctx"], np.arange(0, 101, 5), axis=1).T
     if kind == "crop elevation":
         return z
@@ -77,8 +102,11 @@ def features(d, kind, centre, radius):
         return np.hstack([quantiles, z])
     if kind == "context cells, north-up, relative":
         return d["ctx"] - z
+    if kind == "crop height against the crater's median profile (catalogue)":
+        return z - profile(rho)[:, None]
+    if kind == "the same + crop elevation":
+        return np.hstack([z - profile(rho)[:, None], z])
     if kind == "crop elevation + true radius (truth)":
-        rho = np.hypot(d["x"] - centre[0], d["y"] - centre[1]) / radius
         basis = np.stack([np.exp(-(((rho - c) / 0.03) ** 2)) for c in np.linspace(0.3, 1.6, 60)], axis=1)
         return np.hstack([basis, z])
     raise ValueError(kind)
@@ -89,6 +117,8 @@ KINDS = (
     "context quantiles, relative",
     "context quantiles, absolute + crop elevation",
     "context cells, north-up, relative",
+    "crop height against the crater's median profile (catalogue)",
+    "the same + crop elevation",
     "crop elevation + true radius (truth)",
 )
 
@@ -112,6 +142,7 @@ def main(data, world, score_data, score_world):
     truth_at, centre, radius = load_truth(world)
     score_truth_at, score_centre, score_radius = load_truth(score_world)
     train, val = load_split(data, "train", truth_at), load_split(score_data, "val", score_truth_at)
+    profile, score_profile = median_profile(world, centre, radius), median_profile(score_world, score_centre, score_radius)
     print(f"train crops {len(train['x'])} ({data}), validation crops {len(val['x'])} ({score_data})")
     print("| ground | features | λ | R² (val) | AUC highland vs mare (val) |")
     print("|---|---|---|---|---|")
@@ -119,8 +150,8 @@ def main(data, world, score_data, score_world):
         in_train, in_val = train["cls"] == cls, val["cls"] == cls
         y = val["highland"][in_val]
         for kind in KINDS:
-            x_train = features(train, kind, centre, radius)[in_train]
-            x_val = features(val, kind, score_centre, score_radius)[in_val]
+            x_train = features(train, kind, centre, radius, profile)[in_train]
+            x_val = features(val, kind, score_centre, score_radius, score_profile)[in_val]
             # λ chosen on validation R²: this measures how much the features can carry, not a model to ship.
             best = None
             for lam in LAMBDAS:
