@@ -449,3 +449,65 @@ fn ensemble_maps_render_as_the_mean_of_the_members_renderings() {
         .expect("mixed models refused");
     assert!(err.to_string().contains("one BRDF model"), "{err}");
 }
+
+/// A run that feeds the crater input refuses a DEM without crater frames, naming the flag, and with them its
+/// maps follow where the catalogue puts the crater: the same DEM with the crater's catalogued centre moved by
+/// 100 m gives other parameters (the crops' heights against the crater's profile change, nothing else does).
+#[test]
+fn a_crater_input_needs_the_catalogue_and_follows_where_it_puts_the_crater() {
+    use dataset::contract::crater_frame::{CatalogueCrater, CraterFrames};
+    let dem = dem(320, 240, 0);
+    let input = InputNormalisation {
+        dem_std_m: 20.0,
+        elevation: None,
+        context: Some(ContextNormalisation {
+            gsd_m: 60.0,
+            std_m: 25.0,
+            absolute: false,
+            crater_rms_m: Some(20.0),
+        }),
+    };
+    let net = random_net_with(1, CONTEXT_CHANNELS + 1);
+    let run = |frames: Option<CraterFrames>| {
+        let options = InferOptions {
+            overlap: 32,
+            batch_size: 4,
+            input,
+            crater_frames: frames.map(std::sync::Arc::new),
+        };
+        infer_params(
+            &net,
+            BrdfModel::M2,
+            &dem,
+            &options,
+            &Default::default(),
+            |_, _| {},
+        )
+    };
+    let err = run(None)
+        .err()
+        .expect("refused without crater frames")
+        .to_string();
+    assert!(err.contains("--crater-catalogue"), "{err}");
+    // The DEM's larger bowl: 260 m across its radius, centred 900 m east and 700 m south of the grid's corner.
+    let frames = |east_m: f64| {
+        let (lon_deg, lat_deg) = dem
+            .crs
+            .to_lonlat_deg(-800.0 + 900.0 + east_m, -1_309_700.0)
+            .unwrap();
+        let crater = CatalogueCrater {
+            lon_deg,
+            lat_deg,
+            diameter_m: 520.0,
+        };
+        let (frames, report) = CraterFrames::new(&dem, &[crater], 100.0).unwrap();
+        assert_eq!(report.framed, 1);
+        Some(frames)
+    };
+    let (here, moved) = (run(frames(0.0)).unwrap(), run(frames(100.0)).unwrap());
+    let change = max_abs_diff_where(&here, &moved, |_| true);
+    assert!(
+        change > 1e-3 && change.is_finite(),
+        "the crater plane did not reach the network: max change {change:e}"
+    );
+}

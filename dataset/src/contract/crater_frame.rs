@@ -191,6 +191,21 @@ impl CraterFrames {
         Ok((Self { frames }, report))
     }
 
+    /// The frames of a catalogue file's craters ([`read_catalogue`], then [`Self::new`]); errors name the file.
+    pub fn from_catalogue(
+        dem: &Raster,
+        catalogue: &Path,
+        min_diameter_m: f64,
+    ) -> Result<(Self, FramesReport)> {
+        let craters = read_catalogue(catalogue)?;
+        Self::new(dem, &craters, min_diameter_m).with_context(|| {
+            format!(
+                "{}: cannot place its craters on the DEM",
+                catalogue.display()
+            )
+        })
+    }
+
     pub fn is_empty(&self) -> bool {
         self.frames.is_empty()
     }

@@ -262,9 +262,7 @@ pub fn crater_frames(
     catalogue: &std::path::Path,
     min_diameter_m: f64,
 ) -> anyhow::Result<CraterFrames> {
-    let craters = dataset::contract::crater_frame::read_catalogue(catalogue)?;
-    let (frames, report) = CraterFrames::new(dem, &craters, min_diameter_m)
-        .map_err(|e| anyhow::anyhow!("{}: {e:#}", catalogue.display()))?;
+    let (frames, report) = CraterFrames::from_catalogue(dem, catalogue, min_diameter_m)?;
     tracing::info!(
         catalogued = report.catalogued,
         too_small = report.too_small,

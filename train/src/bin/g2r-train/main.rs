@@ -184,12 +184,12 @@ fn run(cli: Cli) -> Result<()> {
             let raster = dataset::science::raster::read_raster(&dem)?;
             let crater_frames = crater_catalogue
                 .map(|path| -> anyhow::Result<_> {
-                    let craters = dataset::contract::crater_frame::read_catalogue(&path)?;
-                    let (frames, report) = dataset::contract::crater_frame::CraterFrames::new(
-                        &raster,
-                        &craters,
-                        crater_min_diameter_m,
-                    )?;
+                    let (frames, report) =
+                        dataset::contract::crater_frame::CraterFrames::from_catalogue(
+                            &raster,
+                            &path,
+                            crater_min_diameter_m,
+                        )?;
                     tracing::info!(?report, "crater frames");
                     Ok(std::sync::Arc::new(frames))
                 })
