@@ -2,7 +2,8 @@
 //! - [`data`] (shards → host batches, epoch order, prefetch) with [`augment`];
 //! - [`model`] (U-Net, its hot operations in [`kernels`]) → [`renderer_layer`] (the differentiable renderer layer,
 //!   the batched twin of `dataset::science::brdf`) → [`metrics`];
-//! - [`training`] (the fit loop) writing a run directory ([`run_dir`]: config, history, checkpoints, loading), with
+//! - [`training`] (the fit loop) writing a run directory ([`run_dir`]: history, checkpoints, loading; what defines
+//!   the run in [`fit_config`]), with
 //!   [`averaging`] (the weight average) and [`calibration`] (uniform least-squares fits);
 //! - [`prediction`] (inference-mode renderings, symmetry means, ensembles) → [`evaluation`] (against baselines,
 //!   [`baseline`], and the oracle; [`features`] matching) and [`inference`] (parameter GeoTIFFs from a DEM);
@@ -10,6 +11,33 @@
 //! - [`report`] (speed against error, [`plot`]), [`results_page`] (docs/results.md from its records), [`views`] (the
 //!   novel-view ray caster), [`mod@bench`];
 //! - [`testing`]: fixtures for tests and benches; [`backend`]: which Burn backend a job runs on.
+
+/// Names for enums chosen on command lines and in configs: `NAMES[i]` is `ALL[i]`'s, and `FromStr` accepts them.
+macro_rules! named_enum {
+    ($ty:ident { $($variant:ident => $name:literal),+ $(,)? }) => {
+        impl $ty {
+            pub const ALL: &'static [$ty] = &[$($ty::$variant),+];
+            pub const NAMES: &'static [&'static str] = &[$($name),+];
+
+            pub fn name(self) -> &'static str {
+                match self {
+                    $($ty::$variant => $name),+
+                }
+            }
+        }
+
+        impl std::str::FromStr for $ty {
+            type Err = String;
+            fn from_str(text: &str) -> Result<Self, String> {
+                Self::ALL
+                    .iter()
+                    .copied()
+                    .find(|v| v.name() == text)
+                    .ok_or_else(|| format!("unknown value '{text}': use one of {}", Self::NAMES.join(", ")))
+            }
+        }
+    };
+}
 
 pub mod augment;
 pub mod averaging;
@@ -20,6 +48,7 @@ pub mod calibration;
 pub mod data;
 pub mod evaluation;
 pub mod features;
+pub mod fit_config;
 pub mod inference;
 pub mod kernels;
 pub mod metrics;

@@ -31,10 +31,11 @@ use crate::renderer_layer::{render_loss, HostTerms, SceneTerms};
 use crate::replicas::Replica;
 use dataset::contract::schema::{Split, CROP_PX};
 
+use crate::fit_config::FitConfig;
 use crate::prediction::{net_outputs, predict_images};
 use crate::run_dir::{
     append_jsonl, read_history, read_json, run_input, save_last, save_model, write_json,
-    Checkpoint, Cursor, EpochMetrics, FitConfig, Rec, RunNormalisation, ValMetrics,
+    Checkpoint, Cursor, EpochMetrics, Rec, RunNormalisation, ValMetrics,
 };
 
 /// Train crops the elevation input's mean and std are taken over (spread over the split).

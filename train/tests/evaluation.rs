@@ -12,17 +12,18 @@ use train::baseline::{hapke_render, normalise_like_paper};
 use train::calibration::calibrate;
 use train::data::{HostBatch, InputNormalisation, LocalSource, SampleSource, StreamConfig};
 use train::evaluation::{evaluate, panel_png, write_report, EvalOptions};
+use train::fit_config::FitConfig;
 use train::metrics::image_metrics;
 use train::model::UNetConfig;
 use train::prediction::predict_images;
-use train::run_dir::{FitConfig, TrainedRun};
+use train::run_dir::TrainedRun;
 use train::testing::{synthetic_samples, write_synthetic_dataset};
 use train::training::validate;
 
 /// The FitConfig of the small untrained M2 networks these tests evaluate.
 fn m2_config() -> FitConfig {
     FitConfig {
-        version: train::run_dir::FIT_CONFIG_VERSION,
+        version: train::fit_config::FIT_CONFIG_VERSION,
         model: BrdfModel::M2,
         epochs: 1,
         learning_rate: 1e-3,
@@ -36,7 +37,7 @@ fn m2_config() -> FitConfig {
             max_samples: None,
         },
         max_val_samples: None,
-        lr_schedule: train::run_dir::LrSchedule::Constant,
+        lr_schedule: train::fit_config::LrSchedule::Constant,
         elevation_input: false,
         context_input: false,
         ema_decay: None,

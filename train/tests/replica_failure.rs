@@ -6,7 +6,7 @@ use std::sync::Arc;
 
 use dataset::contract::schema::Split;
 use train::data::{LocalSource, SampleSource};
-use train::run_dir::FitConfig;
+use train::fit_config::FitConfig;
 use train::training::fit_replicated;
 
 mod support;

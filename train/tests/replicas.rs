@@ -18,9 +18,9 @@ use burn::prelude::*;
 use burn::record::Recorder;
 use dataset::contract::schema::Split;
 use train::data::{EpochStream, HostBatch, StreamConfig};
+use train::fit_config::FitConfig;
 use train::model::UNet;
 use train::replicas::Replica;
-use train::run_dir::FitConfig;
 use train::training::{fit, fit_replicated, input_normalisation, train_loss};
 
 mod support;

@@ -12,11 +12,11 @@ use burn::record::{FullPrecisionSettings, NamedMpkFileRecorder};
 use dataset::contract::schema::CROP_PX;
 use dataset::science::brdf::{inverse_leaky_relu, BrdfModel};
 use train::data::{HostBatch, InputNormalisation, LocalSource, SampleSource, StreamConfig};
+use train::fit_config::FitConfig;
 use train::model::UNetConfig;
 use train::prediction::predict_images;
 use train::renderer_layer::reference_render;
 use train::replicas::Replica;
-use train::run_dir::FitConfig;
 use train::testing::synthetic_samples;
 use train::training::fit;
 
@@ -33,7 +33,7 @@ fn config(
     dropout: bool,
 ) -> FitConfig {
     FitConfig {
-        version: train::run_dir::FIT_CONFIG_VERSION,
+        version: train::fit_config::FIT_CONFIG_VERSION,
         model,
         epochs,
         learning_rate: lr,
@@ -47,7 +47,7 @@ fn config(
             max_samples: Some(max_samples),
         },
         max_val_samples: Some(4),
-        lr_schedule: train::run_dir::LrSchedule::Constant,
+        lr_schedule: train::fit_config::LrSchedule::Constant,
         elevation_input: false,
         context_input: false,
         ema_decay: None,
@@ -296,7 +296,7 @@ fn stopping_and_resuming_gives_the_same_network_as_an_uninterrupted_run() {
     // elevation plane and the context input, the resumed half must feed the network what the first half did; the
     // hidden layer before the head must be checkpointed with the rest.
     let cfg = FitConfig {
-        lr_schedule: train::run_dir::LrSchedule::Cosine,
+        lr_schedule: train::fit_config::LrSchedule::Cosine,
         elevation_input: true,
         context_input: true,
         ema_decay: Some(0.9),

@@ -10,8 +10,8 @@ use burn::prelude::*;
 use burn::record::{FullPrecisionSettings, NamedMpkFileRecorder};
 use dataset::science::brdf::BrdfModel;
 use train::data::StreamConfig;
+use train::fit_config::FitConfig;
 use train::model::UNet;
-use train::run_dir::FitConfig;
 
 pub type Ad = Autodiff<Flex>;
 pub type Rec = NamedMpkFileRecorder<FullPrecisionSettings>;
@@ -21,7 +21,7 @@ pub const STEPS: u64 = 4;
 
 pub fn config() -> FitConfig {
     FitConfig {
-        version: train::run_dir::FIT_CONFIG_VERSION,
+        version: train::fit_config::FIT_CONFIG_VERSION,
         model: BrdfModel::M2,
         epochs: 1,
         learning_rate: 1e-3,
@@ -35,7 +35,7 @@ pub fn config() -> FitConfig {
             max_samples: Some(4 * STEPS as usize),
         },
         max_val_samples: Some(4),
-        lr_schedule: train::run_dir::LrSchedule::Constant,
+        lr_schedule: train::fit_config::LrSchedule::Constant,
         elevation_input: false,
         context_input: false,
         ema_decay: Some(0.9),

@@ -7,7 +7,7 @@ use clap::{Args, Parser, Subcommand};
 use dataset::science::brdf::BrdfModel;
 use train::backend::BackendKind;
 use train::data::StreamConfig;
-use train::run_dir::FitConfig;
+use train::fit_config::FitConfig;
 
 #[derive(Parser)]
 #[command(
@@ -88,8 +88,8 @@ pub struct TrainArgs {
     #[arg(long, value_enum, default_value = "flex")]
     pub backend: BackendKind,
     /// Learning-rate schedule: constant, or cosine decay from --lr to 0 over the run.
-    #[arg(long, default_value = "constant", value_parser = named::<train::run_dir::LrSchedule>(train::run_dir::LrSchedule::NAMES))]
-    pub lr_schedule: train::run_dir::LrSchedule,
+    #[arg(long, default_value = "constant", value_parser = named::<train::fit_config::LrSchedule>(train::fit_config::LrSchedule::NAMES))]
+    pub lr_schedule: train::fit_config::LrSchedule,
     /// Add absolute elevation as a second input plane (normalised by the mean and std of 256 spread train
     /// crops). The paper's input is relief only (crop mean removed), which hides whether a crop lies on a crater
     /// floor, a mare plain or a highland rim; at the crop scale that explains much of the albedo. Meaningful
@@ -247,7 +247,7 @@ fn parse_steep_weight(text: &str) -> Result<f64, String> {
 impl TrainArgs {
     pub fn fit_config(&self) -> FitConfig {
         FitConfig {
-            version: train::run_dir::FIT_CONFIG_VERSION,
+            version: train::fit_config::FIT_CONFIG_VERSION,
             model: self.model,
             epochs: self.epochs,
             learning_rate: self.lr,

@@ -12,7 +12,7 @@ use dataset::science::brdf::BrdfModel;
 use train::backend::Inner;
 use train::backend::ReplicaDevice;
 use train::data::{open_source, PooledSource, SampleSource};
-use train::run_dir::FitConfig;
+use train::fit_config::FitConfig;
 use train::training::fit_replicated;
 use train::with_backend;
 
