@@ -269,25 +269,28 @@ fn profile(
             }
         }
     }
-    let medians: Vec<Option<f64>> = rings.iter_mut().map(|ring| median(ring)).collect();
-    let filled: Vec<usize> = (0..bins).filter(|&i| medians[i].is_some()).collect();
-    let (&first, &last) = (filled.first()?, filled.last()?);
-    // A ring with no pixels (near the centre, or where the DEM has a hole) takes the line between its neighbours.
+    // The rings with pixels, in order, with their medians.
+    let known: Vec<(usize, f64)> = rings
+        .iter_mut()
+        .enumerate()
+        .filter_map(|(i, ring)| median(ring).map(|m| (i, m)))
+        .collect();
+    if known.is_empty() {
+        return None;
+    }
+    // A ring with no pixels (near the centre, or where the DEM has a hole) takes the line between its neighbours,
+    // or the nearest one's height past either end.
     frame.profile_m = (0..bins)
         .map(|i| {
-            if let Some(v) = medians[i] {
-                return v;
+            let k = known.partition_point(|&(j, _)| j < i);
+            match (k.checked_sub(1).map(|b| known[b]), known.get(k).copied()) {
+                (_, Some((j, v))) if j == i => v,
+                (Some((jb, vb)), Some((ja, va))) => {
+                    vb + (va - vb) * (i - jb) as f64 / (ja - jb) as f64
+                }
+                (Some((_, v)), None) | (None, Some((_, v))) => v,
+                (None, None) => unreachable!("`known` is not empty"),
             }
-            if i < first {
-                return medians[first].unwrap_or_default();
-            }
-            if i > last {
-                return medians[last].unwrap_or_default();
-            }
-            let below = filled[filled.partition_point(|&k| k < i) - 1];
-            let above = filled[filled.partition_point(|&k| k < i)];
-            let f = (i - below) as f64 / (above - below) as f64;
-            medians[below].unwrap_or_default() * (1.0 - f) + medians[above].unwrap_or_default() * f
         })
         .collect();
     Some(frame)
@@ -378,6 +381,28 @@ mod tests {
     }
 
     #[test]
+    fn rings_a_dem_hole_empties_take_the_line_between_their_neighbours() {
+        let (radius, slope) = (6000.0, 1600.0);
+        let (mut dem, crater) = crater_dem(radius, slope, 0.0);
+        // No DEM from ρ 0.70 to 0.72: four rings hold no pixel.
+        for row in 0..dem.height {
+            for col in 0..dem.width {
+                let (x, y) = dem.transform.pixel_center(col as f64, row as f64);
+                if (0.70..0.72).contains(&(x.hypot(y) / radius)) {
+                    dem.data[row * dem.width + col] = f32::NAN;
+                }
+            }
+        }
+        let frames = CraterFrames::new(&dem, &[crater], 10_000.0).unwrap().0;
+        // The crater rises linearly there, so the line between the rings either side is its profile.
+        let (x, y) = (0.71 * radius * 0.6, 0.71 * radius * -0.8);
+        let p = frames
+            .position(x, y, height(x, y, radius, slope, 0.0))
+            .unwrap();
+        assert!(p.relative_height_m.abs() < 8.0, "{p:?}");
+    }
+
+    #[test]
     fn the_nearest_crater_in_radii_frames_a_crop_and_past_the_reach_the_last_ring_does() {
         let (dem, crater) = crater_dem(2000.0, 800.0, 0.0);
         let (lon, lat) = dem.crs.to_lonlat_deg(9000.0, 9000.0).unwrap();
@@ -388,11 +413,13 @@ mod tests {
         };
         let (frames, report) = CraterFrames::new(&dem, &[crater, far], 1000.0).unwrap();
         assert_eq!(report.framed, 2);
-        // 3 km from the small crater (ρ 1.5) and 10.8 km from the big one (ρ 1.08): the big one frames it.
+        // 3 km from the small crater (ρ 1.5) and 10.8 km from the big one (ρ 1.08): the big one frames it. On
+        // the ground, east offsets are the map's times cos(latitude) at the big crater (0.3° north; the map is true
+        // to scale at the equator), north ones the map's.
         let p = frames.position(3000.0, 0.0, 0.0).unwrap();
-        // (The map's east scale at the big crater's latitude, 0.3°, is 1 − 1.4e-5.)
+        let east_scale = lat.to_radians().cos();
         assert!(
-            (p.rho - 9000f64.hypot(6000.0) / 10_000.0).abs() < 2e-5,
+            (p.rho - (6000.0 * east_scale).hypot(9000.0) / 10_000.0).abs() < 1e-6,
             "{p:?}"
         );
         // Past the reach the height is taken against the profile's last ring: the plain's level.

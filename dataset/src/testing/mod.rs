@@ -99,15 +99,14 @@ pub fn write_dataset(
     Ok(manifest)
 }
 
-/// Rewrite a dataset written by [`write_dataset`] as schema 1.1 wrote it: shards without the context and crater
-/// columns and
-/// with version 1.1.0 in their metadata, and the manifest updated (version, sizes, blake3). For tests that old
-/// datasets still read and serve.
 /// Columns schema 1.1 did not have: the context window's (1.2) and the crater frame's (1.3).
 pub fn is_newer_than_1_1(column: &str) -> bool {
     column.starts_with("context_") || column.starts_with("crater_")
 }
 
+/// Rewrite a dataset written by [`write_dataset`] as schema 1.1 wrote it: shards without the context and crater
+/// columns ([`is_newer_than_1_1`]) and with version 1.1.0 in their metadata, and the manifest updated (version,
+/// sizes, blake3). For tests that old datasets still read and serve.
 pub fn downgrade_to_schema_1_1(dir: &Path) -> anyhow::Result<()> {
     use std::sync::Arc;
     let mut manifest = DatasetManifest::load_dir(dir)?;
