@@ -357,7 +357,7 @@ fn a_crater_catalogue_frames_every_sample_and_a_missing_one_is_named() {
         // The tiny world's map is true to scale at its centre: ρ is the map distance over the radius.
         let rho = (s.center_x_m - centre.0).hypot(s.center_y_m - centre.1) / radius_m;
         assert!(
-            (crater.rho - rho).abs() < 1e-3 * rho.max(1.0),
+            (crater.rho - rho).abs() < 1e-6 * rho.max(1.0),
             "{}: {crater:?}, ρ {rho}",
             s.sample_id
         );

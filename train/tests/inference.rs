@@ -277,6 +277,20 @@ fn elevation_plane_makes_parameters_depend_on_absolute_height_and_relief_alone_d
         .all(|band| band[hole].is_nan()));
 }
 
+/// Relief with a 32 × 60 m context window (1.9 km), and a crater plane over `crater_rms_m` when given.
+fn context_input(crater_rms_m: Option<f64>) -> InputNormalisation {
+    InputNormalisation {
+        dem_std_m: 20.0,
+        elevation: None,
+        context: Some(ContextNormalisation {
+            gsd_m: 60.0,
+            std_m: 25.0,
+            absolute: false,
+            crater_rms_m,
+        }),
+    }
+}
+
 /// Terrain beyond a crop but inside its context window reaches a context network's parameters there, and not a
 /// network without context: a +30 m mound at columns 180–239 is outside every crop that covers columns 0–63, but
 /// inside their 32 × 60 m = 1.9 km context windows.
@@ -300,16 +314,7 @@ fn context_input_makes_parameters_depend_on_terrain_beyond_the_crop() {
         "relief input saw beyond its crop"
     );
 
-    let input = InputNormalisation {
-        dem_std_m: 20.0,
-        elevation: None,
-        context: Some(ContextNormalisation {
-            gsd_m: 60.0,
-            std_m: 25.0,
-            absolute: false,
-            crater_rms_m: None,
-        }),
-    };
+    let input = context_input(None);
     let with_context = random_net_with(1, CONTEXT_CHANNELS);
     let (a, b) = (
         infer_with(&with_context, &plain, 32, input),
@@ -457,16 +462,7 @@ fn ensemble_maps_render_as_the_mean_of_the_members_renderings() {
 fn a_crater_input_needs_the_catalogue_and_follows_where_it_puts_the_crater() {
     use dataset::contract::crater_frame::{CatalogueCrater, CraterFrames};
     let dem = dem(320, 240, 0);
-    let input = InputNormalisation {
-        dem_std_m: 20.0,
-        elevation: None,
-        context: Some(ContextNormalisation {
-            gsd_m: 60.0,
-            std_m: 25.0,
-            absolute: false,
-            crater_rms_m: Some(20.0),
-        }),
-    };
+    let input = context_input(Some(20.0));
     let net = random_net_with(1, CONTEXT_CHANNELS + 1);
     let run = |frames: Option<CraterFrames>| {
         let options = InferOptions {
