@@ -190,11 +190,8 @@ pub fn infer_params<B: TrainOps>(
                 let (x, y) = dem.transform.pixel_edge(c0 as f64 + half, r0 as f64 + half);
                 let window = sampler.window(x, y);
                 // The crop's mean over its finite heights, as the project stage's (holes are not published).
-                let crater = crater_frames.and_then(|frames| {
-                    let finite = crop.iter().filter(|z| z.is_finite());
-                    let mean = finite.clone().sum::<f64>() / finite.count().max(1) as f64;
-                    frames.position(x, y, mean)
-                });
+                let crater = crater_frames
+                    .and_then(|frames| frames.position(x, y, crate::data::crop_mean(&crop)));
                 options
                     .input
                     .push_context(&crop, &window, crater.as_ref(), &mut context_input);

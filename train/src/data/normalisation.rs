@@ -112,8 +112,9 @@ impl ContextNormalisation {
     }
 }
 
-/// Mean of the finite heights (0 when there are none).
-fn crop_mean(heights_m: &[f64]) -> f64 {
+/// Mean of the finite heights (0 when there are none): the level every input plane and the crater input take a
+/// crop's height from.
+pub fn crop_mean(heights_m: &[f64]) -> f64 {
     let finite = heights_m.iter().filter(|z| z.is_finite());
     let count = finite.clone().count();
     finite.sum::<f64>() / count.max(1) as f64
