@@ -16,7 +16,8 @@ use dataset::contract::schema::{CONTEXT_PX, CROP_PX};
 use dataset::science::brdf::{inverse_leaky_relu, leaky_relu, BrdfModel, LEAKY_SLOPE};
 use dataset::science::raster::{BandOut, BandValues, Raster, RasterLayout};
 
-use crate::data::InputNormalisation;
+use crate::crater_level::CraterLevel;
+use crate::data::{grid_mean_slope_deg, InputNormalisation};
 use crate::kernels::TrainOps;
 use crate::model::UNet;
 use crate::run_dir::{load_ensemble, Checkpoint};
@@ -33,6 +34,9 @@ pub struct InferOptions {
     /// The DEM's crater frames, for a run that feeds a crater input (`--crater-input`): built from the catalogue
     /// the training data was published with.
     pub crater_frames: Option<std::sync::Arc<CraterFrames>>,
+    /// The run's crater level ([`crate::crater_level`]): it sets the level of the crops in its band of a crater's
+    /// frame (needs `crater_frames`; without them the maps are the network's alone, and [`ParamMaps`] says so).
+    pub crater_level: Option<CraterLevel>,
 }
 
 /// Start offsets of crops of `crop` pixels along an axis of `len` pixels (`len ≥ crop`), stride `crop − overlap`,
@@ -96,6 +100,9 @@ pub struct ParamMaps {
     pub model: BrdfModel,
     pub bands: Vec<Vec<f32>>,
     pub crops: usize,
+    /// Crops whose level the run's crater level set; `None` when it was not applied (no crater level, or no
+    /// crater frames to place the crops with).
+    pub crater_level_crops: Option<usize>,
 }
 
 impl ParamMaps {
@@ -170,6 +177,21 @@ pub fn infer_params<B: TrainOps>(
             "the run feeds each crop's height against its crater's profile (--crater-input): give --crater-catalogue, the crater catalogue its dataset was published with, with a crater on this DEM"
         ),
     };
+    // The crater level places crops with the same frames; without them it is left out, and said so.
+    let level = match (&options.crater_level, &options.crater_frames) {
+        (Some(level), Some(frames)) if !frames.is_empty() => {
+            if model != BrdfModel::H1 {
+                bail!(
+                    "a crater level scales H1's one scale, but the run's model is {}",
+                    model.name()
+                );
+            }
+            Some((level, frames))
+        }
+        _ => None,
+    };
+    let mut crater_level_crops = 0usize;
+    let gsd_m = dem.transform.gsd_m();
     // The context windows are cut from the whole DEM, as the project stage cut the training samples'.
     let context = options
         .input
@@ -178,12 +200,26 @@ pub fn infer_params<B: TrainOps>(
     for (b, batch) in origins.chunks(options.batch_size.max(1)).enumerate() {
         let mut input = Vec::with_capacity(batch.len() * options.input.channels() * npx);
         let mut context_input = Vec::new();
+        // Each crop's place in its crater's frame and its mean slope, for the crater level.
+        let mut placed = Vec::with_capacity(batch.len());
         for &(c0, r0) in batch {
             let crop: Vec<f64> = (0..npx)
                 .map(|k| height_at(c0 + (k % CROP_PX) as isize, r0 + (k / CROP_PX) as isize))
                 .collect();
             // Holes are fed at the crop's mean height (see `push_planes`); their outputs become NaN below.
             options.input.push_planes(&crop, &mut input);
+            if let Some((_, frames)) = level {
+                let half = (CROP_PX / 2) as f64;
+                let (x, y) = dem.transform.pixel_edge(c0 as f64 + half, r0 as f64 + half);
+                let at = frames.position(x, y, crate::data::crop_mean(&crop));
+                // The slope over the crop and a one-pixel apron, as a published sample's (`mean_slope_deg`).
+                let slope = grid_mean_slope_deg(
+                    |c, r| height_at(c0 - 1 + c as isize, r0 - 1 + r as isize),
+                    CROP_PX + 2,
+                    gsd_m,
+                );
+                placed.push((at, slope));
+            }
             if let Some(sampler) = &context {
                 // The crop centre is the corner shared by its four middle pixels, as in the project stage.
                 let half = (CROP_PX / 2) as f64;
@@ -227,6 +263,23 @@ pub fn infer_params<B: TrainOps>(
             .into_vec::<f64>()
             .expect("f64 after convert");
         for (i, &(c0, r0)) in batch.iter().enumerate() {
+            // The crater level's factor on this crop's H1 scale (1 outside its band): the network's mean scale
+            // over the crop's finite heights moved toward the regression's.
+            let factor = match level {
+                Some((level, _)) if level.applies(placed[i].0.as_ref()) => {
+                    let (sum, n) = (0..npx)
+                        .filter(|&k| {
+                            height_at(c0 + (k % CROP_PX) as isize, r0 + (k / CROP_PX) as isize)
+                                .is_finite()
+                        })
+                        .fold((0.0, 0usize), |(s, n), k| {
+                            (s + leaky_relu(raw[i * p * npx + k]), n + 1)
+                        });
+                    crater_level_crops += 1;
+                    level.factor(placed[i].0.as_ref(), placed[i].1, sum / n.max(1) as f64)
+                }
+                _ => 1.0,
+            };
             for k in 0..npx {
                 let (c, r) = (c0 + (k % CROP_PX) as isize, r0 + (k / CROP_PX) as isize);
                 if c < 0 || r < 0 || c >= w as isize || r >= h as isize {
@@ -239,7 +292,7 @@ pub fn infer_params<B: TrainOps>(
                 }
                 weights[r * w + c] += weight;
                 for (j, band) in sums.iter_mut().enumerate() {
-                    band[r * w + c] += weight * leaky_relu(raw[(i * p + j) * npx + k]);
+                    band[r * w + c] += weight * factor * leaky_relu(raw[(i * p + j) * npx + k]);
                 }
             }
         }
@@ -267,6 +320,7 @@ pub fn infer_params<B: TrainOps>(
         model,
         bands,
         crops: origins.len(),
+        crater_level_crops: level.map(|_| crater_level_crops),
     })
 }
 
@@ -309,6 +363,7 @@ pub fn run_job<B: TrainOps>(
             batch_size: job.batch_size,
             input,
             crater_frames: job.crater_frames.clone(),
+            crater_level: trained.crater_level.clone(),
         };
         members.push(
             infer_params::<B>(

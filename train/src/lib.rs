@@ -5,7 +5,8 @@
 //! - [`training`] (the fit loop) writing a run directory ([`run_dir`]: history, checkpoints, loading; what defines
 //!   the run in [`fit_config`]), with
 //!   [`averaging`] (the weight average) and [`calibration`] (uniform least-squares fits);
-//! - [`prediction`] (inference-mode renderings, symmetry means, ensembles) → [`evaluation`] (against baselines,
+//! - [`prediction`] (inference-mode renderings, symmetry means, ensembles), with [`crater_level`] (each crater
+//!   crop's brightness level, fitted beside an H1 run) → [`evaluation`] (against baselines,
 //!   [`baseline`], and the oracle; [`features`] matching) and [`inference`] (parameter GeoTIFFs from a DEM);
 //! - [`replicas`]: data-parallel fits (`fit --replicas`) over the same loop;
 //! - [`report`] (speed against error, [`plot`]), [`results_page`] (docs/results.md from its records), [`views`] (the
@@ -45,6 +46,7 @@ pub mod backend;
 pub mod baseline;
 pub mod bench;
 pub mod calibration;
+pub mod crater_level;
 pub mod data;
 pub mod evaluation;
 pub mod features;

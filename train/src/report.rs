@@ -192,6 +192,7 @@ pub fn overlap_rows<B: TrainOps>(
                 batch_size: 8,
                 input: *input,
                 crater_frames: None,
+                crater_level: None,
             };
             let t0 = Instant::now();
             let maps = infer_params(net, model, dem, &options, device, |_, _| {})?;

@@ -286,6 +286,9 @@ pub struct TrainedRun<B: Backend> {
     pub net: UNet<B>,
     /// The checkpoint file the network came from, relative to the run directory (e.g. `ema-best/model.mpk`).
     pub checkpoint: String,
+    /// The crater level kept beside the network (`crater_level.json`, written by `g2r-train crater-level`):
+    /// `eval` and `infer` set each crater crop's level with it.
+    pub crater_level: Option<crate::crater_level::CraterLevel>,
 }
 
 /// A finished (or interrupted) run's config, input normalisation and network in inference mode, from the chosen
@@ -316,11 +319,13 @@ pub fn load_trained<B: Backend>(
         .strip_prefix(run)
         .map(|p| p.display().to_string())
         .unwrap_or_else(|_| checkpoint.display().to_string());
+    let crater_level = crate::crater_level::load(run, config.model)?;
     Ok(TrainedRun {
         config,
         input,
         net,
         checkpoint,
+        crater_level,
     })
 }
 

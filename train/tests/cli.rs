@@ -41,6 +41,7 @@ fn help_lists_every_command() {
         "model-choice",
         "compare-evals",
         "results-page",
+        "crater-level",
     ] {
         assert!(
             text.contains(command),
@@ -105,6 +106,16 @@ fn bad_inputs_fail_with_one_line_naming_the_file_and_the_fix() {
                 path("dem.tif"),
                 "--out".into(),
                 path("p.tif"),
+            ],
+            vec!["no-run", "config.json", "g2r-train fit --out"],
+        ),
+        (
+            vec![
+                "crater-level".into(),
+                "--run".into(),
+                path("no-run"),
+                "--data".into(),
+                path("data"),
             ],
             vec!["no-run", "config.json", "g2r-train fit --out"],
         ),

@@ -99,6 +99,7 @@ fn eval_rows_equal_validation_and_direct_baselines() {
         input,
         net: net.clone(),
         checkpoint: "best/model.mpk".into(),
+        crater_level: None,
     }];
     let report = evaluate(
         &runs,
@@ -240,6 +241,7 @@ fn ensemble_learned_is_the_mean_of_its_members_renderings() {
                     .with_base_width(4)
                     .init::<Flex>(&device),
                 checkpoint: format!("seed-{seed}"),
+                crater_level: None,
             }
         })
         .collect();
@@ -440,4 +442,97 @@ fn report_resampling_section_measures_point_kernels_against_the_area_average() {
         md.contains("| nearest |") && md.contains("](resampling.png)"),
         "{md}"
     );
+}
+
+/// A run's crater level sets "learned"'s level on the crops in its band, and "learned_network" keeps the network's
+/// rendering beside it: in the band the learned rendering shows the regression's scale (0.4, at weight 1) and is
+/// the network's times one factor; outside it, and without a crater frame, the two are the same bits.
+#[test]
+fn a_crater_level_sets_learned_in_its_band_and_keeps_the_network_beside_it() {
+    use dataset::contract::crater_frame::CraterPosition;
+    use train::crater_level::{rendered_scale, BandLevel, CraterLevel, LevelRegression};
+    let dir = tempfile::tempdir().unwrap();
+    let mut val = synthetic_samples(4, 2);
+    let places = [Some(0.6), Some(0.9), Some(2.0), None];
+    for (sample, rho) in val.iter_mut().zip(places) {
+        sample.crater = rho.map(|rho| CraterPosition {
+            rho,
+            relative_height_m: 40.0,
+        });
+    }
+    write_synthetic_dataset(dir.path(), synthetic_samples(6, 1), val);
+    let source = LocalSource::open(dir.path()).unwrap();
+    let device = Default::default();
+    Flex::seed(&device, 9);
+    let net = UNetConfig::new(BrdfModel::H1.param_count())
+        .with_base_width(4)
+        .init::<Flex>(&device);
+    let level = CraterLevel::from_bands(vec![BandLevel {
+        regression: LevelRegression {
+            rho_min: 0.45,
+            rho_max: 1.0,
+            step_centre_m: 0.0,
+            step_width_m: 50.0,
+            coefficients: [0.4f64.ln(), 0.0, 0.0, 0.0],
+            train_crops: 100,
+            train_rms_log: 0.1,
+        },
+        weight: 1.0,
+        val_level_oracle_sse_ratio: f64::NAN,
+    }]);
+    let runs = [TrainedRun {
+        config: FitConfig {
+            model: BrdfModel::H1,
+            ..m2_config()
+        },
+        input: InputNormalisation::relief(source.manifest().dem_std_m),
+        net,
+        checkpoint: "last/model.mpk".into(),
+        crater_level: Some(level),
+    }];
+    let options = EvalOptions {
+        split: Split::Val,
+        max_samples: None,
+        batch_size: 4,
+        calibration_samples: 6,
+        panels: 0,
+        symmetry_mean: false,
+    };
+    let calibration = calibrate(&source, 6, BrdfModel::H1).unwrap();
+    let mut seen = Vec::new();
+    let report = evaluate(
+        &runs,
+        &source,
+        &options,
+        calibration,
+        None,
+        &device,
+        |_, sample, renderings| {
+            let get = |name: &str| &renderings.iter().find(|(n, _)| *n == name).unwrap().1;
+            let hapke = hapke_render(sample, &HapkeParams::lunar_typical());
+            let (learned, network) = (get("learned"), get("learned_network"));
+            let in_band = sample.crater.is_some_and(|c| c.rho < 1.0);
+            if in_band {
+                let shown = rendered_scale(learned, &hapke).unwrap();
+                assert!((shown - 0.4).abs() < 1e-9, "{}: {shown}", sample.sample_id);
+                let k = learned[100] / network[100];
+                for (l, n) in learned.iter().zip(network) {
+                    assert!((l - k * n).abs() <= 1e-12 * n.abs().max(1e-3));
+                }
+            } else {
+                assert_eq!(learned, network, "{}", sample.sample_id);
+            }
+            seen.push(in_band);
+            Ok(())
+        },
+    )
+    .unwrap();
+    assert_eq!(seen, [true, true, false, false]);
+    let names: Vec<&str> = report.methods.iter().map(|m| m.name.as_str()).collect();
+    assert_eq!(
+        &names[..3],
+        ["learned", "learned_network", "learned_paper_norm"]
+    );
+    let used = report.crater_level.as_ref().expect("reported");
+    assert_eq!((used.crops_with_frame, used.crops_in_band), (3, 2));
 }

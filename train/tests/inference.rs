@@ -115,6 +115,7 @@ fn infer_with(net: &UNet<B>, dem: &Raster, overlap: usize, input: InputNormalisa
         batch_size: 4,
         input,
         crater_frames: None,
+        crater_level: None,
     };
     infer_params(
         net,
@@ -470,6 +471,7 @@ fn a_crater_input_needs_the_catalogue_and_follows_where_it_puts_the_crater() {
             batch_size: 4,
             input,
             crater_frames: frames.map(std::sync::Arc::new),
+            crater_level: None,
         };
         infer_params(
             &net,
@@ -506,4 +508,108 @@ fn a_crater_input_needs_the_catalogue_and_follows_where_it_puts_the_crater() {
         change > 1e-3 && change.is_finite(),
         "the crater plane did not reach the network: max change {change:e}"
     );
+}
+
+/// A run's crater level sets the level of the crops in its band and leaves the others as the network made them.
+/// Two side-by-side crops at overlap 0 (so no blending: each pixel is one crop's): the crop centred 0.24 radii
+/// from a catalogued crater is in the band ρ < 1, the one 1.5 radii away is not. At weight 1 the near crop's mean
+/// H1 scale becomes the regression's (0.4), at weight ½ the geometric mean of that and the network's, and the far
+/// crop is untouched; without crater frames nothing is applied and the maps say so.
+#[test]
+fn a_crater_level_sets_the_level_of_the_crops_in_its_band_only() {
+    use dataset::contract::crater_frame::{CatalogueCrater, CraterFrames};
+    use train::crater_level::{BandLevel, CraterLevel, LevelRegression};
+    let dem = dem(256, 128, 0);
+    let net = {
+        let device = Default::default();
+        B::seed(&device, 11);
+        let net = UNetConfig::new(BrdfModel::H1.param_count())
+            .with_base_width(4)
+            .init::<B>(&device);
+        let _ = net.num_params();
+        net
+    };
+    // A 1 km crater centred on column 40, row 64 of the DEM: crop 0's centre (column 64) lies 120 m east of it.
+    let (lon_deg, lat_deg) = dem
+        .crs
+        .to_lonlat_deg(-800.0 + 40.0 * 5.0, -1_309_000.0 - 64.0 * 5.0)
+        .unwrap();
+    let crater = CatalogueCrater {
+        lon_deg,
+        lat_deg,
+        diameter_m: 1000.0,
+    };
+    let (frames, report) = CraterFrames::new(&dem, &[crater], 100.0).unwrap();
+    assert_eq!(report.framed, 1);
+    let frames = std::sync::Arc::new(frames);
+    let level = |weight: f64| {
+        CraterLevel::from_bands(vec![BandLevel {
+            regression: LevelRegression {
+                rho_min: 0.0,
+                rho_max: 1.0,
+                step_centre_m: 0.0,
+                step_width_m: 50.0,
+                coefficients: [0.4f64.ln(), 0.0, 0.0, 0.0],
+                train_crops: 100,
+                train_rms_log: 0.1,
+            },
+            weight,
+            val_level_oracle_sse_ratio: f64::NAN,
+        }])
+    };
+    let run = |frames: Option<std::sync::Arc<CraterFrames>>, level: Option<CraterLevel>| {
+        let options = InferOptions {
+            overlap: 0,
+            batch_size: 4,
+            input: InputNormalisation::relief(20.0),
+            crater_frames: frames,
+            crater_level: level,
+        };
+        infer_params(
+            &net,
+            BrdfModel::H1,
+            &dem,
+            &options,
+            &Default::default(),
+            |_, _| {},
+        )
+        .unwrap()
+    };
+    let block_mean = |maps: &ParamMaps, crop: usize| {
+        let (sum, n) = (0..128 * 128)
+            .map(|k| maps.bands[0][(k / 128) * 256 + crop * 128 + k % 128] as f64)
+            .fold((0.0, 0usize), |(s, n), v| (s + v, n + 1));
+        sum / n as f64
+    };
+    let network = run(None, None);
+    assert_eq!(network.crater_level_crops, None);
+    let without_frames = run(None, Some(level(1.0)));
+    assert_eq!(
+        without_frames.crater_level_crops, None,
+        "nothing to place the crops with"
+    );
+    assert_eq!(max_abs_diff_where(&network, &without_frames, |_| true), 0.0);
+
+    let full = run(Some(frames.clone()), Some(level(1.0)));
+    assert_eq!(full.crater_level_crops, Some(1));
+    let m = block_mean(&network, 0);
+    assert!(
+        m > 0.0 && (m - 0.4).abs() > 1e-3,
+        "the network's own level {m}"
+    );
+    assert!(
+        (block_mean(&full, 0) - 0.4).abs() < 1e-6,
+        "{}",
+        block_mean(&full, 0)
+    );
+    let far = |k: usize| k % 256 >= 128;
+    assert_eq!(
+        max_abs_diff_where(&network, &full, far),
+        0.0,
+        "the far crop is left alone"
+    );
+
+    let half = run(Some(frames), Some(level(0.5)));
+    let expected = (0.4 * m).sqrt();
+    assert!((block_mean(&half, 0) - expected).abs() < 1e-6 * expected);
 }

@@ -21,11 +21,24 @@ fn the_shipped_model_loads_and_infers_scales_near_its_uniform_start() {
     // The weight average at the end of training: it scored better on validation than the raw network
     // (train/shipped/README.md), so only it ships, and `auto` finds it.
     assert_eq!(trained.checkpoint, "last/ema.mpk", "the default checkpoint");
+    // Its crater level (crater_level.json) loads with it, one regression per band of crater radii, each weight
+    // one of the candidates it was chosen from, and the chosen weights scored no worse than the network alone.
+    let level = trained
+        .crater_level
+        .as_ref()
+        .expect("the shipped crater level");
+    assert_eq!(level.bands.len(), train::crater_level::BANDS.len());
+    assert!(level.val_sse_ratio <= 1.0, "{}", level.val_sse_ratio);
+    for band in &level.bands {
+        assert!(train::crater_level::CANDIDATE_WEIGHTS.contains(&band.weight));
+        assert!(band.regression.train_crops > 0);
+    }
     let options = InferOptions {
         overlap: DEFAULT_OVERLAP,
         batch_size: 4,
         input: trained.input,
         crater_frames: None,
+        crater_level: None,
     };
     // 2 × 1.6 km of plain at the region's heights with a 400 m bowl.
     let dem = train::testing::bowl_dem(400, 320, -1400.0);

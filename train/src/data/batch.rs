@@ -91,20 +91,33 @@ pub fn crop_interior_m(sample: &Sample) -> Vec<f64> {
 /// differences over the crop's own cells (the apron gives their neighbours), on the map grid (the slope's size
 /// does not depend on which way rows run).
 pub fn mean_slope_deg(sample: &Sample) -> f64 {
-    let (n, gsd) = (DEM_PX, sample.gsd_m);
-    let h = |c: usize, r: usize| sample.dem_m[r * n + c] as f64;
-    let mut sum = 0.0;
+    grid_mean_slope_deg(
+        |c, r| sample.dem_m[r * DEM_PX + c] as f64,
+        DEM_PX,
+        sample.gsd_m,
+    )
+}
+
+/// [`mean_slope_deg`] of any `n × n` height grid (`height(col, row)`, cells of `gsd` m): the mean over its
+/// interior cells of the central-difference slope; cells whose stencil touches a non-finite height (a DEM hole)
+/// are left out of the mean.
+pub fn grid_mean_slope_deg(height: impl Fn(usize, usize) -> f64, n: usize, gsd: f64) -> f64 {
+    let (mut sum, mut count) = (0.0, 0usize);
     for r in 1..n - 1 {
         for c in 1..n - 1 {
-            let dx = (h(c + 1, r) - h(c - 1, r)) / (2.0 * gsd);
-            let dy = (h(c, r + 1) - h(c, r - 1)) / (2.0 * gsd);
+            let dx = (height(c + 1, r) - height(c - 1, r)) / (2.0 * gsd);
+            let dy = (height(c, r + 1) - height(c, r - 1)) / (2.0 * gsd);
+            if !(dx.is_finite() && dy.is_finite()) {
+                continue;
+            }
             sum += dataset::science::geometry::plane_normal(dx, dy)
                 .z
                 .clamp(-1.0, 1.0)
                 .acos();
+            count += 1;
         }
     }
-    (sum / ((n - 2) * (n - 2)) as f64).to_degrees()
+    (sum / count.max(1) as f64).to_degrees()
 }
 
 /// Crops at least this steep (mean slope of the delivered DEM, [`mean_slope_deg`]) are the ones a steep-weighted

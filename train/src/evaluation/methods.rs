@@ -5,13 +5,21 @@ use dataset::science::hapke::HapkeParams;
 
 use crate::baseline::{hapke_render, normalise_like_paper, truth_and_valid};
 use crate::calibration::{lunar_lambert_render, model_uniform_render, Calibration};
+use crate::crater_level::CraterLevel;
 
 use super::model_form::ModelFormTable;
 use super::truth::{TrueAlbedo, TruthMaps};
 
 /// The methods, in report order.
-pub const METHODS: [(&str, &str); 10] = [
-    ("learned", "U-Net → SVBRDF parameters → renderer layer"),
+pub const METHODS: [(&str, &str); 11] = [
+    (
+        "learned",
+        "U-Net → SVBRDF parameters → renderer layer (with the run's crater level, when it keeps one)",
+    ),
+    (
+        "learned_network",
+        "the network alone, without the run's crater level (only for runs that keep one: crater_level.json)",
+    ),
     (
         "learned_paper_norm",
         "the learned rendering with the same per-image affine normalisation as hapke_paper (peeks at the GT; \
@@ -47,22 +55,29 @@ pub const METHODS: [(&str, &str); 10] = [
     ),
 ];
 
-/// Renderings of one sample by every method that runs (learned supplied by the caller, batched).
+/// Renderings of one sample by every method that runs (learned supplied by the caller, batched; with a crater
+/// level, the network's own rendering is `learned_network` and `learned` has the level applied).
 pub(super) fn method_renderings(
     sample: &Sample,
     learned: &[f64],
+    crater_level: Option<&CraterLevel>,
     calibration: &Calibration,
     truth_maps: Option<&TruthMaps>,
     model_form: Option<&ModelFormTable>,
 ) -> Vec<(&'static str, Vec<f64>)> {
     let (truth, valid) = truth_and_valid(sample);
     let hapke = hapke_render(sample, &HapkeParams::lunar_typical());
-    let mut out = vec![
-        ("learned", learned.to_vec()),
-        (
-            "learned_paper_norm",
-            normalise_like_paper(learned, &truth, &valid),
-        ),
+    let mut with_level = learned.to_vec();
+    if let Some(level) = crater_level {
+        level.apply_to_rendering(sample, &mut with_level, &hapke);
+    }
+    let paper_norm = normalise_like_paper(&with_level, &truth, &valid);
+    let mut out = vec![("learned", with_level)];
+    if crater_level.is_some() {
+        out.push(("learned_network", learned.to_vec()));
+    }
+    out.push(("learned_paper_norm", paper_norm));
+    out.extend([
         (
             "model_uniform",
             model_uniform_render(sample, calibration.model, &calibration.model_uniform),
@@ -79,7 +94,7 @@ pub(super) fn method_renderings(
                 .map(|x| x * calibration.lunar_lambert_albedo)
                 .collect(),
         ),
-    ];
+    ]);
     if let Some(maps) = truth_maps {
         out.push(("oracle", maps.render(sample, TrueAlbedo::Full)));
         if maps.has_morphology() {

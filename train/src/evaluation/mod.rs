@@ -86,6 +86,15 @@ pub fn evaluate<B: TrainOps>(
     let mut matches: BTreeMap<&str, MatchStats> = BTreeMap::new();
     let mut per_image = Vec::new();
     let mut failure: Option<anyhow::Error> = None;
+    let crater_level = match runs {
+        [run] => run.crater_level.as_ref(),
+        _ if runs.iter().any(|r| r.crater_level.is_some()) => bail!(
+            "a crater level (crater_level.json) belongs to one run: evaluate the ensemble's members one by one, or \
+             the ensemble from run directories without one"
+        ),
+        _ => None,
+    };
+    let (mut crater_level_crops, mut framed_crops) = (0usize, 0usize);
     let model_form = truth_maps
         .and_then(TruthMaps::fixed_material)
         .and_then(|fixed| ModelFormTable::new(config.model, fixed));
@@ -102,6 +111,7 @@ pub fn evaluate<B: TrainOps>(
                     let renderings = method_renderings(
                         sample,
                         &learned[i * px..(i + 1) * px],
+                        crater_level,
                         &calibration,
                         truth_maps,
                         model_form.as_ref(),
@@ -110,6 +120,10 @@ pub fn evaluate<B: TrainOps>(
                 })
                 .collect();
             for (sample, scored) in chunk.iter().zip(scored) {
+                framed_crops += usize::from(sample.crater.is_some());
+                crater_level_crops += usize::from(
+                    crater_level.is_some_and(|level| level.applies(sample.crater.as_ref())),
+                );
                 for (name, distances) in &scored.match_distances {
                     matches.entry(name).or_default().add_distances(distances);
                 }
@@ -176,6 +190,11 @@ pub fn evaluate<B: TrainOps>(
             .iter()
             .map(|(name, stats)| (name.to_string(), stats.summary()))
             .collect(),
+        crater_level: crater_level.map(|level| CraterLevelUse {
+            bands: level.weights(),
+            crops_with_frame: framed_crops,
+            crops_in_band: crater_level_crops,
+        }),
         per_ortho: per_ortho(&per_image),
         breakdowns: breakdowns(&per_image),
         per_image,

@@ -244,10 +244,23 @@ pub struct EvalReport {
     /// FAST + BRIEF reciprocal matches between the ground truth and each method's rendering (see
     /// [`crate::features`]); the paper's Table 1 used a learned matcher.
     pub feature_matching: BTreeMap<String, MatchSummary>,
+    /// How the run's crater level was applied to "learned", when the run keeps one.
+    pub crater_level: Option<CraterLevelUse>,
     pub per_ortho: Vec<PerOrtho>,
     /// The same images grouped by terrain class, unit, incidence, slope and lit fraction.
     pub breakdowns: Vec<Breakdown>,
     pub per_image: Vec<PerImage>,
+}
+
+/// Which crops the run's crater level set the level of ([`crate::crater_level`]).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct CraterLevelUse {
+    /// Each band of crater radii and the weight that moved its crops' level (0: left as the network's).
+    pub bands: Vec<crate::crater_level::BandWeight>,
+    /// Crops that carry a crater frame (the dataset was published with a crater catalogue).
+    pub crops_with_frame: usize,
+    /// Of them, those in the level's band of ρ: their "learned" has the level applied.
+    pub crops_in_band: usize,
 }
 
 /// The Markdown table of a report.
@@ -271,6 +284,21 @@ pub fn markdown(report: &EvalReport) -> String {
             "learned: mean of the network's 8 dihedral views (turns and mirrors of the terrain, maps turned back, \
              renderings averaged; --symmetry-mean).\n\n",
         );
+    }
+    if let Some(level) = &report.crater_level {
+        text.push_str(&format!(
+            "learned: the network with the run's crater level (weights by band of ρ: {}) on {} of {} crops ({} with \
+             a crater frame); learned_network is the network alone.\n\n",
+            level
+                .bands
+                .iter()
+                .map(|b| format!("{}–{}: {}", b.rho_min, b.rho_max, b.weight))
+                .collect::<Vec<_>>()
+                .join(", "),
+            level.crops_in_band,
+            report.images,
+            level.crops_with_frame
+        ));
     }
     // The notes above go before the table: a line between its header and rows would end it.
     text.push_str(

@@ -394,6 +394,30 @@ pub enum Command {
         #[arg(long)]
         out: PathBuf,
     },
+    /// Fit a crater level beside an H1 run and keep it in the run directory (crater_level.json), where `eval` and
+    /// `infer` apply it: each crop near a large catalogued crater gets the brightness level a small regression
+    /// gives it from its height against the crater's median profile, its slope and its radius, while the network's
+    /// pattern inside the crop stays. The regression is fitted on train crops (no network); which band of crater
+    /// radii it covers and how far it moves the network's level are chosen on the validation split, by the run's
+    /// summed squared error. Needs a dataset published with inputs.crater_catalogue (schema 1.3).
+    CraterLevel {
+        #[command(flatten)]
+        runs: RunsArgs,
+        /// Dataset directory or server URL.
+        #[arg(long)]
+        data: String,
+        /// Train crops read, spread evenly over the split (those within 3 radii of a crater are fitted on).
+        #[arg(long)]
+        max_train_samples: Option<usize>,
+        /// Validation crops the choice is scored on, spread evenly (default: all).
+        #[arg(long)]
+        max_val_samples: Option<usize>,
+        #[arg(long, default_value_t = 8)]
+        batch: usize,
+        /// Where to write it (default RUN/crater_level.json, which eval and infer load with the run).
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
     /// BRDF parameter maps for a whole DEM: overlapping crops blended seamlessly, written as a GeoTIFF on the
     /// DEM's exact grid (same CRS and geotransform; one band per parameter, LeakyReLU applied; NaN nodata).
     Infer {

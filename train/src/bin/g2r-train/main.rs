@@ -165,6 +165,35 @@ fn run(cli: Cli) -> Result<()> {
                 out.display()
             );
         }
+        Command::CraterLevel {
+            runs,
+            data,
+            max_train_samples,
+            max_val_samples,
+            batch,
+            out,
+        } => {
+            if !runs.ensemble.is_empty() {
+                anyhow::bail!("a crater level is fitted beside one run: drop --ensemble");
+            }
+            let source = open_source(&data)?;
+            let options = train::crater_level::CraterLevelOptions {
+                train_samples: max_train_samples,
+                val_samples: max_val_samples,
+                batch_size: batch,
+            };
+            let out = out.unwrap_or_else(|| runs.run.join(train::crater_level::CRATER_LEVEL_FILE));
+            let fit = with_backend!(runs.backend, B => {
+                let device = Default::default();
+                // The network alone: a level already kept beside it must not score the candidates.
+                let mut run = train::run_dir::load_trained::<Inner<B>>(&runs.run, runs.checkpoint, &device)?;
+                run.crater_level = None;
+                train::crater_level::fit_crater_level(&run, source.as_ref(), &options, &device)
+            })?;
+            dataset::contract::manifest::write_json_atomic(&out, &fit.level)?;
+            print!("{}", train::crater_level::markdown(&fit));
+            println!("\nwrote {}", out.display());
+        }
         Command::Infer {
             runs,
             dem,
@@ -213,6 +242,15 @@ fn run(cli: Cli) -> Result<()> {
                 })
             })?;
             progress.finish_and_clear();
+            match maps.crater_level_crops {
+                Some(crops) => tracing::info!(crops, "crater level applied"),
+                None if std::fs::exists(runs.run.join(train::crater_level::CRATER_LEVEL_FILE))? => {
+                    tracing::warn!(
+                        "the run keeps a crater level, left out: give --crater-catalogue to set the level of the crops around its large craters"
+                    )
+                }
+                None => {}
+            }
             train::inference::write_params_geotiff(&maps, &raster, overlap, &out)?;
             println!(
                 "{}: {} x {} px, {} bands ({}), {} crops at overlap {overlap}",
