@@ -111,6 +111,17 @@ fn bad_inputs_fail_with_one_line_naming_the_file_and_the_fix() {
         ),
         (
             vec![
+                "fit".into(),
+                "--data".into(),
+                path("data"),
+                "--out".into(),
+                path("run"),
+                "--crater-level".into(),
+            ],
+            vec!["--crater-level", "m2", "--model h1"],
+        ),
+        (
+            vec![
                 "crater-level".into(),
                 "--run".into(),
                 path("no-run"),

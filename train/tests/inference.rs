@@ -519,15 +519,31 @@ fn a_crater_input_needs_the_catalogue_and_follows_where_it_puts_the_crater() {
 fn a_crater_level_sets_the_level_of_the_crops_in_its_band_only() {
     use dataset::contract::crater_frame::{CatalogueCrater, CraterFrames};
     use train::crater_level::{BandLevel, CraterLevel, LevelRegression};
-    let dem = dem(256, 128, 0);
+    // Two crops' worth of rolling terrain, without the shared DEM's hole (it lies below these rows).
+    let dem = {
+        let mut r = Raster::new(
+            256,
+            128,
+            GeoTransform::north_up(-800.0, -1_309_000.0, 5.0),
+            LunarCrs::equirectangular(-43.31, -11.36),
+            0.0,
+        );
+        for (k, z) in r.data.iter_mut().enumerate() {
+            let (x, y) = ((k % 256) as f64 * 5.0, (k / 256) as f64 * 5.0);
+            *z = (-1200.0
+                + 15.0 * (x / 230.0).sin() * (y / 170.0).cos()
+                + 4.0 * (x / 37.0 + y / 53.0).sin()) as f32;
+        }
+        r
+    };
     let net = {
         let device = Default::default();
         B::seed(&device, 11);
-        let net = UNetConfig::new(BrdfModel::H1.param_count())
+        // Started as `fit` starts it, at a uniform scale (here 1), so the network's level is known and positive.
+        UNetConfig::new(BrdfModel::H1.param_count())
             .with_base_width(4)
-            .init::<B>(&device);
-        let _ = net.num_params();
-        net
+            .init::<B>(&device)
+            .with_uniform_head(&[1.0], &device)
     };
     // A 1 km crater centred on column 40, row 64 of the DEM: crop 0's centre (column 64) lies 120 m east of it.
     let (lon_deg, lat_deg) = dem

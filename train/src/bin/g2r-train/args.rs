@@ -299,6 +299,11 @@ pub enum Command {
         /// Stop after this many optimiser steps in total, leaving a resumable checkpoint.
         #[arg(long)]
         stop_after_steps: Option<u64>,
+        /// When training has finished, fit the run's crater level on the same data, as `g2r-train crater-level
+        /// --run OUT --data DATA` does (H1 runs on a dataset published with inputs.crater_catalogue): one command
+        /// makes the whole shipped model.
+        #[arg(long)]
+        crater_level: bool,
         #[command(flatten)]
         train: TrainArgs,
     },

@@ -62,6 +62,35 @@ fn tune_allocator() {
     });
 }
 
+/// `crater-level` (and `fit --crater-level`): fit the run's crater level on its network alone, write it (default
+/// RUN/crater_level.json) and print the choice.
+fn fit_and_write_crater_level(
+    runs: &args::RunsArgs,
+    source: &dyn SampleSource,
+    train_samples: Option<usize>,
+    val_samples: Option<usize>,
+    batch: usize,
+    out: Option<std::path::PathBuf>,
+) -> Result<()> {
+    let options = train::crater_level::CraterLevelOptions {
+        train_samples,
+        val_samples,
+        batch_size: batch,
+    };
+    let out = out.unwrap_or_else(|| runs.run.join(train::crater_level::CRATER_LEVEL_FILE));
+    let fit = with_backend!(runs.backend, B => {
+        let device = Default::default();
+        // The network alone: a level already kept beside it must not score the candidates.
+        let mut run = train::run_dir::load_trained::<Inner<B>>(&runs.run, runs.checkpoint, &device)?;
+        run.crater_level = None;
+        train::crater_level::fit_crater_level(&run, source, &options, &device)
+    })?;
+    dataset::contract::manifest::write_json_atomic(&out, &fit.level)?;
+    print!("{}", train::crater_level::markdown(&fit));
+    println!("\nwrote {}", out.display());
+    Ok(())
+}
+
 fn main() {
     tune_allocator();
     dataset::init_logging();
@@ -177,22 +206,14 @@ fn run(cli: Cli) -> Result<()> {
                 anyhow::bail!("a crater level is fitted beside one run: drop --ensemble");
             }
             let source = open_source(&data)?;
-            let options = train::crater_level::CraterLevelOptions {
-                train_samples: max_train_samples,
-                val_samples: max_val_samples,
-                batch_size: batch,
-            };
-            let out = out.unwrap_or_else(|| runs.run.join(train::crater_level::CRATER_LEVEL_FILE));
-            let fit = with_backend!(runs.backend, B => {
-                let device = Default::default();
-                // The network alone: a level already kept beside it must not score the candidates.
-                let mut run = train::run_dir::load_trained::<Inner<B>>(&runs.run, runs.checkpoint, &device)?;
-                run.crater_level = None;
-                train::crater_level::fit_crater_level(&run, source.as_ref(), &options, &device)
-            })?;
-            dataset::contract::manifest::write_json_atomic(&out, &fit.level)?;
-            print!("{}", train::crater_level::markdown(&fit));
-            println!("\nwrote {}", out.display());
+            fit_and_write_crater_level(
+                &runs,
+                source.as_ref(),
+                max_train_samples,
+                max_val_samples,
+                batch,
+                out,
+            )?;
         }
         Command::Infer {
             runs,
@@ -340,10 +361,24 @@ fn run(cli: Cli) -> Result<()> {
             out,
             resume,
             stop_after_steps,
+            crater_level,
             train,
         } => {
+            if crater_level && train.model != BrdfModel::H1 {
+                anyhow::bail!(
+                    "--crater-level scales H1's one scale, but --model is {}: train with --model h1, or drop --crater-level",
+                    train.model.name()
+                );
+            }
             let (source, config) = training_source(&data, &train)?;
-            let outcome = run_fit(source, &config, &train, &out, resume, stop_after_steps)?;
+            let outcome = run_fit(
+                source.clone(),
+                &config,
+                &train,
+                &out,
+                resume,
+                stop_after_steps,
+            )?;
             println!(
                 "{}: {} steps, {} trainable parameters, {:.3} s/step; metrics in {}",
                 out.display(),
@@ -359,6 +394,19 @@ fn run(cli: Cli) -> Result<()> {
                     last.val_psnr_db,
                     train::metrics::ssim_text(last.val_ssim)
                 );
+            }
+            if crater_level {
+                if outcome.cursor.epoch < config.epochs {
+                    println!("training stopped before its last epoch: the crater level is fitted when it finishes (--resume --crater-level)");
+                } else {
+                    let runs = args::RunsArgs {
+                        run: out.clone(),
+                        ensemble: Vec::new(),
+                        checkpoint: train::run_dir::Checkpoint::Auto,
+                        backend: train.backend,
+                    };
+                    fit_and_write_crater_level(&runs, source.as_ref(), None, None, 8, None)?;
+                }
             }
         }
         Command::CompareModels { data, out, train } => {
