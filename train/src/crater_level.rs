@@ -642,22 +642,7 @@ mod tests {
     /// only in the band, and sets it exactly at weight 1.
     #[test]
     fn the_factor_moves_the_level_by_its_weight_inside_the_band_only() {
-        let regression = LevelRegression {
-            rho_min: 0.45,
-            rho_max: 1.0,
-            step_centre_m: 0.0,
-            step_width_m: 50.0,
-            coefficients: [0.4_f64.ln(), 0.0, 0.0, 0.0],
-            train_crops: 100,
-            train_rms_log: 0.1,
-        };
-        let level = |weight| {
-            CraterLevel::from_bands(vec![BandLevel {
-                regression: regression.clone(),
-                weight,
-                val_level_oracle_sse_ratio: f64::NAN,
-            }])
-        };
+        let level = |weight| crate::testing::constant_crater_level(0.45, 1.0, 0.4, weight);
         let wall = at(0.7, 30.0);
         assert!((level(1.0).factor(Some(&wall), 25.0, 0.5) * 0.5 - 0.4).abs() < 1e-12);
         assert_eq!(
@@ -722,19 +707,7 @@ mod tests {
     /// crop without a crater frame is left alone.
     #[test]
     fn applied_to_a_rendering_the_level_is_the_regressions() {
-        let level = CraterLevel::from_bands(vec![BandLevel {
-            regression: LevelRegression {
-                rho_min: 0.45,
-                rho_max: 1.0,
-                step_centre_m: 0.0,
-                step_width_m: 50.0,
-                coefficients: [0.4_f64.ln(), 0.0, 0.0, 0.0],
-                train_crops: 100,
-                train_rms_log: 0.1,
-            },
-            weight: 1.0,
-            val_level_oracle_sse_ratio: f64::NAN,
-        }]);
+        let level = crate::testing::constant_crater_level(0.45, 1.0, 0.4, 1.0);
         let mut sample = crate::testing::synthetic_samples(1, 3).remove(0);
         let hapke = hapke_render(&sample, &HapkeParams::lunar_typical());
         let network: Vec<f64> = hapke.iter().map(|h| 0.6 * h).collect();

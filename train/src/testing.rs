@@ -234,3 +234,27 @@ pub fn synthetic_batch(n: usize, seed: u64) -> HostBatch {
         &InputNormalisation::relief(20.0),
     )
 }
+
+/// A crater level of one band `rho_min ≤ ρ < rho_max` whose regression predicts the same H1 scale for every crop
+/// (`scale`), at `weight`: what the level does is then known in closed form.
+pub fn constant_crater_level(
+    rho_min: f64,
+    rho_max: f64,
+    scale: f64,
+    weight: f64,
+) -> crate::crater_level::CraterLevel {
+    use crate::crater_level::{BandLevel, CraterLevel, LevelRegression};
+    CraterLevel::from_bands(vec![BandLevel {
+        regression: LevelRegression {
+            rho_min,
+            rho_max,
+            step_centre_m: 0.0,
+            step_width_m: 50.0,
+            coefficients: [scale.ln(), 0.0, 0.0, 0.0],
+            train_crops: 100,
+            train_rms_log: 0.1,
+        },
+        weight,
+        val_level_oracle_sse_ratio: f64::NAN,
+    }])
+}

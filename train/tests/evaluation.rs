@@ -450,7 +450,7 @@ fn report_resampling_section_measures_point_kernels_against_the_area_average() {
 #[test]
 fn a_crater_level_sets_learned_in_its_band_and_keeps_the_network_beside_it() {
     use dataset::contract::crater_frame::CraterPosition;
-    use train::crater_level::{rendered_scale, BandLevel, CraterLevel, LevelRegression};
+    use train::crater_level::rendered_scale;
     let dir = tempfile::tempdir().unwrap();
     let mut val = synthetic_samples(4, 2);
     let places = [Some(0.6), Some(0.9), Some(2.0), None];
@@ -467,19 +467,7 @@ fn a_crater_level_sets_learned_in_its_band_and_keeps_the_network_beside_it() {
     let net = UNetConfig::new(BrdfModel::H1.param_count())
         .with_base_width(4)
         .init::<Flex>(&device);
-    let level = CraterLevel::from_bands(vec![BandLevel {
-        regression: LevelRegression {
-            rho_min: 0.45,
-            rho_max: 1.0,
-            step_centre_m: 0.0,
-            step_width_m: 50.0,
-            coefficients: [0.4f64.ln(), 0.0, 0.0, 0.0],
-            train_crops: 100,
-            train_rms_log: 0.1,
-        },
-        weight: 1.0,
-        val_level_oracle_sse_ratio: f64::NAN,
-    }]);
+    let level = train::testing::constant_crater_level(0.45, 1.0, 0.4, 1.0);
     let runs = [TrainedRun {
         config: FitConfig {
             model: BrdfModel::H1,

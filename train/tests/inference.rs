@@ -518,7 +518,7 @@ fn a_crater_input_needs_the_catalogue_and_follows_where_it_puts_the_crater() {
 #[test]
 fn a_crater_level_sets_the_level_of_the_crops_in_its_band_only() {
     use dataset::contract::crater_frame::{CatalogueCrater, CraterFrames};
-    use train::crater_level::{BandLevel, CraterLevel, LevelRegression};
+    use train::crater_level::CraterLevel;
     // Two crops' worth of rolling terrain, without the shared DEM's hole (it lies below these rows).
     let dem = {
         let mut r = Raster::new(
@@ -558,21 +558,7 @@ fn a_crater_level_sets_the_level_of_the_crops_in_its_band_only() {
     let (frames, report) = CraterFrames::new(&dem, &[crater], 100.0).unwrap();
     assert_eq!(report.framed, 1);
     let frames = std::sync::Arc::new(frames);
-    let level = |weight: f64| {
-        CraterLevel::from_bands(vec![BandLevel {
-            regression: LevelRegression {
-                rho_min: 0.0,
-                rho_max: 1.0,
-                step_centre_m: 0.0,
-                step_width_m: 50.0,
-                coefficients: [0.4f64.ln(), 0.0, 0.0, 0.0],
-                train_crops: 100,
-                train_rms_log: 0.1,
-            },
-            weight,
-            val_level_oracle_sse_ratio: f64::NAN,
-        }])
-    };
+    let level = |weight: f64| train::testing::constant_crater_level(0.0, 1.0, 0.4, weight);
     let run = |frames: Option<std::sync::Arc<CraterFrames>>, level: Option<CraterLevel>| {
         let options = InferOptions {
             overlap: 0,
