@@ -435,3 +435,59 @@ fn compare_evals_pairs_the_same_crops_and_refuses_others() {
     assert!(line.contains("--max-samples"), "{stderr}");
     assert!(!d.join("refused").exists());
 }
+
+/// `fit --crater-level` trains and then fits the run's crater level in one command: on a dataset whose crops
+/// carry crater frames it leaves `crater_level.json` in the run directory, which the run then loads with.
+#[test]
+fn fit_with_crater_level_leaves_a_crater_level_the_run_loads_with() {
+    use dataset::contract::crater_frame::CraterPosition;
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let framed = |n: usize, seed: u64| {
+        let mut samples = train::testing::synthetic_samples(n, seed);
+        for (i, s) in samples.iter_mut().enumerate() {
+            s.crater = Some(CraterPosition {
+                rho: 0.5 + 0.4 * (i as f64 / n as f64),
+                relative_height_m: -150.0 + 300.0 * ((i * 7) % n) as f64 / n as f64,
+            });
+        }
+        samples
+    };
+    train::testing::write_synthetic_dataset(&d.join("data"), framed(20, 1), framed(4, 2));
+    let (data, run) = (
+        d.join("data").to_string_lossy().into_owned(),
+        d.join("run").to_string_lossy().into_owned(),
+    );
+    let (ok, stderr) = train_cli(&[
+        "fit",
+        "--data",
+        &data,
+        "--out",
+        &run,
+        "--model",
+        "h1",
+        "--width",
+        "4",
+        "--batch",
+        "4",
+        "--epochs",
+        "1",
+        "--max-train-samples",
+        "8",
+        "--crater-level",
+    ]);
+    assert!(ok, "{stderr}");
+    let trained = train::run_dir::load_trained::<burn::backend::Flex>(
+        &d.join("run"),
+        train::run_dir::Checkpoint::Auto,
+        &Default::default(),
+    )
+    .unwrap();
+    let level = trained
+        .crater_level
+        .expect("crater_level.json written and loaded");
+    // All 20 train crops lie on the wall band (0.45–1): it is the one band fitted, on all of them.
+    assert_eq!(level.bands.len(), 1);
+    assert_eq!(level.bands[0].regression.train_crops, 20);
+    assert_eq!(level.val_crops, 4);
+}
