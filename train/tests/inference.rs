@@ -72,9 +72,11 @@ fn random_net_with(in_channels: usize, context_channels: usize) -> UNet<B> {
     random_net_seeded(in_channels, context_channels, 7)
 }
 
+/// The backend RNG is process-wide: every test seeds and initialises its networks under this one lock, so parallel
+/// tests cannot draw from each other's stream.
+static INIT: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
 fn random_net_seeded(in_channels: usize, context_channels: usize, seed: u64) -> UNet<B> {
-    // The backend RNG is process-wide: seeding and initialising under one lock keeps parallel tests apart.
-    static INIT: std::sync::Mutex<()> = std::sync::Mutex::new(());
     let _guard = INIT.lock().unwrap_or_else(|e| e.into_inner());
     let device = Default::default();
     B::seed(&device, seed);
@@ -537,6 +539,7 @@ fn a_crater_level_sets_the_level_of_the_crops_in_its_band_only() {
         r
     };
     let net = {
+        let _guard = INIT.lock().unwrap_or_else(|e| e.into_inner());
         let device = Default::default();
         B::seed(&device, 11);
         // Started as `fit` starts it, at a uniform scale (here 1), so the network's level is known and positive.
