@@ -200,7 +200,7 @@ pub fn infer_params<B: TrainOps>(
     for (b, batch) in origins.chunks(options.batch_size.max(1)).enumerate() {
         let mut input = Vec::with_capacity(batch.len() * options.input.channels() * npx);
         let mut context_input = Vec::new();
-        // Each crop's place in its crater's frame and its mean slope, for the crater level.
+        // The crops the crater level applies to: each one's place in its crater's frame and its mean slope.
         let mut placed = Vec::with_capacity(batch.len());
         for &(c0, r0) in batch {
             let crop: Vec<f64> = (0..npx)
@@ -208,29 +208,35 @@ pub fn infer_params<B: TrainOps>(
                 .collect();
             // Holes are fed at the crop's mean height (see `push_planes`); their outputs become NaN below.
             options.input.push_planes(&crop, &mut input);
-            if let Some((_, frames)) = level {
-                let half = (CROP_PX / 2) as f64;
-                let (x, y) = dem.transform.pixel_edge(c0 as f64 + half, r0 as f64 + half);
-                let at = frames.position(x, y, crate::data::crop_mean(&crop));
-                // The slope over the crop and a one-pixel apron, as a published sample's (`mean_slope_deg`).
-                let slope = grid_mean_slope_deg(
-                    |c, r| height_at(c0 - 1 + c as isize, r0 - 1 + r as isize),
-                    CROP_PX + 2,
-                    gsd_m,
-                );
-                placed.push((at, slope));
+            // The crop centre is the corner shared by its four middle pixels, as in the project stage; its place in
+            // the crater's frame from the crop's mean over its finite heights, as the project stage's (holes are
+            // not published): one for the crater input and the crater level.
+            let half = (CROP_PX / 2) as f64;
+            let (x, y) = dem.transform.pixel_edge(c0 as f64 + half, r0 as f64 + half);
+            let framed = options.crater_frames.as_deref().filter(|f| !f.is_empty());
+            let crater = framed.and_then(|f| f.position(x, y, crate::data::crop_mean(&crop)));
+            if let Some((level, _)) = level {
+                // The slope over the crop and a one-pixel apron, as a published sample's (`mean_slope_deg`);
+                // only where the level applies.
+                placed.push(crater.filter(|at| level.applies(Some(at))).map(|at| {
+                    let slope = grid_mean_slope_deg(
+                        |c, r| height_at(c0 - 1 + c as isize, r0 - 1 + r as isize),
+                        CROP_PX + 2,
+                        gsd_m,
+                    );
+                    (at, slope)
+                }));
             }
             if let Some(sampler) = &context {
-                // The crop centre is the corner shared by its four middle pixels, as in the project stage.
-                let half = (CROP_PX / 2) as f64;
-                let (x, y) = dem.transform.pixel_edge(c0 as f64 + half, r0 as f64 + half);
                 let window = sampler.window(x, y);
-                // The crop's mean over its finite heights, as the project stage's (holes are not published).
-                let crater = crater_frames
-                    .and_then(|frames| frames.position(x, y, crate::data::crop_mean(&crop)));
-                options
-                    .input
-                    .push_context(&crop, &window, crater.as_ref(), &mut context_input);
+                // Only a run that feeds the crater input gets it.
+                let crater_input = crater_frames.and(crater);
+                options.input.push_context(
+                    &crop,
+                    &window,
+                    crater_input.as_ref(),
+                    &mut context_input,
+                );
             }
         }
         let context_tensor = context.is_some().then(|| {
@@ -265,8 +271,8 @@ pub fn infer_params<B: TrainOps>(
         for (i, &(c0, r0)) in batch.iter().enumerate() {
             // The crater level's factor on this crop's H1 scale (1 outside its band): the network's mean scale
             // over the crop's finite heights moved toward the regression's.
-            let factor = match level {
-                Some((level, _)) if level.applies(placed[i].0.as_ref()) => {
+            let factor = match (level, placed.get(i).copied().flatten()) {
+                (Some((level, _)), Some((at, slope))) => {
                     let (sum, n) = (0..npx)
                         .filter(|&k| {
                             height_at(c0 + (k % CROP_PX) as isize, r0 + (k / CROP_PX) as isize)
@@ -276,7 +282,7 @@ pub fn infer_params<B: TrainOps>(
                             (s + leaky_relu(raw[i * p * npx + k]), n + 1)
                         });
                     crater_level_crops += 1;
-                    level.factor(placed[i].0.as_ref(), placed[i].1, sum / n.max(1) as f64)
+                    level.factor(Some(&at), slope, sum / n.max(1) as f64)
                 }
                 _ => 1.0,
             };
