@@ -31,6 +31,37 @@ pub fn error_line(error: &anyhow::Error) -> String {
         .join(" ")
 }
 
+/// `print!` for the binaries' reports on stdout. Rust ignores SIGPIPE, so `print!` into a reader that stopped
+/// reading (`g2r-train compare-evals … | head`) panics; [`write_stdout`] ends the process quietly with success
+/// instead, as a Unix tool does. A command writes its files before it prints, so nothing it writes is cut short.
+#[macro_export]
+macro_rules! out {
+    ($($arg:tt)*) => { $crate::write_stdout(format_args!($($arg)*)) };
+}
+
+/// [`out!`] with a line break, as `println!`.
+#[macro_export]
+macro_rules! outln {
+    () => { $crate::write_stdout(format_args!("\n")) };
+    ($($arg:tt)*) => { $crate::write_stdout(format_args!("{}\n", format_args!($($arg)*))) };
+}
+
+/// Write to stdout and flush; a closed stdout (the reader is gone) exits 0, any other failure exits 1 with one
+/// error line. The SIGPIPE default is not restored instead: the trainer's replicas and the server talk over sockets,
+/// where a gone peer must be an error to report, not a signal that kills the process.
+pub fn write_stdout(args: std::fmt::Arguments) {
+    use std::io::Write;
+    let mut stdout = std::io::stdout().lock();
+    match stdout.write_fmt(args).and_then(|()| stdout.flush()) {
+        Ok(()) => {}
+        Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => std::process::exit(0),
+        Err(e) => {
+            eprintln!("error: cannot write to stdout: {e}");
+            std::process::exit(1);
+        }
+    }
+}
+
 /// Initialise structured logging for the binaries (`RUST_LOG` overrides the default `info`), and route GDAL's own
 /// messages into it: by default GDAL prints `ERROR 4: …` lines to stderr next to our one-line errors, which
 /// already carry the file and the fix.

@@ -229,7 +229,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         } => {
             let manifest = pipeline::manifest::PipelineManifest::load(&manifest)?;
             for line in pipeline::jobs::status_lines(&manifest, partition)? {
-                println!("{line}");
+                dataset::outln!("{line}");
             }
         }
         Command::Clean { manifest } => {

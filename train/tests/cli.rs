@@ -418,6 +418,30 @@ fn compare_evals_pairs_the_same_crops_and_refuses_others() {
         .contains("the candidate is better"));
     assert!(d.join("cmp/provenance.json").exists());
 
+    // Into a reader that has already gone (`| head` after its lines): the files are still written whole, and the
+    // command ends with success and no panic, as a Unix tool does.
+    let piped = path("piped");
+    let (reader, writer) = std::io::pipe().unwrap();
+    drop(reader);
+    let closed = Command::new(env!("CARGO_BIN_EXE_g2r-train"))
+        .args([
+            "compare-evals",
+            &path("base"),
+            &path("better"),
+            "--out",
+            &piped,
+        ])
+        .stdout(writer)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&closed.stderr);
+    assert!(closed.status.success(), "{stderr}");
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    assert_eq!(
+        std::fs::read(d.join("piped/comparison.json")).unwrap(),
+        std::fs::read(d.join("cmp/comparison.json")).unwrap()
+    );
+
     let refused = path("refused");
     let (ok, stderr) = train_cli(&[
         "compare-evals",

@@ -91,10 +91,10 @@ fn main() -> ExitCode {
 
 fn run(cli: Cli) -> anyhow::Result<ExitCode> {
     match cli.command {
-        Command::Schema => print!("{}", dataset::contract::schema::schema_markdown()),
+        Command::Schema => dataset::out!("{}", dataset::contract::schema::schema_markdown()),
         Command::Inspect { shard } => {
             let sizes = dataset::contract::shard::row_group_sizes(&shard)?;
-            println!(
+            dataset::outln!(
                 "{}: {} rows in {} row groups {:?}",
                 shard.display(),
                 sizes.iter().sum::<usize>(),
@@ -102,7 +102,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 sizes
             );
             if let Some(first) = dataset::contract::shard::read_row_group(&shard, 0)?.first() {
-                println!(
+                dataset::outln!(
                     "first sample {} (split {}, tile {}, ortho {}) at lon {:.5} lat {:.5}, i={:.1} e={:.1} g={:.1}",
                     first.sample_id, first.split, first.tile_id, first.ortho_id, first.center_lon_deg,
                     first.center_lat_deg, first.incidence_deg, first.emission_deg, first.phase_deg
@@ -126,7 +126,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 eprintln!("{} of {shards} shards failed verification", problems.len());
                 return Ok(ExitCode::FAILURE);
             }
-            println!("all {shards} shards match manifest.json");
+            dataset::outln!("all {shards} shards match manifest.json");
         }
         Command::Upload { dir, url } => {
             let remote = dataset::storage::RemoteDir::open(&url)?;
@@ -152,7 +152,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 );
             }
             dataset::contract::publication::write_descriptions(&dir, &manifest)?;
-            println!(
+            dataset::outln!(
                 "{}: {} shards verified; wrote README.md and croissant.json",
                 dir.display(),
                 manifest.shards.len()
@@ -161,7 +161,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Serve { dir, addr, verify } => {
             let runtime = tokio::runtime::Runtime::new()?;
             runtime.block_on(dataset_server::serve(&dir, addr, verify, |bound| {
-                println!(
+                dataset::outln!(
                     "serving {dir} at http://{bound}/ (viewer) and http://{bound}/v1/info; Ctrl-C stops"
                 );
             }))?;
@@ -173,7 +173,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             seed,
         } => {
             let report = dataset_server::loadtest::run(&url, clients, requests, seed)?;
-            println!("{}", serde_json::to_string_pretty(&report)?);
+            dataset::outln!("{}", serde_json::to_string_pretty(&report)?);
             if report.errors > 0 {
                 return Ok(ExitCode::FAILURE);
             }

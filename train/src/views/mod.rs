@@ -157,7 +157,7 @@ pub fn run(job: &RenderJob) -> Result<()> {
             "views": records,
         }),
     )?;
-    println!(
+    dataset::outln!(
         "{}: {} views × {} methods, I/F scale {scale:.4} (views.json)",
         job.out.display(),
         poses.len(),

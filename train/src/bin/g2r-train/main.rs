@@ -86,8 +86,8 @@ fn fit_and_write_crater_level(
         train::crater_level::fit_crater_level(&run, source, &options, &device)
     })?;
     dataset::contract::manifest::write_json_atomic(&out, &fit.level)?;
-    print!("{}", train::crater_level::markdown(&fit));
-    println!("\nwrote {}", out.display());
+    dataset::out!("{}", train::crater_level::markdown(&fit));
+    dataset::outln!("\nwrote {}", out.display());
     Ok(())
 }
 
@@ -135,8 +135,8 @@ fn run(cli: Cli) -> Result<()> {
             let report = with_backend!(runs.backend, B => {
                 train::evaluation::run_job::<Inner<B>>(&job, &Default::default())
             })?;
-            print!("{}", train::evaluation::markdown(&report));
-            println!(
+            dataset::out!("{}", train::evaluation::markdown(&report));
+            dataset::outln!(
                 "\nwrote {}/metrics.json, metrics.md and panels/",
                 out.display()
             );
@@ -158,10 +158,13 @@ fn run(cli: Cli) -> Result<()> {
                 seed,
             )?;
             let markdown = train::evaluation::comparison_markdown(&comparison, names);
-            print!("{markdown}");
+            // The files first: a reader that stops early (`| head`) must not cut them.
+            if let Some(out) = &out {
+                train::evaluation::write_comparison(&comparison, &markdown, out)?;
+            }
+            dataset::out!("{markdown}");
             if let Some(out) = out {
-                train::evaluation::write_comparison(&comparison, &markdown, &out)?;
-                println!(
+                dataset::outln!(
                     "\nwrote {}/comparison.json and comparison.md",
                     out.display()
                 );
@@ -188,8 +191,8 @@ fn run(cli: Cli) -> Result<()> {
             };
             let report = train::evaluation::model_choice(source.as_ref(), &truth, &options)?;
             train::evaluation::write_model_choice(&report, &out)?;
-            print!("{}", train::evaluation::model_choice_markdown(&report));
-            println!(
+            dataset::out!("{}", train::evaluation::model_choice_markdown(&report));
+            dataset::outln!(
                 "\nwrote {}/model-choice.json and model-choice.md",
                 out.display()
             );
@@ -273,7 +276,7 @@ fn run(cli: Cli) -> Result<()> {
                 None => {}
             }
             train::inference::write_params_geotiff(&maps, &raster, overlap, &out)?;
-            println!(
+            dataset::outln!(
                 "{}: {} x {} px, {} bands ({}), {} crops at overlap {overlap}",
                 out.display(),
                 maps.width,
@@ -313,7 +316,7 @@ fn run(cli: Cli) -> Result<()> {
                 train::report::run_job::<Inner<B>>(&job, &Default::default())
             })?;
             train::report::write(&report, &out)?;
-            print!("{}", train::report::markdown(&report));
+            dataset::out!("{}", train::report::markdown(&report));
         }
         Command::Render {
             dem,
@@ -348,7 +351,7 @@ fn run(cli: Cli) -> Result<()> {
         }
         Command::Models => {
             for model in BrdfModel::ALL {
-                println!(
+                dataset::outln!(
                     "{}: {} params: {}",
                     model.name(),
                     model.param_count(),
@@ -379,7 +382,7 @@ fn run(cli: Cli) -> Result<()> {
                 resume,
                 stop_after_steps,
             )?;
-            println!(
+            dataset::outln!(
                 "{}: {} steps, {} trainable parameters, {:.3} s/step; metrics in {}",
                 out.display(),
                 outcome.cursor.step,
@@ -388,7 +391,7 @@ fn run(cli: Cli) -> Result<()> {
                 out.join("metrics.jsonl").display()
             );
             if let Some(last) = outcome.history.last() {
-                println!(
+                dataset::outln!(
                     "last epoch: val per-pixel MSE {:.4e}, PSNR {:.2} dB, SSIM {}",
                     last.val_pixel_mse,
                     last.val_psnr_db,
@@ -397,7 +400,7 @@ fn run(cli: Cli) -> Result<()> {
             }
             if crater_level {
                 if outcome.cursor.epoch < config.epochs {
-                    println!("training stopped before its last epoch: the crater level is fitted when it finishes (--resume --crater-level)");
+                    dataset::outln!("training stopped before its last epoch: the crater level is fitted when it finishes (--resume --crater-level)");
                 } else {
                     let runs = args::RunsArgs {
                         run: out.clone(),
@@ -416,7 +419,7 @@ fn run(cli: Cli) -> Result<()> {
             let markdown = with_backend!(train.backend, B => {
                 train::training::compare_models::<B>(source, &config, backend, &out)
             })?;
-            print!("{markdown}");
+            dataset::out!("{markdown}");
         }
         Command::Bench {
             batch,
@@ -448,14 +451,14 @@ fn run(cli: Cli) -> Result<()> {
             };
             let provenance = dataset::provenance::Provenance::capture();
             let record = serde_json::json!({ "bench": measured, "provenance": provenance });
-            println!("{}", serde_json::to_string_pretty(&record)?);
+            dataset::outln!("{}", serde_json::to_string_pretty(&record)?);
         }
         Command::ResultsPage {
             records,
             out,
             embed_in,
             check,
-        } => println!(
+        } => dataset::outln!(
             "{}",
             train::results_page::run_job(&records, &out, &embed_in, check)?
         ),
