@@ -24,8 +24,10 @@ use dataset::science::raster::Raster;
 
 use crate::baseline::hapke_from_geometry;
 use crate::calibration::{calibrate, lunar_lambert_from_geometry, model_uniform_from_geometry};
-use crate::data::{for_each_sample_group, InputNormalisation, SampleSource};
-use crate::inference::{infer_params, render_maps, seam_score, InferOptions};
+use crate::data::{for_each_sample_group, SampleSource};
+use crate::inference::{
+    crater_frames_from_catalogue, infer_params, render_maps, seam_score, InferOptions,
+};
 use crate::kernels::TrainOps;
 use crate::model::UNet;
 use crate::plot::{write_scatter, Axis, Point, Scatter};
@@ -46,6 +48,8 @@ pub struct OverlapRow {
     pub crops: usize,
     pub seconds: f64,
     pub seam_score: f64,
+    /// Crops whose level the run's crater level set (as `infer` sets them); `None` when it was not applied.
+    pub crater_level_crops: Option<usize>,
 }
 
 #[derive(Debug, Clone, serde::Serialize)]
@@ -79,6 +83,9 @@ pub struct Report {
     pub geometry_ns_per_pixel: f64,
     pub brdf_models: Vec<ModelRow>,
     pub inference_overlap: Vec<OverlapRow>,
+    /// The overlap run keeps a crater level that was left out (no `--crater-catalogue`): its rows time the
+    /// network's maps alone, not what `infer` gives with the catalogue.
+    pub inference_crater_level_left_out: bool,
     pub renderer: Vec<RenderRow>,
     pub resampling: Vec<ResampleRow>,
 }
@@ -175,12 +182,13 @@ pub fn brdf_model_rows(
     ))
 }
 
-/// Inference-overlap rows: the same network over the same DEM at each overlap.
+/// Inference-overlap rows: the same network over the same DEM with the same `options` (input, crater frames and
+/// level), at each overlap.
 pub fn overlap_rows<B: TrainOps>(
     net: &UNet<B>,
     model: BrdfModel,
     dem: &Raster,
-    input: &InputNormalisation,
+    options: &InferOptions,
     overlaps: &[usize],
     device: &B::Device,
 ) -> Result<Vec<OverlapRow>> {
@@ -189,10 +197,7 @@ pub fn overlap_rows<B: TrainOps>(
         .map(|&overlap| {
             let options = InferOptions {
                 overlap,
-                batch_size: 8,
-                input: *input,
-                crater_frames: None,
-                crater_level: None,
+                ..options.clone()
             };
             let t0 = Instant::now();
             let maps = infer_params(net, model, dem, &options, device, |_, _| {})?;
@@ -205,6 +210,7 @@ pub fn overlap_rows<B: TrainOps>(
                 crops: maps.crops,
                 seconds,
                 seam_score: seam_score(&image, maps.width, maps.height, overlap),
+                crater_level_crops: maps.crater_level_crops,
             })
         })
         .collect()
@@ -365,12 +371,16 @@ pub fn markdown(report: &Report) -> String {
     if report.inference_overlap.is_empty() {
         text.push_str("Not measured: pass --run RUN_DIR and --dem DEM.tif.\n");
     } else {
-        text.push_str("| overlap px | crops | seconds | seam score (≤ 1.05 = invisible) |\n|---|---|---|---|\n");
+        text.push_str("| overlap px | crops | seconds | seam score (≤ 1.05 = invisible) | crops the crater level set |\n|---|---|---|---|---|\n");
         for r in &report.inference_overlap {
+            let level = r.crater_level_crops.map_or("—".into(), |n| n.to_string());
             text.push_str(&format!(
-                "| {} | {} | {:.2} | {:.3} |\n",
+                "| {} | {} | {:.2} | {:.3} | {level} |\n",
                 r.overlap_px, r.crops, r.seconds, r.seam_score
             ));
+        }
+        if report.inference_crater_level_left_out {
+            text.push_str("\nThe run's crater level was left out (no --crater-catalogue): these are its network's maps alone.\n");
         }
     }
     text.push_str("\n## Renderer: rays per pixel and shadows\n\n");
@@ -494,6 +504,9 @@ pub struct ReportJob<'a> {
     /// Enables the renderer section, and with `run` or `ortho` theirs.
     pub dem: Option<&'a Path>,
     pub overlaps: &'a [usize],
+    /// With `run`: the crater catalogue (and the least diameter that frames a crop) `infer` would be given, so
+    /// a run with a crater input or a crater level is timed as `infer` runs it.
+    pub crater_catalogue: Option<(&'a Path, f64)>,
     /// With `dem`: an ortho on the DEM's grid whose resampling kernels are compared.
     pub ortho: Option<&'a Path>,
     pub resampling_crops: usize,
@@ -516,19 +529,38 @@ pub fn run_job<B: TrainOps>(job: &ReportJob, device: &B::Device) -> Result<Repor
         .map(renderer_rows)
         .transpose()?
         .unwrap_or_default();
-    let inference_overlap = match (job.run, raster.as_ref()) {
+    let (inference_overlap, inference_crater_level_left_out) = match (job.run, raster.as_ref()) {
         (Some((run, checkpoint)), Some(raster)) => {
             let trained = load_trained::<B>(run, checkpoint, device)?;
-            overlap_rows::<B>(
+            let crater_frames = job
+                .crater_catalogue
+                .map(|(catalogue, min_diameter_m)| {
+                    crater_frames_from_catalogue(raster, catalogue, min_diameter_m)
+                })
+                .transpose()?;
+            let options = InferOptions {
+                overlap: 0,
+                batch_size: 8,
+                input: trained.input,
+                crater_frames,
+                crater_level: trained.crater_level.clone(),
+            };
+            let rows = overlap_rows::<B>(
                 &trained.net,
                 trained.config.model,
                 raster,
-                &trained.input,
+                &options,
                 job.overlaps,
                 device,
-            )?
+            )?;
+            let left_out = trained.crater_level.is_some()
+                && rows.iter().all(|r| r.crater_level_crops.is_none());
+            if left_out {
+                tracing::warn!("the run keeps a crater level, left out of the overlap rows: give --crater-catalogue to time it as infer runs it");
+            }
+            (rows, left_out)
         }
-        _ => Vec::new(),
+        _ => (Vec::new(), false),
     };
     let resampling = match (job.ortho, raster.as_ref()) {
         (Some(ortho), Some(raster)) => {
@@ -551,6 +583,7 @@ pub fn run_job<B: TrainOps>(job: &ReportJob, device: &B::Device) -> Result<Repor
         geometry_ns_per_pixel,
         brdf_models,
         inference_overlap,
+        inference_crater_level_left_out,
         renderer,
         resampling,
     })

@@ -375,6 +375,7 @@ fn report_rows_cover_every_model_and_the_plot_is_written() {
         geometry_ns_per_pixel: geometry_ns,
         brdf_models: rows,
         inference_overlap: Vec::new(),
+        inference_crater_level_left_out: false,
         renderer: Vec::new(),
         resampling: Vec::new(),
     };
@@ -432,6 +433,7 @@ fn report_resampling_section_measures_point_kernels_against_the_area_average() {
         geometry_ns_per_pixel: geometry_ns,
         brdf_models,
         inference_overlap: Vec::new(),
+        inference_crater_level_left_out: false,
         renderer: Vec::new(),
         resampling: rows,
     };

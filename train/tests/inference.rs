@@ -517,11 +517,15 @@ fn a_crater_input_needs_the_catalogue_and_follows_where_it_puts_the_crater() {
 /// from a catalogued crater is in the band ρ < 1, the one 1.5 radii away is not. At weight 1 the near crop's mean
 /// H1 scale becomes the regression's (0.4), at weight ½ the geometric mean of that and the network's, and the far
 /// crop is untouched; without crater frames nothing is applied and the maps say so.
-#[test]
-fn a_crater_level_sets_the_level_of_the_crops_in_its_band_only() {
+/// Two crops' worth of rolling terrain (without the shared DEM's hole), the frames of a 1 km crater centred on
+/// column 40, row 64 (crop 0's centre, column 64, lies 120 m east of it), and an H1 network started as `fit`
+/// starts it, at a uniform scale of 1, so its level is known and positive.
+fn two_crops_beside_a_crater() -> (
+    Raster,
+    std::sync::Arc<dataset::contract::crater_frame::CraterFrames>,
+    UNet<B>,
+) {
     use dataset::contract::crater_frame::{CatalogueCrater, CraterFrames};
-    use train::crater_level::CraterLevel;
-    // Two crops' worth of rolling terrain, without the shared DEM's hole (it lies below these rows).
     let dem = {
         let mut r = Raster::new(
             256,
@@ -542,13 +546,11 @@ fn a_crater_level_sets_the_level_of_the_crops_in_its_band_only() {
         let _guard = INIT.lock().unwrap_or_else(|e| e.into_inner());
         let device = Default::default();
         B::seed(&device, 11);
-        // Started as `fit` starts it, at a uniform scale (here 1), so the network's level is known and positive.
         UNetConfig::new(BrdfModel::H1.param_count())
             .with_base_width(4)
             .init::<B>(&device)
             .with_uniform_head(&[1.0], &device)
     };
-    // A 1 km crater centred on column 40, row 64 of the DEM: crop 0's centre (column 64) lies 120 m east of it.
     let (lon_deg, lat_deg) = dem
         .crs
         .to_lonlat_deg(-800.0 + 40.0 * 5.0, -1_309_000.0 - 64.0 * 5.0)
@@ -560,7 +562,14 @@ fn a_crater_level_sets_the_level_of_the_crops_in_its_band_only() {
     };
     let (frames, report) = CraterFrames::new(&dem, &[crater], 100.0).unwrap();
     assert_eq!(report.framed, 1);
-    let frames = std::sync::Arc::new(frames);
+    (dem, std::sync::Arc::new(frames), net)
+}
+
+#[test]
+fn a_crater_level_sets_the_level_of_the_crops_in_its_band_only() {
+    use dataset::contract::crater_frame::CraterFrames;
+    use train::crater_level::CraterLevel;
+    let (dem, frames, net) = two_crops_beside_a_crater();
     let level = |weight: f64| train::testing::constant_crater_level(0.0, 1.0, 0.4, weight);
     let run = |frames: Option<std::sync::Arc<CraterFrames>>, level: Option<CraterLevel>| {
         let options = InferOptions {
@@ -617,4 +626,49 @@ fn a_crater_level_sets_the_level_of_the_crops_in_its_band_only() {
     let half = run(Some(frames), Some(level(0.5)));
     let expected = (0.4 * m).sqrt();
     assert!((block_mean(&half, 0) - expected).abs() < 1e-6 * expected);
+}
+
+/// `report`'s overlap rows run the network as `infer` runs it: with the catalogue's frames, the run's crater level
+/// sets the crops `infer` sets, at each overlap; without frames it is left out, and the rows say so.
+#[test]
+fn report_overlap_rows_apply_the_crater_level_as_infer_does() {
+    let (dem, frames, net) = two_crops_beside_a_crater();
+    let options = |frames| InferOptions {
+        overlap: 0,
+        batch_size: 4,
+        input: InputNormalisation::relief(20.0),
+        crater_frames: frames,
+        crater_level: Some(train::testing::constant_crater_level(0.0, 1.0, 0.4, 1.0)),
+    };
+    let device = Default::default();
+    let overlaps = [0, 16];
+    let rows = train::report::overlap_rows::<B>(
+        &net,
+        BrdfModel::H1,
+        &dem,
+        &options(Some(frames.clone())),
+        &overlaps,
+        &device,
+    )
+    .unwrap();
+    for (row, overlap) in rows.iter().zip(overlaps) {
+        let infer = InferOptions {
+            overlap,
+            ..options(Some(frames.clone()))
+        };
+        let maps = infer_params(&net, BrdfModel::H1, &dem, &infer, &device, |_, _| {}).unwrap();
+        assert_eq!(row.crops, maps.crops, "overlap {overlap}");
+        assert!(matches!(row.crater_level_crops, Some(n) if n >= 1), "{row:?}");
+        assert_eq!(row.crater_level_crops, maps.crater_level_crops, "overlap {overlap}");
+    }
+    let without = train::report::overlap_rows::<B>(
+        &net,
+        BrdfModel::H1,
+        &dem,
+        &options(None),
+        &overlaps,
+        &device,
+    )
+    .unwrap();
+    assert!(without.iter().all(|r| r.crater_level_crops.is_none()));
 }

@@ -25,6 +25,19 @@ pub struct Cli {
     pub command: Command,
 }
 
+/// The crater catalogue a run's crops are framed with, as the project stage framed its training crops: `infer`
+/// (and `report`'s overlap rows) need it for a run with a crater input, and apply a run's crater level with it.
+#[derive(Args, Debug, Clone)]
+pub struct CraterCatalogueArgs {
+    /// The crater catalogue CSV the run's dataset was published with (inputs.crater_catalogue): needed by runs
+    /// trained with --crater-input, and what sets the level of crater crops for a run that keeps a crater level.
+    #[arg(long = "crater-catalogue")]
+    pub catalogue: Option<PathBuf>,
+    /// Craters at least this wide frame the crops (the pipeline's project.crater_min_diameter_m).
+    #[arg(long = "crater-min-diameter-m", default_value_t = dataset::contract::crater_frame::DEFAULT_MIN_DIAMETER_M, requires = "catalogue")]
+    pub min_diameter_m: f64,
+}
+
 /// The trained network(s) a command loads: one run, or a seed ensemble.
 #[derive(Args, Debug, Clone)]
 pub struct RunsArgs {
@@ -442,13 +455,8 @@ pub enum Command {
         /// Override the relief plane's DEM std (default: the run's normalisation.json).
         #[arg(long)]
         dem_std_m: Option<f64>,
-        /// The crater catalogue CSV the run's dataset was published with (inputs.crater_catalogue): needed by
-        /// runs trained with --crater-input.
-        #[arg(long)]
-        crater_catalogue: Option<PathBuf>,
-        /// Craters at least this wide frame the crops (the pipeline's project.crater_min_diameter_m).
-        #[arg(long, default_value_t = dataset::contract::crater_frame::DEFAULT_MIN_DIAMETER_M, requires = "crater_catalogue")]
-        crater_min_diameter_m: f64,
+        #[command(flatten)]
+        craters: CraterCatalogueArgs,
     },
     /// Speed against error, measured in one run: BRDF models (M1-M6, L2-L4, H1 and H3 uniform fits, Hapke, Lunar-Lambert: pixel
     /// MSE vs ns/pixel); with --dem the renderer (rays/pixel, shadows); with --run and --dem inference overlap
@@ -479,6 +487,8 @@ pub enum Command {
         /// Overlaps to time, pixels.
         #[arg(long, value_delimiter = ',', default_value = "0,16,32,48")]
         overlaps: Vec<usize>,
+        #[command(flatten)]
+        craters: CraterCatalogueArgs,
         /// An orthoimage GeoTIFF on the DEM's CRS, for the resampling-kernel section (needs --dem).
         #[arg(long, requires = "dem")]
         ortho: Option<PathBuf>,

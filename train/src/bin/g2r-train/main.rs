@@ -225,8 +225,7 @@ fn run(cli: Cli) -> Result<()> {
             overlap,
             batch,
             dem_std_m,
-            crater_catalogue,
-            crater_min_diameter_m,
+            craters,
         } => {
             let progress = indicatif::ProgressBar::new(0).with_style(
                 indicatif::ProgressStyle::with_template(
@@ -235,16 +234,14 @@ fn run(cli: Cli) -> Result<()> {
                 .expect("valid template"),
             );
             let raster = dataset::science::raster::read_raster(&dem)?;
-            let crater_frames = crater_catalogue
-                .map(|path| -> anyhow::Result<_> {
-                    let (frames, report) =
-                        dataset::contract::crater_frame::CraterFrames::from_catalogue(
-                            &raster,
-                            &path,
-                            crater_min_diameter_m,
-                        )?;
-                    tracing::info!(?report, "crater frames");
-                    Ok(std::sync::Arc::new(frames))
+            let crater_frames = craters
+                .catalogue
+                .map(|path| {
+                    train::inference::crater_frames_from_catalogue(
+                        &raster,
+                        &path,
+                        craters.min_diameter_m,
+                    )
                 })
                 .transpose()?;
             let paths = runs.paths();
@@ -296,6 +293,7 @@ fn run(cli: Cli) -> Result<()> {
             checkpoint,
             dem,
             overlaps,
+            craters,
             ortho,
             resampling_crops,
             backend,
@@ -309,6 +307,10 @@ fn run(cli: Cli) -> Result<()> {
                 run: run.as_deref().map(|run| (run, checkpoint)),
                 dem: dem.as_deref(),
                 overlaps: &overlaps,
+                crater_catalogue: craters
+                    .catalogue
+                    .as_deref()
+                    .map(|path| (path, craters.min_diameter_m)),
                 ortho: ortho.as_deref(),
                 resampling_crops,
             };
