@@ -43,7 +43,7 @@ pub struct InferOptions {
 /// stage built them for the training crops; what was framed and skipped is logged.
 pub fn crater_frames_from_catalogue(
     dem: &Raster,
-    catalogue: &std::path::Path,
+    catalogue: &Path,
     min_diameter_m: f64,
 ) -> Result<std::sync::Arc<CraterFrames>> {
     let (frames, report) = CraterFrames::from_catalogue(dem, catalogue, min_diameter_m)?;

@@ -83,8 +83,8 @@ pub struct Report {
     pub geometry_ns_per_pixel: f64,
     pub brdf_models: Vec<ModelRow>,
     pub inference_overlap: Vec<OverlapRow>,
-    /// The overlap run keeps a crater level that was left out (no `--crater-catalogue`): its rows time the
-    /// network's maps alone, not what `infer` gives with the catalogue.
+    /// The overlap run keeps a crater level that was left out (no `--crater-catalogue`, or none of its craters on
+    /// the DEM): its rows time the network's maps alone, not what `infer` gives with the catalogue.
     pub inference_crater_level_left_out: bool,
     pub renderer: Vec<RenderRow>,
     pub resampling: Vec<ResampleRow>,
@@ -380,7 +380,7 @@ pub fn markdown(report: &Report) -> String {
             ));
         }
         if report.inference_crater_level_left_out {
-            text.push_str("\nThe run's crater level was left out (no --crater-catalogue): these are its network's maps alone.\n");
+            text.push_str("\nThe run's crater level was left out (no --crater-catalogue, or none of its craters on this DEM): these are its network's maps alone.\n");
         }
     }
     text.push_str("\n## Renderer: rays per pixel and shadows\n\n");
@@ -553,10 +553,14 @@ pub fn run_job<B: TrainOps>(job: &ReportJob, device: &B::Device) -> Result<Repor
                 job.overlaps,
                 device,
             )?;
+            // As `infer_params` decides it: the level needs frames with at least one crater on this DEM.
             let left_out = trained.crater_level.is_some()
-                && rows.iter().all(|r| r.crater_level_crops.is_none());
+                && options
+                    .crater_frames
+                    .as_deref()
+                    .is_none_or(|f| f.is_empty());
             if left_out {
-                tracing::warn!("the run keeps a crater level, left out of the overlap rows: give --crater-catalogue to time it as infer runs it");
+                tracing::warn!("the run keeps a crater level, left out of the overlap rows (no --crater-catalogue, or none of its craters on this DEM): they time the network alone");
             }
             (rows, left_out)
         }

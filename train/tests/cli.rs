@@ -111,6 +111,18 @@ fn bad_inputs_fail_with_one_line_naming_the_file_and_the_fix() {
         ),
         (
             vec![
+                "report".into(),
+                "--data".into(),
+                path("data"),
+                "--out".into(),
+                path("report"),
+                "--crater-catalogue".into(),
+                path("craters.csv"),
+            ],
+            vec!["--crater-catalogue", "--run"],
+        ),
+        (
+            vec![
                 "fit".into(),
                 "--data".into(),
                 path("data"),
@@ -250,7 +262,7 @@ fn bad_inputs_fail_with_one_line_naming_the_file_and_the_fix() {
         }
     }
     // Nothing finished-looking was left behind.
-    for name in ["p.tif", "views", "run/best", "no-run", "choice"] {
+    for name in ["p.tif", "views", "run/best", "no-run", "choice", "report"] {
         assert!(!Path::new(&path(name)).exists(), "{name} exists");
     }
 }

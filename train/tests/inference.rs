@@ -512,11 +512,6 @@ fn a_crater_input_needs_the_catalogue_and_follows_where_it_puts_the_crater() {
     );
 }
 
-/// A run's crater level sets the level of the crops in its band and leaves the others as the network made them.
-/// Two side-by-side crops at overlap 0 (so no blending: each pixel is one crop's): the crop centred 0.24 radii
-/// from a catalogued crater is in the band ρ < 1, the one 1.5 radii away is not. At weight 1 the near crop's mean
-/// H1 scale becomes the regression's (0.4), at weight ½ the geometric mean of that and the network's, and the far
-/// crop is untouched; without crater frames nothing is applied and the maps say so.
 /// Two crops' worth of rolling terrain (without the shared DEM's hole), the frames of a 1 km crater centred on
 /// column 40, row 64 (crop 0's centre, column 64, lies 120 m east of it), and an H1 network started as `fit`
 /// starts it, at a uniform scale of 1, so its level is known and positive.
@@ -565,6 +560,11 @@ fn two_crops_beside_a_crater() -> (
     (dem, std::sync::Arc::new(frames), net)
 }
 
+/// A run's crater level sets the level of the crops in its band and leaves the others as the network made them.
+/// Two side-by-side crops at overlap 0 (so no blending: each pixel is one crop's): the crop centred 0.24 radii
+/// from a catalogued crater is in the band ρ < 1, the one 1.5 radii away is not. At weight 1 the near crop's mean
+/// H1 scale becomes the regression's (0.4), at weight ½ the geometric mean of that and the network's, and the far
+/// crop is untouched; without crater frames nothing is applied and the maps say so.
 #[test]
 fn a_crater_level_sets_the_level_of_the_crops_in_its_band_only() {
     use dataset::contract::crater_frame::CraterFrames;
@@ -658,8 +658,14 @@ fn report_overlap_rows_apply_the_crater_level_as_infer_does() {
         };
         let maps = infer_params(&net, BrdfModel::H1, &dem, &infer, &device, |_, _| {}).unwrap();
         assert_eq!(row.crops, maps.crops, "overlap {overlap}");
-        assert!(matches!(row.crater_level_crops, Some(n) if n >= 1), "{row:?}");
-        assert_eq!(row.crater_level_crops, maps.crater_level_crops, "overlap {overlap}");
+        assert!(
+            matches!(row.crater_level_crops, Some(n) if n >= 1),
+            "{row:?}"
+        );
+        assert_eq!(
+            row.crater_level_crops, maps.crater_level_crops,
+            "overlap {overlap}"
+        );
     }
     let without = train::report::overlap_rows::<B>(
         &net,

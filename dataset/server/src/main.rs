@@ -1,5 +1,6 @@
 //! `g2r-dataset`: inspect and verify the data contract (schemas, shards, manifests).
 
+use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -161,7 +162,9 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Serve { dir, addr, verify } => {
             let runtime = tokio::runtime::Runtime::new()?;
             runtime.block_on(dataset_server::serve(&dir, addr, verify, |bound| {
-                dataset::outln!(
+                // A banner nobody reads must not stop a server: a closed stdout is ignored here.
+                let _ = writeln!(
+                    std::io::stdout(),
                     "serving {dir} at http://{bound}/ (viewer) and http://{bound}/v1/info; Ctrl-C stops"
                 );
             }))?;

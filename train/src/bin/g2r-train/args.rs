@@ -31,10 +31,10 @@ pub struct Cli {
 pub struct CraterCatalogueArgs {
     /// The crater catalogue CSV the run's dataset was published with (inputs.crater_catalogue): needed by runs
     /// trained with --crater-input, and what sets the level of crater crops for a run that keeps a crater level.
-    #[arg(long = "crater-catalogue")]
+    #[arg(long = "crater-catalogue", value_name = "CRATER_CATALOGUE")]
     pub catalogue: Option<PathBuf>,
     /// Craters at least this wide frame the crops (the pipeline's project.crater_min_diameter_m).
-    #[arg(long = "crater-min-diameter-m", default_value_t = dataset::contract::crater_frame::DEFAULT_MIN_DIAMETER_M, requires = "catalogue")]
+    #[arg(long = "crater-min-diameter-m", value_name = "CRATER_MIN_DIAMETER_M", default_value_t = dataset::contract::crater_frame::DEFAULT_MIN_DIAMETER_M, requires = "catalogue")]
     pub min_diameter_m: f64,
 }
 

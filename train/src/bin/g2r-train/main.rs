@@ -63,7 +63,7 @@ fn tune_allocator() {
 }
 
 /// `crater-level` (and `fit --crater-level`): fit the run's crater level on its network alone, write it (default
-/// RUN/crater_level.json) and print the choice.
+/// RUN/crater_level.json) and return the choice as text, which the caller prints once every file is written.
 fn fit_and_write_crater_level(
     runs: &args::RunsArgs,
     source: &dyn SampleSource,
@@ -71,7 +71,7 @@ fn fit_and_write_crater_level(
     val_samples: Option<usize>,
     batch: usize,
     out: Option<std::path::PathBuf>,
-) -> Result<()> {
+) -> Result<String> {
     let options = train::crater_level::CraterLevelOptions {
         train_samples,
         val_samples,
@@ -86,9 +86,11 @@ fn fit_and_write_crater_level(
         train::crater_level::fit_crater_level(&run, source, &options, &device)
     })?;
     dataset::contract::manifest::write_json_atomic(&out, &fit.level)?;
-    dataset::out!("{}", train::crater_level::markdown(&fit));
-    dataset::outln!("\nwrote {}", out.display());
-    Ok(())
+    Ok(format!(
+        "{}\nwrote {}\n",
+        train::crater_level::markdown(&fit),
+        out.display()
+    ))
 }
 
 fn main() {
@@ -209,7 +211,7 @@ fn run(cli: Cli) -> Result<()> {
                 anyhow::bail!("a crater level is fitted beside one run: drop --ensemble");
             }
             let source = open_source(&data)?;
-            fit_and_write_crater_level(
+            let choice = fit_and_write_crater_level(
                 &runs,
                 source.as_ref(),
                 max_train_samples,
@@ -217,6 +219,7 @@ fn run(cli: Cli) -> Result<()> {
                 batch,
                 out,
             )?;
+            dataset::out!("{choice}");
         }
         Command::Infer {
             runs,
@@ -298,6 +301,9 @@ fn run(cli: Cli) -> Result<()> {
             resampling_crops,
             backend,
         } => {
+            if craters.catalogue.is_some() && run.is_none() {
+                anyhow::bail!("--crater-catalogue frames the crops of --run's overlap rows: give --run RUN_DIR (and --dem), or drop --crater-catalogue");
+            }
             let source = open_source(&data)?;
             let job = train::report::ReportJob {
                 source: source.as_ref(),
@@ -384,6 +390,21 @@ fn run(cli: Cli) -> Result<()> {
                 resume,
                 stop_after_steps,
             )?;
+            // The crater level is fitted and written before anything is printed: a reader that stops early
+            // (`| head`) ends the process at its first print, and must not cut the fit short.
+            let crater_level_text = if !crater_level {
+                String::new()
+            } else if outcome.cursor.epoch < config.epochs {
+                "training stopped before its last epoch: the crater level is fitted when it finishes (--resume --crater-level)\n".to_string()
+            } else {
+                let runs = args::RunsArgs {
+                    run: out.clone(),
+                    ensemble: Vec::new(),
+                    checkpoint: train::run_dir::Checkpoint::Auto,
+                    backend: train.backend,
+                };
+                fit_and_write_crater_level(&runs, source.as_ref(), None, None, 8, None)?
+            };
             dataset::outln!(
                 "{}: {} steps, {} trainable parameters, {:.3} s/step; metrics in {}",
                 out.display(),
@@ -400,19 +421,7 @@ fn run(cli: Cli) -> Result<()> {
                     train::metrics::ssim_text(last.val_ssim)
                 );
             }
-            if crater_level {
-                if outcome.cursor.epoch < config.epochs {
-                    dataset::outln!("training stopped before its last epoch: the crater level is fitted when it finishes (--resume --crater-level)");
-                } else {
-                    let runs = args::RunsArgs {
-                        run: out.clone(),
-                        ensemble: Vec::new(),
-                        checkpoint: train::run_dir::Checkpoint::Auto,
-                        backend: train.backend,
-                    };
-                    fit_and_write_crater_level(&runs, source.as_ref(), None, None, 8, None)?;
-                }
-            }
+            dataset::out!("{crater_level_text}");
         }
         Command::CompareModels { data, out, train } => {
             train::replicas::refuse_launcher_world(|name| std::env::var(name).ok())?;
