@@ -553,12 +553,9 @@ pub fn run_job<B: TrainOps>(job: &ReportJob, device: &B::Device) -> Result<Repor
                 job.overlaps,
                 device,
             )?;
-            // As `infer_params` decides it: the level needs frames with at least one crater on this DEM.
+            // `infer_params` says whether it applied the level (`None`: no frames with a crater on this DEM).
             let left_out = trained.crater_level.is_some()
-                && options
-                    .crater_frames
-                    .as_deref()
-                    .is_none_or(|f| f.is_empty());
+                && rows.first().is_some_and(|r| r.crater_level_crops.is_none());
             if left_out {
                 tracing::warn!("the run keeps a crater level, left out of the overlap rows (no --crater-catalogue, or none of its craters on this DEM): they time the network alone");
             }
