@@ -32,7 +32,10 @@ pub struct BenchReport {
     pub forward_ms: f64,
     pub backward_ms: f64,
     pub optimizer_ms: f64,
-    /// Time per step inside each CPU kernel (forward and backward; empty timings on other backends).
+    /// The CubeCL backends' convolution weight-gradient kernel in force (Flex runs its own whatever it says).
+    pub conv_backward: &'static str,
+    /// Time per step inside each kernel (forward and backward), from separate profiled steps after the timed ones:
+    /// on a GPU each kernel is timed with the device synced around it, so these steps run slower than the timed.
     pub kernels: Vec<crate::kernels::profile::KernelTime>,
 }
 
@@ -53,7 +56,7 @@ pub fn bench<B: TrainBackend>(
     let mut optim = AdamConfig::new()
         .with_epsilon(1e-8)
         .init::<B, crate::model::UNet<B>>();
-    // Forward, backward and optimizer phases timed apart; kernel totals from `kernels::profile` (CPU only).
+    // Forward, backward and optimizer phases timed apart; kernel totals from `kernels::profile`.
     let mut phases = [0.0f64; 3];
     // A GPU backend queues work and returns: each phase ends with a sync so that its time is the device's, not
     // the enqueue's (a no-op on the CPU backend). A fit reads the loss every step, which syncs as often.
@@ -79,12 +82,15 @@ pub fn bench<B: TrainBackend>(
         net
     };
     net = step(net, &mut [0.0; 3]);
-    crate::kernels::profile::reset(true);
     let t = Instant::now();
     for _ in 0..iters {
         net = step(net, &mut phases);
     }
     let train_s = t.elapsed().as_secs_f64() / iters as f64;
+    crate::kernels::profile::reset(true);
+    for _ in 0..iters {
+        net = step(net, &mut [0.0; 3]);
+    }
     let kernels = crate::kernels::profile::totals()
         .into_iter()
         .map(|mut k| {
@@ -141,7 +147,69 @@ pub fn bench<B: TrainBackend>(
         forward_ms,
         backward_ms,
         optimizer_ms,
+        conv_backward: crate::kernels::cubecl::conv_backward().name(),
         kernels,
+    }
+}
+
+/// One round of [`compare_conv_backward`]: the stock weight gradients, then the matmul ones, back to back.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct ConvBackwardRound {
+    pub stock_samples_per_s: f64,
+    pub gemm_samples_per_s: f64,
+    /// gemm / stock samples/s (> 1: the matmul weight gradients make the step faster).
+    pub ratio: f64,
+}
+
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct ConvBackwardComparison {
+    /// The last round's full reports (with their phase and kernel breakdowns).
+    pub stock: BenchReport,
+    pub gemm: BenchReport,
+    pub rounds: Vec<ConvBackwardRound>,
+    /// Median over rounds of gemm / stock samples/s.
+    pub median_ratio: f64,
+}
+
+/// Alternate [`bench()`] with the stock and the matmul convolution weight gradients ([`ConvBackward`]) `rounds`
+/// times in one process, so both see the same machine state: the before and after of the CubeCL backends'
+/// kernels. On Flex both arms run Flex's own kernels (a check of the bench's noise).
+///
+/// [`ConvBackward`]: crate::kernels::cubecl::ConvBackward
+pub fn compare_conv_backward<B: TrainBackend>(
+    backend_name: &str,
+    model: BrdfModel,
+    batch_size: usize,
+    base_width: usize,
+    iters: usize,
+    rounds: usize,
+    device: &B::Device,
+) -> ConvBackwardComparison {
+    use crate::kernels::cubecl::{conv_backward, set_conv_backward, ConvBackward};
+    let chosen = conv_backward();
+    let mut results = Vec::new();
+    let mut last = None;
+    for _ in 0..rounds.max(1) {
+        let [stock, gemm] = [ConvBackward::Stock, ConvBackward::Gemm].map(|kind| {
+            set_conv_backward(kind);
+            bench::<B>(backend_name, model, batch_size, base_width, iters, device)
+        });
+        results.push(ConvBackwardRound {
+            stock_samples_per_s: stock.train_step_samples_per_s,
+            gemm_samples_per_s: gemm.train_step_samples_per_s,
+            ratio: gemm.train_step_samples_per_s / stock.train_step_samples_per_s,
+        });
+        last = Some((stock, gemm));
+    }
+    set_conv_backward(chosen);
+    let mut ratios: Vec<f64> = results.iter().map(|r| r.ratio).collect();
+    ratios.sort_by(f64::total_cmp);
+    let (stock, gemm) = last.expect("at least one round");
+    ConvBackwardComparison {
+        stock,
+        gemm,
+        rounds: results,
+        median_ratio: ratios[ratios.len() / 2],
     }
 }
 

@@ -12,7 +12,8 @@
 //!   operation, and a backward pass that calls the inner backend's gradient kernels;
 //! - `flex/` implements it for Flex with contiguous f32 kernels, one file per operation (im2col + gemm, one pass
 //!   per channel);
-//! - every other backend (CUDA, wgpu) takes the trait's defaults: stock Burn operations (`stock`), the same math.
+//! - `cubecl/` implements it for the CubeCL backends (CUDA, wgpu): the convolutions' weight gradients as batched
+//!   matrix products, the rest stock Burn operations (`stock`), the same math.
 //!
 //! The model calls the free functions here ([`conv2d`], [`batch_norm_leaky_relu`], …) on Burn's own `Conv2d` and
 //! `BatchNorm` modules, so
@@ -20,6 +21,7 @@
 //! operations and Burn's autodiff (values, gradients, running statistics).
 
 mod autodiff;
+pub mod cubecl;
 mod flex;
 pub mod profile;
 pub mod stock;
@@ -156,11 +158,7 @@ pub trait TrainOps: Backend {
 
     /// 2 × 2 max-pool with stride 2 (floor mode): the output and the backend's record of where each maximum was.
     fn max_pool2x2(x: FloatTensor<Self>) -> MaxPoolOutput<Self> {
-        let out = Self::max_pool2d_with_indices(x, [2, 2], [2, 2], [0, 0], [1, 1], false);
-        MaxPoolOutput {
-            output: out.output,
-            argmax: out.indices,
-        }
+        stock::max_pool2x2::<Self>(x)
     }
 
     /// ∂L/∂x of [`TrainOps::max_pool2x2`]: each output gradient goes to its window's maximum.
@@ -169,17 +167,7 @@ pub trait TrainOps: Backend {
         output_grad: FloatTensor<Self>,
         argmax: IntTensor<Self>,
     ) -> FloatTensor<Self> {
-        Self::max_pool2d_with_indices_backward(
-            x,
-            [2, 2],
-            [2, 2],
-            [0, 0],
-            [1, 1],
-            false,
-            output_grad,
-            argmax,
-        )
-        .x_grad
+        stock::max_pool2x2_backward::<Self>(x, output_grad, argmax)
     }
 
     /// `[LeakyReLU(a), b]` joined along channels (`[N, Ca, H, W]`, `[N, Cb, H, W]` → `[N, Ca + Cb, H, W]`): the
@@ -283,12 +271,6 @@ pub trait TrainOps: Backend {
         )
     }
 }
-
-#[cfg(feature = "cuda")]
-impl TrainOps for burn::backend::Cuda {}
-
-#[cfg(feature = "wgpu")]
-impl TrainOps for burn::backend::Wgpu {}
 
 /// A backend the trainer can fit on: autodiff with [`TrainOps`] on both the autodiff and the inner backend.
 pub trait TrainBackend: AutodiffBackend<InnerBackend: TrainOps> + TrainOps {}

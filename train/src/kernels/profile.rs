@@ -1,6 +1,8 @@
-//! Wall time spent in each CPU kernel, summed over calls while profiling is on: the per-operation breakdown
-//! `g2r-train bench` prints. Off by default (one relaxed atomic load per call); CPU kernels only, because Flex runs
-//! synchronously and a wall-clock span there is the operation's cost.
+//! Wall time spent in each train-step kernel, summed over calls while profiling is on: the per-operation breakdown
+//! `g2r-train bench` prints. Off by default (one relaxed atomic load per call). Flex runs synchronously, so a
+//! wall-clock span there is the operation's cost ([`timed`]); a GPU backend queues work and returns, so its spans
+//! are taken with the device synced before and after ([`timed_synced`]), which costs the overlap of queued work
+//! and makes the profiled step slower than an unprofiled one.
 
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::Instant;
@@ -72,6 +74,25 @@ pub fn timed<T>(kernel: Kernel, f: impl FnOnce() -> T) -> T {
     NANOS[k].fetch_add(start.elapsed().as_nanos() as u64, Ordering::Relaxed);
     CALLS[k].fetch_add(1, Ordering::Relaxed);
     out
+}
+
+/// [`timed`] for a backend that queues work: with profiling on, the device finishes what was queued before `f`
+/// and what `f` queued, so the span is `f`'s device time (plus one sync's latency).
+pub fn timed_synced<B: burn::tensor::backend::Backend, T>(
+    kernel: Kernel,
+    device: &B::Device,
+    f: impl FnOnce() -> T,
+) -> T {
+    if !ENABLED.load(Ordering::Relaxed) {
+        return f();
+    }
+    let sync = || B::sync(device).expect("the device finishes its queued work");
+    sync();
+    timed(kernel, || {
+        let out = f();
+        sync();
+        out
+    })
 }
 
 /// Zero the totals and switch profiling on or off.

@@ -5,7 +5,7 @@ use burn::prelude::*;
 use burn::tensor::activation::leaky_relu;
 use burn::tensor::ops::FloatTensor;
 
-use super::{primitive, tensor, DropoutOutput, NormGrads, NormOutput, RenderLoss};
+use super::{primitive, tensor, DropoutOutput, MaxPoolOutput, NormGrads, NormOutput, RenderLoss};
 
 /// Per-channel mean of `[N, C, H, W]` as `[1, C, 1, 1]`, as Burn's BatchNorm computes it.
 fn channel_mean<B: Backend>(x: Tensor<B, 4>) -> Tensor<B, 4> {
@@ -124,8 +124,36 @@ pub fn dropout_backward<B: Backend>(
     primitive((tensor::<B, 4>(output_grad) * tensor::<B, 4>(mask)) * (1.0 / (1.0 - prob)))
 }
 
+/// 2 × 2 max-pool with stride 2 and where each maximum came from, by the backend's own kernel.
+pub fn max_pool2x2<B: Backend>(x: FloatTensor<B>) -> MaxPoolOutput<B> {
+    let out = B::max_pool2d_with_indices(x, [2, 2], [2, 2], [0, 0], [1, 1], false);
+    MaxPoolOutput {
+        output: out.output,
+        argmax: out.indices,
+    }
+}
+
+/// The backward of [`max_pool2x2`]: each output gradient to its window's maximum.
+pub fn max_pool2x2_backward<B: Backend>(
+    x: FloatTensor<B>,
+    output_grad: FloatTensor<B>,
+    argmax: burn::tensor::ops::IntTensor<B>,
+) -> FloatTensor<B> {
+    B::max_pool2d_with_indices_backward(
+        x,
+        [2, 2],
+        [2, 2],
+        [0, 0],
+        [1, 1],
+        false,
+        output_grad,
+        argmax,
+    )
+    .x_grad
+}
+
 /// Nearest ×2 upsampling (the stock interpolation).
-fn upsample2x<B: Backend>(x: Tensor<B, 4>) -> Tensor<B, 4> {
+pub fn upsample2x<B: Backend>(x: Tensor<B, 4>) -> Tensor<B, 4> {
     use burn::tensor::ops::{InterpolateMode, InterpolateOptions};
     let [_, _, h, w] = x.dims();
     burn::tensor::module::interpolate(

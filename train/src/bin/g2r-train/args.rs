@@ -8,6 +8,7 @@ use dataset::science::brdf::BrdfModel;
 use train::backend::BackendKind;
 use train::data::StreamConfig;
 use train::fit_config::FitConfig;
+use train::kernels::cubecl::ConvBackward;
 
 #[derive(Parser)]
 #[command(
@@ -558,10 +559,19 @@ Measure on an idle machine; compare only figures from the same sitting."
         #[arg(long, value_enum, default_value = "flex")]
         backend: BackendKind,
         /// A Python interpreter with torch: run the PyTorch peer alternately with this step (model m2).
-        #[arg(long, value_name = "PYTHON")]
+        #[arg(long, value_name = "PYTHON", conflicts_with = "compare_conv_backward")]
         torch: Option<PathBuf>,
-        /// Alternating rounds with --torch.
-        #[arg(long, default_value_t = 3, requires = "torch")]
+        /// The CubeCL backends' (cuda, wgpu) convolution weight gradient: `gemm`, im2col and batched matrix
+        /// products over pieces of the reduction, or `stock`, Burn's own (a direct convolution by a
+        /// feature-map-sized kernel, the slow path this project replaced). Flex runs its own kernels either way.
+        #[arg(long, value_enum, default_value = "gemm")]
+        conv_backward: ConvBackward,
+        /// Alternate `--conv-backward stock` and `gemm` in one process and report each round's samples/s and
+        /// their ratio: the before and after of the matmul weight gradients on this machine.
+        #[arg(long)]
+        compare_conv_backward: bool,
+        /// Alternating rounds with --torch or --compare-conv-backward.
+        #[arg(long, default_value_t = 3)]
         rounds: usize,
     },
     /// Write docs/results.md from the JSON result records in docs/results/ (one file per section, in file-name

@@ -439,10 +439,21 @@ fn run(cli: Cli) -> Result<()> {
             iters,
             backend,
             torch,
+            conv_backward,
+            compare_conv_backward,
             rounds,
         } => {
             let (name, torch_device) = (backend.name(), backend.torch_device());
+            train::kernels::cubecl::set_conv_backward(conv_backward);
             let measured = match torch {
+                None if compare_conv_backward => {
+                    let comparison = with_backend!(backend, B => Ok::<_, anyhow::Error>(
+                        train::bench::compare_conv_backward::<B>(
+                            name, model, batch, width, iters, rounds, &Default::default()
+                        )
+                    ))?;
+                    serde_json::to_value(&comparison)?
+                }
                 Some(python) => {
                     anyhow::ensure!(
                         model == BrdfModel::M2,
