@@ -188,14 +188,21 @@ pub fn upsample_conv2d_x_grad<B: Backend>(
     output_grad: FloatTensor<B>,
 ) -> FloatTensor<B> {
     let fine = primitive(upsample2x(tensor::<B, 4>(x)));
-    let g = tensor::<B, 4>(B::conv2d_x_backward(fine, weight, output_grad, same_3x3()));
+    primitive(sum_2x2_blocks(tensor::<B, 4>(B::conv2d_x_backward(
+        fine,
+        weight,
+        output_grad,
+        same_3x3(),
+    ))))
+}
+
+/// Each 2 × 2 block of `[N, C, 2h, 2w]` summed to `[N, C, h, w]`: the gradient of nearest ×2 upsampling.
+pub fn sum_2x2_blocks<B: Backend>(g: Tensor<B, 4>) -> Tensor<B, 4> {
     let [n, c, h2, w2] = g.dims();
-    primitive(
-        g.reshape([n, c, h2 / 2, 2, w2 / 2, 2])
-            .sum_dim(5)
-            .sum_dim(3)
-            .reshape([n, c, h2 / 2, w2 / 2]),
-    )
+    g.reshape([n, c, h2 / 2, 2, w2 / 2, 2])
+        .sum_dim(5)
+        .sum_dim(3)
+        .reshape([n, c, h2 / 2, w2 / 2])
 }
 
 pub fn upsample_conv2d_weight_grad<B: Backend>(

@@ -1,6 +1,12 @@
-//! Convolution weight gradients as batched matrix products, written with Burn tensor operations so that any
+//! Convolution gradients as the operations a GPU runs well, written with Burn tensor operations so that any
 //! backend runs them (the CubeCL backends use them; tests hold them to the stock gradients on Flex and wgpu).
 //!
+//! **Input gradient.** For stride 1, `∂X` is the forward convolution of `∂Y`, padded by `k − 1 − p`, with the
+//! kernel turned by 180° and its channel axes swapped. burn-cubecl computes it as a transposed convolution whose
+//! direct kernel took 9× the forward convolution's time for the same products (lavapipe, `docs/performance.md`);
+//! [`conv2d_x_grad`] calls the forward convolution instead.
+//!
+//! **Weight gradient.**
 //! For a stride-1 convolution `Y = W ⋆ X` with zero padding `p`, `∂W[o, c, i, j] = Σ_{n,y,x} ∂Y[n, o, y, x] ·
 //! Xp[n, c, y + i, x + j]`, Xp the padded input. With the im2col matrix `col[n, y, x, (c, i, j)] = Xp[n, c, y + i,
 //! x + j]` (position-major, so that a run of whole output rows is a contiguous block of rows), that is `∂W =
@@ -17,6 +23,49 @@ use super::super::{primitive, stock, tensor};
 /// piece). 1024 positions make a 128 × 128 plane 16 pieces, so a batch of 8 gives a 128-batch matmul: enough
 /// independent tiles for a GPU's streaming multiprocessors while each still multiplies a 1024-long panel.
 pub const PIECE_POSITIONS: usize = 1024;
+
+/// ∂L/∂x of a stride-1, dilation-1, one-group convolution with zero padding `p ≤ k − 1` (every convolution of the
+/// network): the forward convolution of the output gradient by the turned, transposed kernel; any other goes to
+/// the backend's own kernel.
+pub fn conv2d_x_grad<B: Backend>(
+    x: FloatTensor<B>,
+    weight: FloatTensor<B>,
+    output_grad: FloatTensor<B>,
+    options: ConvOptions<2>,
+) -> FloatTensor<B> {
+    let [_, _, kh, kw] = tensor::<B, 4>(weight.clone()).dims();
+    let [ph, pw] = options.padding;
+    if options.stride != [1, 1]
+        || options.dilation != [1, 1]
+        || options.groups != 1
+        || ph >= kh
+        || pw >= kw
+    {
+        return B::conv2d_x_backward(x, weight, output_grad, options);
+    }
+    x_grad_by_forward_conv::<B>(weight, output_grad, [kh, kw], [ph, pw])
+}
+
+/// ∂L/∂x (coarse) of `conv3×3(nearest×2(x))`: the input gradient on the fine grid, each 2 × 2 block summed.
+pub fn upsample_conv2d_x_grad<B: Backend>(
+    weight: FloatTensor<B>,
+    output_grad: FloatTensor<B>,
+) -> FloatTensor<B> {
+    let [_, _, kh, kw] = tensor::<B, 4>(weight.clone()).dims();
+    let fine = x_grad_by_forward_conv::<B>(weight, output_grad, [kh, kw], [1, 1]);
+    primitive(stock::sum_2x2_blocks(tensor::<B, 4>(fine)))
+}
+
+fn x_grad_by_forward_conv<B: Backend>(
+    weight: FloatTensor<B>,
+    output_grad: FloatTensor<B>,
+    [kh, kw]: [usize; 2],
+    [ph, pw]: [usize; 2],
+) -> FloatTensor<B> {
+    let turned = tensor::<B, 4>(weight).swap_dims(0, 1).flip([2, 3]);
+    let options = ConvOptions::new([1, 1], [kh - 1 - ph, kw - 1 - pw], [1, 1], 1);
+    B::conv2d(output_grad, primitive(turned), None, options)
+}
 
 /// ∂L/∂weight of a stride-1, dilation-1, one-group convolution with symmetric zero padding (every convolution of
 /// the network); any other convolution goes to the backend's own kernel.

@@ -78,8 +78,11 @@ macro_rules! cubecl_train_ops {
                 options: ConvOptions<2>,
             ) -> FloatTensor<Self> {
                 let device = Self::float_device(&x);
-                timed_synced::<Self, _>(Kernel::ConvInputGrad, &device, || {
-                    Self::conv2d_x_backward(x, weight, output_grad, options)
+                timed_synced::<Self, _>(Kernel::ConvInputGrad, &device, || match conv_backward() {
+                    ConvBackward::Gemm => {
+                        conv::conv2d_x_grad::<Self>(x, weight, output_grad, options)
+                    }
+                    ConvBackward::Stock => Self::conv2d_x_backward(x, weight, output_grad, options),
                 })
             }
 
@@ -118,7 +121,14 @@ macro_rules! cubecl_train_ops {
             ) -> FloatTensor<Self> {
                 let device = Self::float_device(&x);
                 timed_synced::<Self, _>(Kernel::UpConvInputGrad, &device, || {
-                    stock::upsample_conv2d_x_grad::<Self>(x, weight, output_grad)
+                    match conv_backward() {
+                        ConvBackward::Gemm => {
+                            conv::upsample_conv2d_x_grad::<Self>(weight, output_grad)
+                        }
+                        ConvBackward::Stock => {
+                            stock::upsample_conv2d_x_grad::<Self>(x, weight, output_grad)
+                        }
+                    }
                 })
             }
 
