@@ -32,7 +32,7 @@ pub struct BenchReport {
     pub forward_ms: f64,
     pub backward_ms: f64,
     pub optimizer_ms: f64,
-    /// The CubeCL backends' convolution weight-gradient kernel in force (Flex runs its own whatever it says).
+    /// The CubeCL backends' convolution gradient kernels in force (Flex runs its own whatever it says).
     pub conv_backward: &'static str,
     /// Time per step inside each kernel (forward and backward), from separate profiled steps after the timed ones:
     /// on a GPU each kernel is timed with the device synced around it, so these steps run slower than the timed.
@@ -152,12 +152,13 @@ pub fn bench<B: TrainBackend>(
     }
 }
 
-/// One round of [`compare_conv_backward`]: the stock weight gradients, then the matmul ones, back to back.
+/// One round of [`compare_conv_backward`]: the stock convolution gradients and the rewritten ones, back to back
+/// (stock first in even rounds, the rewrites first in odd ones).
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct ConvBackwardRound {
     pub stock_samples_per_s: f64,
     pub gemm_samples_per_s: f64,
-    /// gemm / stock samples/s (> 1: the matmul weight gradients make the step faster).
+    /// gemm / stock samples/s (> 1: the rewritten gradients make the step faster).
     pub ratio: f64,
 }
 
@@ -171,7 +172,7 @@ pub struct ConvBackwardComparison {
     pub median_ratio: f64,
 }
 
-/// Alternate [`bench()`] with the stock and the matmul convolution weight gradients ([`ConvBackward`]) `rounds`
+/// Alternate [`bench()`] with the stock and the rewritten convolution gradients ([`ConvBackward`]) `rounds`
 /// times in one process, so both see the same machine state: the before and after of the CubeCL backends'
 /// kernels. On Flex both arms run Flex's own kernels (a check of the bench's noise).
 ///
@@ -189,11 +190,19 @@ pub fn compare_conv_backward<B: TrainBackend>(
     let chosen = conv_backward();
     let mut results = Vec::new();
     let mut last = None;
-    for _ in 0..rounds.max(1) {
-        let [stock, gemm] = [ConvBackward::Stock, ConvBackward::Gemm].map(|kind| {
+    for round in 0..rounds.max(1) {
+        let run = |kind| {
             set_conv_backward(kind);
             bench::<B>(backend_name, model, batch_size, base_width, iters, device)
-        });
+        };
+        // Which side goes first alternates, so neither always meets the device warmer.
+        let (stock, gemm) = if round.is_multiple_of(2) {
+            let stock = run(ConvBackward::Stock);
+            (stock, run(ConvBackward::Gemm))
+        } else {
+            let gemm = run(ConvBackward::Gemm);
+            (run(ConvBackward::Stock), gemm)
+        };
         results.push(ConvBackwardRound {
             stock_samples_per_s: stock.train_step_samples_per_s,
             gemm_samples_per_s: gemm.train_step_samples_per_s,
@@ -202,14 +211,24 @@ pub fn compare_conv_backward<B: TrainBackend>(
         last = Some((stock, gemm));
     }
     set_conv_backward(chosen);
-    let mut ratios: Vec<f64> = results.iter().map(|r| r.ratio).collect();
-    ratios.sort_by(f64::total_cmp);
     let (stock, gemm) = last.expect("at least one round");
     ConvBackwardComparison {
         stock,
         gemm,
+        median_ratio: median(results.iter().map(|r| r.ratio)),
         rounds: results,
-        median_ratio: ratios[ratios.len() / 2],
+    }
+}
+
+/// The median (of an even count, the mean of the middle two).
+fn median(values: impl Iterator<Item = f64>) -> f64 {
+    let mut sorted: Vec<f64> = values.collect();
+    sorted.sort_by(f64::total_cmp);
+    let mid = sorted.len() / 2;
+    if sorted.len().is_multiple_of(2) {
+        (sorted[mid - 1] + sorted[mid]) / 2.0
+    } else {
+        sorted[mid]
     }
 }
 
@@ -320,13 +339,21 @@ pub fn compare_with_torch<B: TrainBackend>(
         });
         last = Some((torch, g2r));
     }
-    let mut ratios: Vec<f64> = results.iter().map(|r| r.ratio).collect();
-    ratios.sort_by(f64::total_cmp);
     let (torch, g2r) = last.expect("at least one round");
     Ok(Comparison {
         torch,
         g2r,
+        median_ratio: median(results.iter().map(|r| r.ratio)),
         rounds: results,
-        median_ratio: ratios[ratios.len() / 2],
     })
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn median_of_odd_and_even_counts() {
+        assert_eq!(super::median([3.0, 1.0, 2.0].into_iter()), 2.0);
+        assert_eq!(super::median([4.0, 1.0, 3.0, 2.0].into_iter()), 2.5);
+        assert_eq!(super::median([0.8].into_iter()), 0.8);
+    }
 }

@@ -13,7 +13,8 @@
 //! - `flex/` implements it for Flex with contiguous f32 kernels, one file per operation (im2col + gemm, one pass
 //!   per channel);
 //! - `cubecl/` implements it for the CubeCL backends (CUDA, wgpu): the convolutions' weight gradients as batched
-//!   matrix products, the rest stock Burn operations (`stock`), the same math.
+//!   matrix products and input gradients as forward convolutions, the rest stock Burn operations (`stock`), the
+//!   same math.
 //!
 //! The model calls the free functions here ([`conv2d`], [`batch_norm_leaky_relu`], …) on Burn's own `Conv2d` and
 //! `BatchNorm` modules, so

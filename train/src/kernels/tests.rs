@@ -409,7 +409,7 @@ fn upsample_conv2d_matches_interpolate_then_conv() {
     assert_close("dx", fused.1.clone(), stock.1.clone(), 1e-5);
     assert_close("dW", fused.2.clone(), stock.2.clone(), 1e-5);
     assert_close("db", fused.3, stock.3, 1e-5);
-    // The stock-op defaults (CUDA's path) give the same gradients.
+    // The stock-op defaults give the same gradients.
     let inner = |t: Tensor<Ad, 4>| primitive(t.inner());
     let (x, w, dy) = (
         inner(random([3, c_in, 7, 5], 70)),
@@ -594,7 +594,7 @@ fn render_masked_mse_matches_the_stock_composition() {
         assert_close(&format!("{what}: loss"), fused.0, stock.0, 1e-6);
         assert_close(&format!("{what}: d raw"), fused.1, stock.1, 1e-6);
     }
-    // The stock-op defaults (CUDA's path) against the CPU kernels.
+    // The stock-op defaults (the CubeCL backends' path) against the CPU kernels.
     let inner = |t: Tensor<Ad, 4>| primitive(t.inner());
     let valid = random([n, 1, h, w], 103).greater_elem(-0.5).float();
     let (raw, t, i, v) = (

@@ -561,13 +561,13 @@ Measure on an idle machine; compare only figures from the same sitting."
         /// A Python interpreter with torch: run the PyTorch peer alternately with this step (model m2).
         #[arg(long, value_name = "PYTHON", conflicts_with = "compare_conv_backward")]
         torch: Option<PathBuf>,
-        /// The CubeCL backends' (cuda, wgpu) convolution weight gradient: `gemm`, im2col and batched matrix
-        /// products over pieces of the reduction, or `stock`, Burn's own (a direct convolution by a
-        /// feature-map-sized kernel, the slow path this project replaced). Flex runs its own kernels either way.
+        /// The CubeCL backends' (cuda, wgpu) convolution gradients: `gemm`, weight gradients as im2col and batched
+        /// matrix products over pieces of the reduction and input gradients as forward convolutions, or `stock`,
+        /// Burn's own (direct kernels, the slow path this project replaced). Flex runs its own kernels either way.
         #[arg(long, value_enum, default_value = "gemm")]
         conv_backward: ConvBackward,
         /// Alternate `--conv-backward stock` and `gemm` in one process and report each round's samples/s and
-        /// their ratio: the before and after of the matmul weight gradients on this machine.
+        /// their ratio: the before and after of the rewritten gradients on this machine.
         #[arg(long)]
         compare_conv_backward: bool,
         /// Alternating rounds with --torch or --compare-conv-backward.

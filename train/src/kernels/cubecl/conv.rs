@@ -3,7 +3,7 @@
 //!
 //! **Input gradient.** For stride 1, `∂X` is the forward convolution of `∂Y`, padded by `k − 1 − p`, with the
 //! kernel turned by 180° and its channel axes swapped. burn-cubecl computes it as a transposed convolution whose
-//! direct kernel took 9× the forward convolution's time for the same products (lavapipe, `docs/performance.md`);
+//! direct kernel took 10× the forward convolution's time for the same products (lavapipe, `docs/performance.md`);
 //! [`conv2d_x_grad`] calls the forward convolution instead.
 //!
 //! **Weight gradient.**
@@ -23,6 +23,9 @@ use super::super::{primitive, stock, tensor};
 /// piece). 1024 positions make a 128 × 128 plane 16 pieces, so a batch of 8 gives a 128-batch matmul: enough
 /// independent tiles for a GPU's streaming multiprocessors while each still multiplies a 1024-long panel.
 pub const PIECE_POSITIONS: usize = 1024;
+
+/// The largest im2col matrix built at once, in bytes (a larger batch is taken in groups of samples).
+pub const COL_BYTES: usize = 128 << 20;
 
 /// ∂L/∂x of a stride-1, dilation-1, one-group convolution with zero padding `p ≤ k − 1` (every convolution of the
 /// network): the forward convolution of the output gradient by the turned, transposed kernel; any other goes to
@@ -79,11 +82,12 @@ pub fn conv2d_weight_grad<B: Backend>(
         return B::conv2d_weight_backward(x, weight, output_grad, options);
     }
     let [_, _, kh, kw] = tensor::<B, 4>(weight).dims();
-    primitive(weight_grad(
+    primitive(weight_grad_by_samples(
         tensor::<B, 4>(x),
         tensor::<B, 4>(output_grad),
         [kh, kw],
         options.padding,
+        COL_BYTES,
     ))
 }
 
@@ -96,11 +100,12 @@ pub fn upsample_conv2d_weight_grad<B: Backend>(
 ) -> FloatTensor<B> {
     let [_, _, kh, kw] = tensor::<B, 4>(weight).dims();
     let fine = stock::upsample2x(tensor::<B, 4>(x));
-    primitive(weight_grad(
+    primitive(weight_grad_by_samples(
         fine,
         tensor::<B, 4>(output_grad),
         [kh, kw],
         [1, 1],
+        COL_BYTES,
     ))
 }
 
@@ -109,7 +114,7 @@ pub fn upsample_conv2d_weight_grad<B: Backend>(
 fn rows_per_piece(rows: usize, cols: usize) -> usize {
     (1..=rows)
         .rev()
-        .find(|&r| rows % r == 0 && r * cols <= PIECE_POSITIONS)
+        .find(|&r| rows.is_multiple_of(r) && r * cols <= PIECE_POSITIONS)
         .unwrap_or(1)
 }
 
@@ -153,6 +158,34 @@ fn weight_grad<B: Backend>(
         .reshape([c_out, c, kh, kw])
 }
 
+/// [`weight_grad`] over groups of samples whose im2col matrix stays under `col_bytes` ([`COL_BYTES`] in use), summed: the matrix holds
+/// `k²` copies of the input (151 MB for 32 channels at 128 × 128, batch 8), and wgpu caps one buffer at the
+/// adapter's largest storage binding, a few hundred MiB on some GPUs.
+pub(super) fn weight_grad_by_samples<B: Backend>(
+    x: Tensor<B, 4>,
+    output_grad: Tensor<B, 4>,
+    kernel: [usize; 2],
+    padding: [usize; 2],
+    col_bytes: usize,
+) -> Tensor<B, 4> {
+    let [n, c, h, w] = x.dims();
+    let per_sample = (h + 2 * padding[0]) * (w + 2 * padding[1]) * c * kernel[0] * kernel[1] * 4;
+    let group = (col_bytes / per_sample.max(1)).clamp(1, n.max(1));
+    (0..n)
+        .step_by(group)
+        .map(|start| {
+            let len = group.min(n - start);
+            weight_grad(
+                x.clone().narrow(0, start, len),
+                output_grad.clone().narrow(0, start, len),
+                kernel,
+                padding,
+            )
+        })
+        .reduce(|a, b| a + b)
+        .expect("a batch of at least one sample")
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -167,7 +200,7 @@ mod tests {
         assert_eq!(rows_per_piece(4, 2048), 1);
         for (rows, cols) in [(128, 128), (64, 64), (30, 17), (13, 11)] {
             let r = rows_per_piece(rows, cols);
-            assert!(rows % r == 0 && r * cols <= PIECE_POSITIONS.max(cols));
+            assert!(rows.is_multiple_of(r) && r * cols <= PIECE_POSITIONS.max(cols));
         }
     }
 }

@@ -1,5 +1,6 @@
-//! [`TrainOps`] for the CubeCL backends (CUDA, wgpu): the convolutions' weight gradients as matrix products, every
-//! other operation the stock one ([`super::stock`]), each timed with the device synced when profiling is on.
+//! [`TrainOps`] for the CubeCL backends (CUDA, wgpu): the convolutions' weight gradients as matrix products and
+//! their input gradients as forward convolutions ([`conv`]), every other operation the stock one
+//! ([`super::stock`]), each timed with the device synced when profiling is on.
 //!
 //! Why: without autotune, burn-cubecl 0.21 computes a convolution's weight gradient as a direct convolution of the
 //! input by the output gradient over swapped dims, a convolution whose kernel is the whole 128 × 128 feature map.
@@ -9,7 +10,8 @@
 //! instead, splits the long `N · H · W` reduction into pieces of whole rows, multiplies each piece as one batch of
 //! a batched matmul (CubeCL's tiled matmul) and sums the pieces: the same math, with parallelism over the pieces
 //! and the matmul's tiles. Autotune, which would find Burn 0.22's im2col kernels, is not needed (and took over 20 s
-//! a shape on the H200).
+//! a shape on the H200). The input gradient, a direct transposed convolution in burn-cubecl, becomes the forward
+//! convolution of the output gradient by the turned kernel ([`conv::conv2d_x_grad`]).
 //!
 //! [`set_conv_backward`] switches back to the stock kernels at run time, so `bench --compare-conv-backward` can
 //! time both in one process.
@@ -18,13 +20,15 @@ pub mod conv;
 
 use std::sync::atomic::{AtomicBool, Ordering};
 
-/// Which weight-gradient kernel the CubeCL backends run.
+/// Which convolution gradient kernels (weight and input) the CubeCL backends run.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum ConvBackward {
-    /// im2col + batched matmul over pieces of the reduction ([`conv::conv2d_weight_grad`]).
+    /// Weight gradients as im2col + batched matmul over pieces of the reduction, input gradients as forward
+    /// convolutions ([`conv`]).
     Gemm,
-    /// burn-cubecl's own (a direct convolution with a feature-map-sized kernel without autotune).
+    /// burn-cubecl's own without autotune: a direct convolution with a feature-map-sized kernel for the weight
+    /// gradient, a direct transposed convolution for the input gradient.
     Stock,
 }
 
@@ -39,7 +43,7 @@ impl ConvBackward {
 
 static STOCK: AtomicBool = AtomicBool::new(false);
 
-/// Choose the weight-gradient kernel of every CubeCL backend in this process (default [`ConvBackward::Gemm`]).
+/// Choose the convolution gradient kernels of every CubeCL backend in this process (default [`ConvBackward::Gemm`]).
 /// Flex has its own kernels and ignores it.
 pub fn set_conv_backward(kind: ConvBackward) {
     STOCK.store(kind == ConvBackward::Stock, Ordering::Relaxed);
@@ -54,7 +58,7 @@ pub fn conv_backward() -> ConvBackward {
     }
 }
 
-/// `impl TrainOps for $backend`: the weight gradients through [`conv`] (unless switched to stock), the rest
+/// `impl TrainOps for $backend`: the convolution gradients through [`conv`] (unless switched to stock), the rest
 /// stock, each call timed with the device synced while [`super::profile`] is on.
 macro_rules! cubecl_train_ops {
     ($backend:ty) => {

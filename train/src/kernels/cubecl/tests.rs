@@ -14,6 +14,7 @@ use burn::tensor::ops::{ConvOptions, FloatTensor, ModuleOps};
 use super::super::{primitive, stock, tensor};
 use super::conv::{
     conv2d_weight_grad, conv2d_x_grad, upsample_conv2d_weight_grad, upsample_conv2d_x_grad,
+    weight_grad_by_samples,
 };
 
 const TOLERANCE: f32 = 1e-5;
@@ -197,6 +198,23 @@ fn other_convolutions_go_to_the_backend_kernels() {
     );
 }
 
+/// A batch whose im2col matrix passes the byte bound is taken in groups of samples (here one sample, then two,
+/// with a remainder) and gives the same gradient as in one piece.
+#[test]
+fn weight_grad_in_groups_of_samples_matches_the_whole_batch() {
+    let device = Default::default();
+    let x = random::<Flex, 4>([5, 3, 12, 10], 100, &device);
+    let dy = random::<Flex, 4>([5, 4, 12, 10], 101, &device);
+    let per_sample = 14 * 12 * 3 * 9 * 4;
+    let whole = weight_grad_by_samples(x.clone(), dy.clone(), [3, 3], [1, 1], usize::MAX);
+    for samples in [1, 2] {
+        let grouped =
+            weight_grad_by_samples(x.clone(), dy.clone(), [3, 3], [1, 1], samples * per_sample);
+        let d = relative_difference(&values(grouped), &values(whole.clone()));
+        assert!(d <= TOLERANCE, "groups of {samples}: {d:e}");
+    }
+}
+
 #[cfg(feature = "wgpu")]
 mod wgpu {
     use super::*;
@@ -205,6 +223,42 @@ mod wgpu {
     #[test]
     fn gradients_match_wgpu_own() {
         assert_within_tolerance("wgpu", &gradient_differences::<Wgpu>(&Default::default()));
+    }
+
+    /// `TrainOps` on wgpu runs the rewrites unless switched to stock (no test switches it: the switch is
+    /// process-wide): its weight and input gradients are the rewrites' to the bit.
+    #[test]
+    fn wgpu_train_ops_run_the_rewrites() {
+        use super::super::super::TrainOps;
+        let device = Default::default();
+        let options = ConvOptions::new([1, 1], [1, 1], [1, 1], 1);
+        let x = random::<Wgpu, 4>([2, 3, 10, 9], 110, &device);
+        let weight = random::<Wgpu, 4>([4, 3, 3, 3], 111, &device);
+        let dy = random::<Wgpu, 4>([2, 4, 10, 9], 112, &device);
+        let bits = |t: FloatTensor<Wgpu>| values(tensor::<Wgpu, 4>(t));
+        assert_eq!(
+            bits(Wgpu::train_conv2d_weight_grad(
+                p(&x),
+                p(&weight),
+                p(&dy),
+                options.clone()
+            )),
+            bits(conv2d_weight_grad::<Wgpu>(
+                p(&x),
+                p(&weight),
+                p(&dy),
+                options.clone()
+            ))
+        );
+        assert_eq!(
+            bits(Wgpu::train_conv2d_x_grad(
+                p(&x),
+                p(&weight),
+                p(&dy),
+                options.clone()
+            )),
+            bits(conv2d_x_grad::<Wgpu>(p(&x), p(&weight), p(&dy), options))
+        );
     }
 
     /// The same inputs on wgpu (the rewrites) and on Flex (its own kernels) give the same gradients: the
