@@ -35,6 +35,8 @@ use burn::tensor::backend::AutodiffBackend;
 use burn::tensor::ops::{ConvOptions, FloatTensor, IntTensor};
 use burn::tensor::TensorPrimitive;
 
+use profile::{timed_synced, Kernel};
+
 /// Output of the fused training-mode BatchNorm + LeakyReLU: the activation and the batch statistics that update
 /// the running ones (`var` biased, as Burn's BatchNorm uses it for both normalisation and running variance).
 #[derive(Debug, Clone)]
@@ -76,8 +78,8 @@ pub struct NormGrads<B: Backend> {
     pub beta: FloatTensor<B>,
 }
 
-/// The train step's hot operations. Defaults are stock Burn operations ([`stock`]); a backend overrides what
-/// it can do faster. Inputs are `[N, C, H, W]`, `gamma`/`beta` `[C]`.
+/// The train step's hot operations. Defaults are stock Burn operations ([`stock`]), each timed with the device
+/// synced while [`profile`] is on; a backend overrides what it can do faster. Inputs are `[N, C, H, W]`, `gamma`/`beta` `[C]`.
 pub trait TrainOps: Backend {
     /// Convolution forward (the stock one unless overridden). `Autodiff` makes it a graph node whose backward
     /// calls the gradient methods below on the inner backend.
@@ -87,7 +89,10 @@ pub trait TrainOps: Backend {
         bias: Option<FloatTensor<Self>>,
         options: ConvOptions<2>,
     ) -> FloatTensor<Self> {
-        Self::conv2d(x, weight, bias, options)
+        let device = Self::float_device(&x);
+        timed_synced::<Self, _>(Kernel::ConvForward, &device, || {
+            Self::conv2d(x, weight, bias, options)
+        })
     }
 
     /// ∂L/∂x of a convolution, given ∂L/∂output.
@@ -97,7 +102,10 @@ pub trait TrainOps: Backend {
         output_grad: FloatTensor<Self>,
         options: ConvOptions<2>,
     ) -> FloatTensor<Self> {
-        Self::conv2d_x_backward(x, weight, output_grad, options)
+        let device = Self::float_device(&x);
+        timed_synced::<Self, _>(Kernel::ConvInputGrad, &device, || {
+            Self::conv2d_x_backward(x, weight, output_grad, options)
+        })
     }
 
     /// ∂L/∂weight of a convolution.
@@ -107,7 +115,10 @@ pub trait TrainOps: Backend {
         output_grad: FloatTensor<Self>,
         options: ConvOptions<2>,
     ) -> FloatTensor<Self> {
-        Self::conv2d_weight_backward(x, weight, output_grad, options)
+        let device = Self::float_device(&x);
+        timed_synced::<Self, _>(Kernel::ConvWeightGrad, &device, || {
+            Self::conv2d_weight_backward(x, weight, output_grad, options)
+        })
     }
 
     /// `conv3×3(nearest×2(x)) + bias` (stride 1, padding 1): the U-Net's up convolution, `[N, C, h, w]` →
@@ -117,7 +128,10 @@ pub trait TrainOps: Backend {
         weight: FloatTensor<Self>,
         bias: Option<FloatTensor<Self>>,
     ) -> FloatTensor<Self> {
-        stock::upsample_conv2d::<Self>(x, weight, bias)
+        let device = Self::float_device(&x);
+        timed_synced::<Self, _>(Kernel::UpConvForward, &device, || {
+            stock::upsample_conv2d::<Self>(x, weight, bias)
+        })
     }
 
     /// ∂L/∂x (coarse) of [`TrainOps::train_upsample_conv2d`].
@@ -126,7 +140,10 @@ pub trait TrainOps: Backend {
         weight: FloatTensor<Self>,
         output_grad: FloatTensor<Self>,
     ) -> FloatTensor<Self> {
-        stock::upsample_conv2d_x_grad::<Self>(x, weight, output_grad)
+        let device = Self::float_device(&x);
+        timed_synced::<Self, _>(Kernel::UpConvInputGrad, &device, || {
+            stock::upsample_conv2d_x_grad::<Self>(x, weight, output_grad)
+        })
     }
 
     /// ∂L/∂weight of [`TrainOps::train_upsample_conv2d`].
@@ -135,17 +152,26 @@ pub trait TrainOps: Backend {
         weight: FloatTensor<Self>,
         output_grad: FloatTensor<Self>,
     ) -> FloatTensor<Self> {
-        stock::upsample_conv2d_weight_grad::<Self>(x, weight, output_grad)
+        let device = Self::float_device(&x);
+        timed_synced::<Self, _>(Kernel::UpConvWeightGrad, &device, || {
+            stock::upsample_conv2d_weight_grad::<Self>(x, weight, output_grad)
+        })
     }
 
     /// ∂L/∂bias of a convolution: the output gradient summed over batch and positions, `[C_out]`.
     fn train_conv2d_bias_grad(output_grad: FloatTensor<Self>) -> FloatTensor<Self> {
-        stock::channel_sums::<Self>(output_grad)
+        let device = Self::float_device(&output_grad);
+        timed_synced::<Self, _>(Kernel::ConvBiasGrad, &device, || {
+            stock::channel_sums::<Self>(output_grad)
+        })
     }
 
     /// Inverted dropout (training): `x · mask / (1 − prob)` with a keep mask drawn from the backend's seeded RNG.
     fn dropout(x: FloatTensor<Self>, prob: f64) -> DropoutOutput<Self> {
-        stock::dropout::<Self>(x, prob)
+        let device = Self::float_device(&x);
+        timed_synced::<Self, _>(Kernel::DropoutForward, &device, || {
+            stock::dropout::<Self>(x, prob)
+        })
     }
 
     /// ∂L/∂x of [`TrainOps::dropout`]: `∂y · mask / (1 − prob)`.
@@ -154,12 +180,18 @@ pub trait TrainOps: Backend {
         mask: FloatTensor<Self>,
         prob: f64,
     ) -> FloatTensor<Self> {
-        stock::dropout_backward::<Self>(output_grad, mask, prob)
+        let device = Self::float_device(&output_grad);
+        timed_synced::<Self, _>(Kernel::DropoutBackward, &device, || {
+            stock::dropout_backward::<Self>(output_grad, mask, prob)
+        })
     }
 
     /// 2 × 2 max-pool with stride 2 (floor mode): the output and the backend's record of where each maximum was.
     fn max_pool2x2(x: FloatTensor<Self>) -> MaxPoolOutput<Self> {
-        stock::max_pool2x2::<Self>(x)
+        let device = Self::float_device(&x);
+        timed_synced::<Self, _>(Kernel::PoolForward, &device, || {
+            stock::max_pool2x2::<Self>(x)
+        })
     }
 
     /// ∂L/∂x of [`TrainOps::max_pool2x2`]: each output gradient goes to its window's maximum.
@@ -168,7 +200,10 @@ pub trait TrainOps: Backend {
         output_grad: FloatTensor<Self>,
         argmax: IntTensor<Self>,
     ) -> FloatTensor<Self> {
-        stock::max_pool2x2_backward::<Self>(x, output_grad, argmax)
+        let device = Self::float_device(&x);
+        timed_synced::<Self, _>(Kernel::PoolBackward, &device, || {
+            stock::max_pool2x2_backward::<Self>(x, output_grad, argmax)
+        })
     }
 
     /// `[LeakyReLU(a), b]` joined along channels (`[N, Ca, H, W]`, `[N, Cb, H, W]` → `[N, Ca + Cb, H, W]`): the
@@ -181,7 +216,10 @@ pub trait TrainOps: Backend {
         b: FloatTensor<Self>,
         slope: f64,
     ) -> FloatTensor<Self> {
-        stock::join_channels::<Self>(a, b, slope)
+        let device = Self::float_device(&a);
+        timed_synced::<Self, _>(Kernel::JoinChannels, &device, || {
+            stock::join_channels::<Self>(a, b, slope)
+        })
     }
 
     /// The gradients of [`TrainOps::train_join_channels`] for `a` and `b` from the output's gradient.
@@ -190,7 +228,10 @@ pub trait TrainOps: Backend {
         grad: FloatTensor<Self>,
         slope: f64,
     ) -> (FloatTensor<Self>, FloatTensor<Self>) {
-        stock::join_channels_backward::<Self>(a, grad, slope)
+        let device = Self::float_device(&a);
+        timed_synced::<Self, _>(Kernel::JoinChannelsBackward, &device, || {
+            stock::join_channels_backward::<Self>(a, grad, slope)
+        })
     }
 
     /// The renderer layer's masked MSE from raw parameter maps `[N, P, H, W]`, the scene's terms (same shape),
@@ -204,7 +245,10 @@ pub trait TrainOps: Backend {
         valid: FloatTensor<Self>,
         slope: f64,
     ) -> RenderLoss<Self> {
-        stock::render_masked_mse::<Self>(raw, terms, image, valid, slope)
+        let device = Self::float_device(&raw);
+        timed_synced::<Self, _>(Kernel::RenderLoss, &device, || {
+            stock::render_masked_mse::<Self>(raw, terms, image, valid, slope)
+        })
     }
 
     /// ∂L/∂raw of [`TrainOps::render_masked_mse`], given the loss's incoming gradient `loss_grad` (`[1]`).
@@ -215,7 +259,10 @@ pub trait TrainOps: Backend {
         loss_grad: FloatTensor<Self>,
         slope: f64,
     ) -> FloatTensor<Self> {
-        stock::render_masked_mse_backward::<Self>(raw, terms, residual, loss_grad, slope)
+        let device = Self::float_device(&raw);
+        timed_synced::<Self, _>(Kernel::RenderLossBackward, &device, || {
+            stock::render_masked_mse_backward::<Self>(raw, terms, residual, loss_grad, slope)
+        })
     }
 
     /// Training-mode BatchNorm (batch statistics) followed by LeakyReLU with `slope`.
@@ -226,7 +273,10 @@ pub trait TrainOps: Backend {
         epsilon: f64,
         slope: f64,
     ) -> NormOutput<Self> {
-        stock::batch_norm_leaky_relu::<Self>(x, gamma, beta, epsilon, slope)
+        let device = Self::float_device(&x);
+        timed_synced::<Self, _>(Kernel::NormForward, &device, || {
+            stock::batch_norm_leaky_relu::<Self>(x, gamma, beta, epsilon, slope)
+        })
     }
 
     /// Inference-mode BatchNorm (running statistics `mean`, `var`, `[C]`) followed by LeakyReLU with `slope`:
@@ -241,7 +291,12 @@ pub trait TrainOps: Backend {
         epsilon: f64,
         slope: f64,
     ) -> FloatTensor<Self> {
-        stock::batch_norm_leaky_relu_inference::<Self>(x, gamma, beta, mean, var, epsilon, slope)
+        let device = Self::float_device(&x);
+        timed_synced::<Self, _>(Kernel::NormInference, &device, || {
+            stock::batch_norm_leaky_relu_inference::<Self>(
+                x, gamma, beta, mean, var, epsilon, slope,
+            )
+        })
     }
 
     /// Backward of [`TrainOps::batch_norm_leaky_relu`] given the forward's input, parameters, statistics and
@@ -260,16 +315,19 @@ pub trait TrainOps: Backend {
         slope: f64,
     ) -> NormGrads<Self> {
         let _ = beta;
-        stock::batch_norm_leaky_relu_backward::<Self>(
-            x,
-            gamma,
-            mean,
-            var,
-            output,
-            output_grad,
-            epsilon,
-            slope,
-        )
+        let device = Self::float_device(&x);
+        timed_synced::<Self, _>(Kernel::NormBackward, &device, || {
+            stock::batch_norm_leaky_relu_backward::<Self>(
+                x,
+                gamma,
+                mean,
+                var,
+                output,
+                output_grad,
+                epsilon,
+                slope,
+            )
+        })
     }
 }
 

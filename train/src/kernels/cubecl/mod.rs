@@ -1,6 +1,6 @@
 //! [`TrainOps`] for the CubeCL backends (CUDA, wgpu): the convolutions' weight gradients as matrix products and
-//! their input gradients as forward convolutions ([`conv`]), every other operation the stock one
-//! ([`super::stock`]), each timed with the device synced when profiling is on.
+//! their input gradients as forward convolutions ([`conv`]); every other operation is the trait's default (stock
+//! Burn operations, timed with the device synced when profiling is on).
 //!
 //! Why: without autotune, burn-cubecl 0.21 computes a convolution's weight gradient as a direct convolution of the
 //! input by the output gradient over swapped dims, a convolution whose kernel is the whole 128 × 128 feature map.
@@ -58,23 +58,11 @@ pub fn conv_backward() -> ConvBackward {
     }
 }
 
-/// `impl TrainOps for $backend`: the convolution gradients through [`conv`] (unless switched to stock), the rest
-/// stock, each call timed with the device synced while [`super::profile`] is on.
+/// `impl TrainOps for $backend`: the four convolution gradients through [`conv`] unless switched to stock, the
+/// rest the trait's defaults.
 macro_rules! cubecl_train_ops {
     ($backend:ty) => {
-        impl $crate::kernels::TrainOps for $backend {
-            fn train_conv2d(
-                x: FloatTensor<Self>,
-                weight: FloatTensor<Self>,
-                bias: Option<FloatTensor<Self>>,
-                options: ConvOptions<2>,
-            ) -> FloatTensor<Self> {
-                let device = Self::float_device(&x);
-                timed_synced::<Self, _>(Kernel::ConvForward, &device, || {
-                    Self::conv2d(x, weight, bias, options)
-                })
-            }
-
+        impl TrainOps for $backend {
             fn train_conv2d_x_grad(
                 x: FloatTensor<Self>,
                 weight: FloatTensor<Self>,
@@ -104,17 +92,6 @@ macro_rules! cubecl_train_ops {
                     ConvBackward::Stock => {
                         Self::conv2d_weight_backward(x, weight, output_grad, options)
                     }
-                })
-            }
-
-            fn train_upsample_conv2d(
-                x: FloatTensor<Self>,
-                weight: FloatTensor<Self>,
-                bias: Option<FloatTensor<Self>>,
-            ) -> FloatTensor<Self> {
-                let device = Self::float_device(&x);
-                timed_synced::<Self, _>(Kernel::UpConvForward, &device, || {
-                    stock::upsample_conv2d::<Self>(x, weight, bias)
                 })
             }
 
@@ -153,165 +130,16 @@ macro_rules! cubecl_train_ops {
                     }
                 })
             }
-
-            fn train_conv2d_bias_grad(output_grad: FloatTensor<Self>) -> FloatTensor<Self> {
-                let device = Self::float_device(&output_grad);
-                timed_synced::<Self, _>(Kernel::ConvBiasGrad, &device, || {
-                    stock::channel_sums::<Self>(output_grad)
-                })
-            }
-
-            fn dropout(x: FloatTensor<Self>, prob: f64) -> DropoutOutput<Self> {
-                let device = Self::float_device(&x);
-                timed_synced::<Self, _>(Kernel::DropoutForward, &device, || {
-                    stock::dropout::<Self>(x, prob)
-                })
-            }
-
-            fn dropout_backward(
-                output_grad: FloatTensor<Self>,
-                mask: FloatTensor<Self>,
-                prob: f64,
-            ) -> FloatTensor<Self> {
-                let device = Self::float_device(&output_grad);
-                timed_synced::<Self, _>(Kernel::DropoutBackward, &device, || {
-                    stock::dropout_backward::<Self>(output_grad, mask, prob)
-                })
-            }
-
-            fn max_pool2x2(x: FloatTensor<Self>) -> MaxPoolOutput<Self> {
-                let device = Self::float_device(&x);
-                timed_synced::<Self, _>(Kernel::PoolForward, &device, || {
-                    stock::max_pool2x2::<Self>(x)
-                })
-            }
-
-            fn max_pool2x2_backward(
-                x: FloatTensor<Self>,
-                output_grad: FloatTensor<Self>,
-                argmax: IntTensor<Self>,
-            ) -> FloatTensor<Self> {
-                let device = Self::float_device(&x);
-                timed_synced::<Self, _>(Kernel::PoolBackward, &device, || {
-                    stock::max_pool2x2_backward::<Self>(x, output_grad, argmax)
-                })
-            }
-
-            fn train_join_channels(
-                a: FloatTensor<Self>,
-                b: FloatTensor<Self>,
-                slope: f64,
-            ) -> FloatTensor<Self> {
-                let device = Self::float_device(&a);
-                timed_synced::<Self, _>(Kernel::JoinChannels, &device, || {
-                    stock::join_channels::<Self>(a, b, slope)
-                })
-            }
-
-            fn train_join_channels_backward(
-                a: FloatTensor<Self>,
-                grad: FloatTensor<Self>,
-                slope: f64,
-            ) -> (FloatTensor<Self>, FloatTensor<Self>) {
-                let device = Self::float_device(&a);
-                timed_synced::<Self, _>(Kernel::JoinChannelsBackward, &device, || {
-                    stock::join_channels_backward::<Self>(a, grad, slope)
-                })
-            }
-
-            fn render_masked_mse(
-                raw: FloatTensor<Self>,
-                terms: FloatTensor<Self>,
-                image: FloatTensor<Self>,
-                valid: FloatTensor<Self>,
-                slope: f64,
-            ) -> RenderLoss<Self> {
-                let device = Self::float_device(&raw);
-                timed_synced::<Self, _>(Kernel::RenderLoss, &device, || {
-                    stock::render_masked_mse::<Self>(raw, terms, image, valid, slope)
-                })
-            }
-
-            fn render_masked_mse_backward(
-                raw: FloatTensor<Self>,
-                terms: FloatTensor<Self>,
-                residual: FloatTensor<Self>,
-                loss_grad: FloatTensor<Self>,
-                slope: f64,
-            ) -> FloatTensor<Self> {
-                let device = Self::float_device(&raw);
-                timed_synced::<Self, _>(Kernel::RenderLossBackward, &device, || {
-                    stock::render_masked_mse_backward::<Self>(
-                        raw, terms, residual, loss_grad, slope,
-                    )
-                })
-            }
-
-            fn batch_norm_leaky_relu(
-                x: FloatTensor<Self>,
-                gamma: FloatTensor<Self>,
-                beta: FloatTensor<Self>,
-                epsilon: f64,
-                slope: f64,
-            ) -> NormOutput<Self> {
-                let device = Self::float_device(&x);
-                timed_synced::<Self, _>(Kernel::NormForward, &device, || {
-                    stock::batch_norm_leaky_relu::<Self>(x, gamma, beta, epsilon, slope)
-                })
-            }
-
-            fn batch_norm_leaky_relu_inference(
-                x: FloatTensor<Self>,
-                gamma: FloatTensor<Self>,
-                beta: FloatTensor<Self>,
-                mean: FloatTensor<Self>,
-                var: FloatTensor<Self>,
-                epsilon: f64,
-                slope: f64,
-            ) -> FloatTensor<Self> {
-                let device = Self::float_device(&x);
-                timed_synced::<Self, _>(Kernel::NormInference, &device, || {
-                    stock::batch_norm_leaky_relu_inference::<Self>(
-                        x, gamma, beta, mean, var, epsilon, slope,
-                    )
-                })
-            }
-
-            fn batch_norm_leaky_relu_backward(
-                x: FloatTensor<Self>,
-                gamma: FloatTensor<Self>,
-                _beta: FloatTensor<Self>,
-                mean: FloatTensor<Self>,
-                var: FloatTensor<Self>,
-                output: FloatTensor<Self>,
-                output_grad: FloatTensor<Self>,
-                epsilon: f64,
-                slope: f64,
-            ) -> NormGrads<Self> {
-                let device = Self::float_device(&x);
-                timed_synced::<Self, _>(Kernel::NormBackward, &device, || {
-                    stock::batch_norm_leaky_relu_backward::<Self>(
-                        x,
-                        gamma,
-                        mean,
-                        var,
-                        output,
-                        output_grad,
-                        epsilon,
-                        slope,
-                    )
-                })
-            }
         }
     };
 }
 
 #[cfg(any(feature = "cuda", feature = "wgpu"))]
 mod backends {
-    use burn::tensor::ops::{ConvOptions, FloatTensor, FloatTensorOps, IntTensor, ModuleOps};
+    use burn::tensor::ops::{ConvOptions, FloatTensor, FloatTensorOps, ModuleOps};
 
     use super::super::profile::{timed_synced, Kernel};
-    use super::super::{stock, DropoutOutput, MaxPoolOutput, NormGrads, NormOutput, RenderLoss};
+    use super::super::{stock, TrainOps};
     use super::{conv, conv_backward, ConvBackward};
 
     #[cfg(feature = "cuda")]
