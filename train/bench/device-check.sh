@@ -3,7 +3,8 @@
 # The device has CUDA and PyTorch but no Rust toolchain and no GDAL, so everything it runs is built here.
 #
 #   bash train/bench/device-check.sh prepare   # here: a release g2r-train with CUDA, the libraries it loads that
-#                                              # are not glibc's, and the demo dataset, packed into out/device/
+#                                              # are not glibc's, and a small dataset of the demo world
+#                                              # (manifests/device.toml), packed into out/device/
 #   bash train/bench/device-check.sh run       # on the device, e.g. through the device tool with carry
 #                                              # ["out/device"]: writes every figure under $OUT (default out/device-check)
 #
@@ -12,13 +13,14 @@
 #   1. `bench --compare-conv-backward` at width 16, batch 8: Burn's convolution gradients against the rewritten
 #      ones (kernels::cubecl), alternating, with the synced per-kernel split of each;
 #   2. `bench --torch python3` at widths 16 and 8, alternating rounds with PyTorch;
-#   3. a CubeCL profile of a few width-16 steps (a cubecl.toml asks for its log on stderr);
+#   3. a CubeCL profile of a few width-16 steps, kernel names and times (a cubecl.toml asks for its log on stderr);
 #   4. a 500-step fit of the shipped recipe (H1, width 8, elevation + context, EMA) on cuda and on flex from the
 #      same seed, `eval` of each on its own backend, and of the cuda run on flex.
 # Settings: STEPS (500), BUDGET (540), BACKEND (cuda; `wgpu` or `flex` rehearse the script on a machine without a
 # GPU, with the torch steps skipped unless TORCH is set; REHEARSAL=1 also shrinks every bench to width 4, batch 2,
 # one step and one round, and the fits to 3 steps). For a rehearsal `prepare` takes G2R_TRAIN, a g2r-train already
-# built (e.g. target/debug/g2r-train of a `--features wgpu` test build), instead of building.
+# built (e.g. target/debug/g2r-train of a `--features wgpu` test build), instead of building, and MAX_MIB (64)
+# for a debug binary's larger pack.
 set -uo pipefail
 [ -n "${G2R_TRAIN:-}" ] && G2R_TRAIN=$(realpath "$G2R_TRAIN")
 [ -n "${OUT:-}" ] && mkdir -p "$OUT" && OUT=$(realpath "$OUT")
@@ -34,10 +36,11 @@ prepare() {
     cargo build --release --locked -p g2r-train --features cuda
     binary=target/release/g2r-train
   fi
-  local data=out/demo-dataset/dataset
+  local data=out/device-dataset/dataset
   if [ ! -f "$data/manifest.json" ]; then
-    cargo run --release --locked -p g2r-pipeline -- synth --preset demo --seed 42 --out out/demo-world --force
-    cargo run --release --locked -p g2r-pipeline -- run manifests/demo.toml
+    [ -f out/demo-world/world.json ] ||
+      cargo run --release --locked -p g2r-pipeline -- synth --preset demo --seed 42 --out out/demo-world --force
+    cargo run --release --locked -p g2r-pipeline -- run manifests/device.toml
   fi
   rm -rf "$PACK" && mkdir -p "$PACK/stage/bin" "$PACK/stage/lib"
   strip -o "$PACK/stage/bin/g2r-train" "$binary"
@@ -49,7 +52,7 @@ prepare() {
   rm -rf "$PACK/stage"
   local mib=$(( $(stat -c %s "$PACK/pack.tar.xz") / 1048576 ))
   echo "device-check: $PACK/pack.tar.xz is ${mib} MiB (the device tool carries 64 MiB in all)" >&2
-  [ "$mib" -lt 64 ] || { echo "device-check: too large to carry: use a smaller dataset" >&2; exit 1; }
+  [ "$mib" -lt "${MAX_MIB:-64}" ] || { echo "device-check: too large to carry: use a smaller dataset" >&2; exit 1; }
 }
 
 run() {
@@ -83,7 +86,7 @@ run() {
     done
   fi
   # CubeCL reads cubecl.toml from the working directory: its profile log (kernel names and times) on stderr.
-  mkdir -p "$work/profile" && printf '[profiling.logger]\nlevel = "basic"\nstderr = true\n' >"$work/profile/cubecl.toml"
+  mkdir -p "$work/profile" && printf '[profiling.logger]\nlevel = "medium"\nstderr = true\n' >"$work/profile/cubecl.toml"
   (cd "$work/profile" && step cubecl-profile-w"${widths[0]}" 60 "${bench[@]}" --width "${widths[0]}" --iters 2)
   gzip -f "$out/cubecl-profile-w${widths[0]}.log"
 
