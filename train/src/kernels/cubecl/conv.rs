@@ -158,9 +158,10 @@ fn weight_grad<B: Backend>(
         .reshape([c_out, c, kh, kw])
 }
 
-/// [`weight_grad`] over groups of samples whose im2col matrix stays under `col_bytes` ([`COL_BYTES`] in use), summed: the matrix holds
-/// `k²` copies of the input (151 MB for 32 channels at 128 × 128, batch 8), and wgpu caps one buffer at the
-/// adapter's largest storage binding, a few hundred MiB on some GPUs.
+/// [`weight_grad`] over groups of samples whose im2col matrix stays under `col_bytes` ([`COL_BYTES`] in use),
+/// summed: the matrix holds `k²` copies of the input (151 MB for 32 channels at 128 × 128, batch 8), and wgpu caps
+/// one buffer at the adapter's largest storage binding, a few hundred MiB on some GPUs. A sample's size is taken
+/// on the padded plane, a little above the matrix's own, so a group errs small.
 pub(super) fn weight_grad_by_samples<B: Backend>(
     x: Tensor<B, 4>,
     output_grad: Tensor<B, 4>,
