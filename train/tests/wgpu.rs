@@ -12,8 +12,8 @@
 //! four 3.9e-5 (the amplification, two orders per two steps); eval's pixel MSE 3.3e-9 and the inferred
 //! parameters 3.5e-7 of their range (one network, no training). With the CubeCL backends' own convolution
 //! gradients (`kernels::cubecl`; Intel Xeon): 1.4e-8, 3.7e-7, 3.0e-6, eval 1.5e-8, infer 2.4e-7. Bounds: 1e-5 up
-//! to two resumed steps and for eval and infer, 1e-3 after four: 20-300× the measured differences, and far below
-//! what a wrong kernel does (percent, as the first two-step check shows it would).
+//! to two resumed steps and for eval and infer, 1e-3 after four: 20-700× the differences measured with either
+//! set of kernels, and far below what a wrong kernel does (percent, as the first two-step check shows it would).
 #![cfg(feature = "wgpu")]
 
 use std::path::Path;
