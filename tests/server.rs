@@ -17,7 +17,7 @@ use train::data::{
     ContextNormalisation, ElevationNormalisation, EpochStream, HttpSource, InputNormalisation,
     LocalSource, SampleSource, StreamConfig,
 };
-use train::replicas::Replica;
+use train::data_parallel::Replica;
 
 const TILE_M: f64 = 2560.0;
 /// (split, rows per shard): train spans two shards and three row groups.

@@ -66,9 +66,8 @@ pub fn write_stdout(args: std::fmt::Arguments) {
 /// messages into it: by default GDAL prints `ERROR 4: …` lines to stderr next to our one-line errors, which
 /// already carry the file and the fix.
 pub fn init_logging() {
-    // burn-collective logs every peer's registration and its whole config at info: kept for RUST_LOG=debug.
-    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| "info,burn_collective=warn".into());
+    let filter =
+        tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into());
     // Colour only on a terminal: escape codes in redirected logs make them unreadable and ungreppable.
     let ansi = std::io::IsTerminal::is_terminal(&std::io::stderr());
     let _ = tracing_subscriber::fmt()

@@ -85,7 +85,7 @@ enum Command {
         /// Join the N finished partitions into OUT/stages/ and publish: the same bytes as one process builds. An
         /// unfinished partition is an error naming it, and nothing is published. With `output.exchange`, what the
         /// partitions copied there is fetched first.
-        #[arg(long, value_name = "N")]
+        #[arg(long, value_name = "N", value_parser = parse_partition_count)]
         merge: Option<usize>,
     },
     /// Write an orthoimage's acquisition metadata JSON from an ALE ISD or an LROC cumulative-index row.
@@ -239,4 +239,14 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         }
     }
     Ok(())
+}
+
+/// `--merge N`: the number of partitions the map tasks ran, at least one.
+fn parse_partition_count(text: &str) -> Result<usize, String> {
+    match text.trim().parse::<usize>() {
+        Ok(n) if n >= 1 => Ok(n),
+        _ => Err(format!(
+            "'{text}' is not a partition count: --merge N takes the N of the map tasks' --partition I/N (N ≥ 1)"
+        )),
+    }
 }

@@ -74,3 +74,31 @@ fn bad_config_file_is_named() {
         .unwrap();
     assert!(String::from_utf8_lossy(&out.stderr).contains("nope.toml"));
 }
+
+/// Nonsense partition counts are refused by clap in one line naming the flag, before the manifest is read.
+#[test]
+fn nonsense_partition_counts_name_the_flag() {
+    for (args, flag) in [
+        (["--merge", "0"], "--merge"),
+        (["--merge", "-2"], "--merge"),
+        (["--partition", "4/4"], "--partition"),
+        (["--partition", "0/0"], "--partition"),
+    ] {
+        let out = pipeline()
+            .args(["run", "no-such-manifest.toml"])
+            .args(args)
+            .output()
+            .unwrap();
+        assert_eq!(out.status.code(), Some(2), "{args:?}");
+        let err = String::from_utf8_lossy(&out.stderr);
+        let line = err
+            .lines()
+            .find(|l| l.starts_with("error:"))
+            .expect("an error line");
+        assert!(line.contains(flag), "{args:?}: {err}");
+        assert!(
+            !err.contains("no-such-manifest"),
+            "{args:?} read the manifest: {err}"
+        );
+    }
+}

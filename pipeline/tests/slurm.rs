@@ -1,173 +1,67 @@
 //! The pipeline as a Slurm job array, with the scripts users submit (docs/slurm/): a one-node cluster from Debian's
 //! packages on 127.0.0.1 runs the demo manifest as a 4-, 2- and 1-task map array plus the publish job, and every
 //! published byte equals the single-process build's. A cancelled map task cancels the publish (nothing published), and
-//! submitting again resumes to the same bytes.
+//! submitting again resumes to the same bytes; so do a task that exits non-zero and one killed mid-stage.
 //!
-//! Needs `slurmctld`, `slurmd` and the client commands (`.ci/setup` installs them). The daemons run in the
-//! foreground under this test, with `auth/none` and their state in a temporary directory, and are stopped by PID.
+//! Needs `slurmctld`, `slurmd` and the client commands (`.ci/setup` installs them); the cluster is
+//! [`dataset::testing::slurm`]'s, on loopback only.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
-use std::time::{Duration, Instant};
+use std::process::Command;
+use std::time::Duration;
 
-/// A one-node Slurm cluster on 127.0.0.1 whose daemons this process owns.
-struct Cluster {
-    conf: PathBuf,
-    daemons: Vec<Child>,
+use dataset::testing::slurm::Cluster;
+
+/// How long one array and its publish job may take.
+const JOB_LIMIT: Duration = Duration::from_secs(1800);
+
+/// `docs/slurm/submit.sh MANIFEST N EXTRA…` from `dir`: the map array and publish job ids.
+fn submit(
+    cluster: &Cluster,
+    dir: &Path,
+    manifest: &Path,
+    partitions: usize,
+    extra: &[&str],
+) -> (String, String) {
+    submit_with(
+        cluster,
+        dir,
+        manifest,
+        partitions,
+        extra,
+        Path::new(env!("CARGO_BIN_EXE_g2r-pipeline")),
+    )
 }
 
-impl Cluster {
-    fn start(dir: &Path) -> Self {
-        for daemon in ["slurmctld", "slurmd", "sbatch"] {
-            let found = Command::new("sh")
-                .args(["-c", &format!("command -v {daemon}")])
-                .output()
-                .unwrap();
-            assert!(
-                found.status.success(),
-                "{daemon} not found: run .ci/setup (installs slurmctld, slurmd and slurm-client)"
-            );
-        }
-        let host = String::from_utf8(Command::new("hostname").arg("-s").output().unwrap().stdout)
-            .unwrap()
-            .trim()
-            .to_string();
-        let port = || {
-            std::net::TcpListener::bind("127.0.0.1:0")
-                .unwrap()
-                .local_addr()
-                .unwrap()
-                .port()
-        };
-        let (ctld_port, d_port) = (port(), port());
-        let user = String::from_utf8(Command::new("id").arg("-un").output().unwrap().stdout)
-            .unwrap()
-            .trim()
-            .to_string();
-        for sub in ["state", "spool"] {
-            std::fs::create_dir_all(dir.join(sub)).unwrap();
-        }
-        let d = dir.display();
-        let conf = dir.join("slurm.conf");
-        // auth/none and cred/none: a test cluster on loopback needs no munge key; linuxproc and task/none: no
-        // cgroups inside a container. Memory is declared so that the scripts' --mem requests fit.
-        std::fs::write(
-            &conf,
-            format!(
-                "ClusterName=g2rtest\nSlurmctldHost={host}(127.0.0.1)\nSlurmctldPort={ctld_port}\n\
-                 SlurmdPort={d_port}\nAuthType=auth/none\nCredType=cred/none\n\
-                 ProctrackType=proctrack/linuxproc\nTaskPlugin=task/none\nSlurmUser={user}\nSlurmdUser={user}\n\
-                 StateSaveLocation={d}/state\nSlurmdSpoolDir={d}/spool\nSlurmctldPidFile={d}/slurmctld.pid\n\
-                 SlurmdPidFile={d}/slurmd.pid\nSlurmctldLogFile={d}/slurmctld.log\nSlurmdLogFile={d}/slurmd.log\n\
-                 ReturnToService=2\nSchedulerType=sched/builtin\nSelectType=select/cons_tres\n\
-                 SelectTypeParameters=CR_CPU\nMpiDefault=none\nJobCompType=jobcomp/none\n\
-                 AccountingStorageType=accounting_storage/none\n\
-                 NodeName={host} NodeAddr=127.0.0.1 CPUs=2 RealMemory=8192 State=UNKNOWN\n\
-                 PartitionName=local Nodes={host} Default=YES MaxTime=INFINITE State=UP\n"
-            ),
-        )
+/// [`submit`] with the jobs running `pipeline` as their g2r-pipeline.
+fn submit_with(
+    cluster: &Cluster,
+    dir: &Path,
+    manifest: &Path,
+    partitions: usize,
+    extra: &[&str],
+    pipeline: &Path,
+) -> (String, String) {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/slurm/submit.sh");
+    let out = cluster
+        .client("bash")
+        .arg(script)
+        .arg(manifest)
+        .arg(partitions.to_string())
+        .args(extra)
+        .current_dir(dir)
+        .env("G2R_PIPELINE", pipeline)
+        .output()
         .unwrap();
-        let spawn = |daemon: &str| {
-            Command::new(daemon)
-                .args(["-D", "-f"])
-                .arg(&conf)
-                .stdout(Stdio::null())
-                .stderr(Stdio::null())
-                .spawn()
-                .unwrap()
-        };
-        let cluster = Cluster {
-            daemons: vec![spawn("slurmctld"), spawn("slurmd")],
-            conf,
-        };
-        let started = Instant::now();
-        loop {
-            let state = cluster.command("sinfo", &["-h", "-o", "%T"]);
-            if state.trim() == "idle" {
-                break;
-            }
-            assert!(
-                started.elapsed() < Duration::from_secs(60),
-                "the node did not come up (sinfo: {state:?}); see {d}/slurmctld.log and {d}/slurmd.log"
-            );
-            std::thread::sleep(Duration::from_millis(500));
-        }
-        cluster
-    }
-
-    /// Run a Slurm client command against this cluster; its stdout.
-    fn command(&self, program: &str, args: &[&str]) -> String {
-        let out = Command::new(program)
-            .args(args)
-            .env("SLURM_CONF", &self.conf)
-            .output()
-            .unwrap();
-        String::from_utf8_lossy(&out.stdout).into_owned()
-    }
-
-    /// `docs/slurm/submit.sh MANIFEST N EXTRA…` from `dir`: the map array and publish job ids.
-    fn submit(
-        &self,
-        dir: &Path,
-        manifest: &Path,
-        partitions: usize,
-        extra: &[&str],
-    ) -> (String, String) {
-        let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/slurm/submit.sh");
-        let out = Command::new("bash")
-            .arg(script)
-            .arg(manifest)
-            .arg(partitions.to_string())
-            .args(extra)
-            .current_dir(dir)
-            .env("SLURM_CONF", &self.conf)
-            .env("G2R_PIPELINE", env!("CARGO_BIN_EXE_g2r-pipeline"))
-            .output()
-            .unwrap();
-        assert!(
-            out.status.success(),
-            "submit.sh: {}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        let ids = String::from_utf8(out.stdout).unwrap();
-        let mut ids = ids.split_whitespace().map(str::to_string);
-        (ids.next().unwrap(), ids.next().unwrap())
-    }
-
-    /// Wait until none of `jobs` is pending or running.
-    fn wait(&self, jobs: &[&str]) {
-        let started = Instant::now();
-        while !self
-            .command("squeue", &["-h", "-o", "%i", "-j", &jobs.join(",")])
-            .trim()
-            .is_empty()
-        {
-            assert!(
-                started.elapsed() < Duration::from_secs(1800),
-                "jobs {jobs:?} did not finish in 30 min"
-            );
-            std::thread::sleep(Duration::from_secs(1));
-        }
-    }
-
-    /// A finished job's state (COMPLETED, CANCELLED, FAILED…) and why.
-    fn state(&self, job: &str) -> String {
-        let text = self.command("scontrol", &["show", "job", job]);
-        text.split_whitespace()
-            .filter(|field| field.starts_with("JobState=") || field.starts_with("Reason="))
-            .collect::<Vec<_>>()
-            .join(" ")
-    }
-}
-
-impl Drop for Cluster {
-    fn drop(&mut self) {
-        for daemon in &mut self.daemons {
-            let _ = daemon.kill();
-            let _ = daemon.wait();
-        }
-    }
+    assert!(
+        out.status.success(),
+        "submit.sh: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let ids = String::from_utf8(out.stdout).unwrap();
+    let mut ids = ids.split_whitespace().map(str::to_string);
+    (ids.next().unwrap(), ids.next().unwrap())
 }
 
 /// A build directory laid out like the repository (`manifests/demo.toml`, `out/demo-world`), so every build's
@@ -244,13 +138,14 @@ fn a_slurm_array_publishes_the_same_bytes_and_a_failed_task_publishes_nothing() 
     for partitions in [4, 2, 1] {
         let name = format!("array-{partitions}");
         let manifest = build_dir(root, &world, &name);
-        let (map, publish) = cluster.submit(
+        let (map, publish) = submit(
+            &cluster,
             &root.join(&name),
             &manifest,
             partitions,
             &["--cpus-per-task=1"],
         );
-        cluster.wait(&[&map, &publish]);
+        cluster.wait(&[&map, &publish], JOB_LIMIT);
         assert!(
             cluster.state(&publish).starts_with("JobState=COMPLETED"),
             "{}",
@@ -267,10 +162,16 @@ fn a_slurm_array_publishes_the_same_bytes_and_a_failed_task_publishes_nothing() 
     // published; submitting again finishes that partition only and publishes the same bytes.
     let manifest = build_dir(root, &world, "cancelled");
     let dir = root.join("cancelled");
-    let (map, publish) = cluster.submit(&dir, &manifest, 4, &["--cpus-per-task=1", "--hold"]);
+    let (map, publish) = submit(
+        &cluster,
+        &dir,
+        &manifest,
+        4,
+        &["--cpus-per-task=1", "--", "--hold"],
+    );
     cluster.command("scancel", &[&format!("{map}_3")]);
     cluster.command("scontrol", &["release", &map]);
-    cluster.wait(&[&map, &publish]);
+    cluster.wait(&[&map, &publish], JOB_LIMIT);
     let state = cluster.state(&publish);
     assert!(
         state.contains("JobState=CANCELLED") && state.contains("DependencyNeverSatisfied"),
@@ -287,12 +188,83 @@ fn a_slurm_array_publishes_the_same_bytes_and_a_failed_task_publishes_nothing() 
         !dir.join("out/demo-dataset/partitions/4/3").exists(),
         "task 3 never ran"
     );
-    let (map, publish) = cluster.submit(&dir, &manifest, 4, &["--cpus-per-task=1"]);
-    cluster.wait(&[&map, &publish]);
+    let (map, publish) = submit(&cluster, &dir, &manifest, 4, &["--cpus-per-task=1"]);
+    cluster.wait(&[&map, &publish], JOB_LIMIT);
     assert!(
         cluster.state(&publish).starts_with("JobState=COMPLETED"),
         "{}",
         cluster.state(&publish)
     );
     assert_same(&reference, &dir, "resubmitted after a cancelled task");
+
+    // Tasks that fail while running: task 1 exits non-zero, task 2 is killed mid-stage. The publish job never
+    // runs, nothing is published, and submitting again publishes the same bytes.
+    let manifest = build_dir(root, &world, "failing");
+    let dir = root.join("failing");
+    let wrapper = dir.join("task-1-fails.sh");
+    std::fs::write(
+        &wrapper,
+        format!(
+            "#!/bin/bash\nif [ \"$SLURM_ARRAY_TASK_ID\" = 1 ]; then echo 'task 1 fails (injected)' >&2; exit 3; fi\n\
+             exec {} \"$@\"\n",
+            env!("CARGO_BIN_EXE_g2r-pipeline")
+        ),
+    )
+    .unwrap();
+    std::fs::set_permissions(
+        &wrapper,
+        std::os::unix::fs::PermissionsExt::from_mode(0o755),
+    )
+    .unwrap();
+    let (map, publish) = submit_with(
+        &cluster,
+        &dir,
+        &manifest,
+        4,
+        &["--cpus-per-task=1"],
+        &wrapper,
+    );
+    let task2 = format!("{map}_2");
+    let partition2 = dir.join("out/demo-dataset/partitions/4/2");
+    let started = std::time::Instant::now();
+    while !(cluster.state(&task2).starts_with("JobState=RUNNING") && partition2.exists()) {
+        assert!(
+            started.elapsed() < JOB_LIMIT,
+            "task 2 never ran: {}",
+            cluster.state(&task2)
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    // Mid-stage: a second into its work.
+    std::thread::sleep(Duration::from_secs(1));
+    cluster.command("scancel", &["--signal=KILL", "--full", &task2]);
+    cluster.wait(&[&map, &publish], JOB_LIMIT);
+    let task1 = cluster.state(&format!("{map}_1"));
+    assert!(task1.contains("JobState=FAILED"), "task 1: {task1}");
+    let task2_state = cluster.state(&task2);
+    assert!(
+        !task2_state.contains("JobState=COMPLETED"),
+        "task 2 was not killed mid-stage: {task2_state}"
+    );
+    let state = cluster.state(&publish);
+    assert!(
+        state.contains("JobState=CANCELLED") && state.contains("DependencyNeverSatisfied"),
+        "{state}"
+    );
+    assert!(
+        !dir.join("out/demo-dataset/dataset").exists(),
+        "something was published after failed tasks"
+    );
+    let (map, publish) = submit(&cluster, &dir, &manifest, 4, &["--cpus-per-task=1"]);
+    cluster.wait(&[&map, &publish], JOB_LIMIT);
+    assert!(
+        cluster.state(&publish).starts_with("JobState=COMPLETED"),
+        "{}",
+        cluster.state(&publish)
+    );
+    assert_same(
+        &reference,
+        &dir,
+        "resubmitted after a failed and a killed task",
+    );
 }

@@ -105,30 +105,30 @@ macro_rules! with_backend {
     };
 }
 
-/// The device replica `index` of a data-parallel fit (`fit --replicas`) runs on.
-pub trait ReplicaDevice: burn::tensor::backend::Backend {
-    fn replica_device(index: usize) -> Self::Device;
+/// The device of a data-parallel fit's rank, from its index among the ranks on its node.
+pub trait RankDevice: burn::tensor::backend::Backend {
+    fn rank_device(local_rank: usize) -> Self::Device;
 }
 
-/// The CPU: replicas are threads sharing its cores.
-impl ReplicaDevice for burn::backend::Autodiff<burn::backend::Flex> {
-    fn replica_device(_index: usize) -> Self::Device {
+/// The CPU: each rank a process on its share of the cores.
+impl RankDevice for burn::backend::Autodiff<burn::backend::Flex> {
+    fn rank_device(_local_rank: usize) -> Self::Device {
         Default::default()
     }
 }
 
-/// GPU `index` (CUDA ordinal).
+/// The node's GPU `local_rank` (CUDA ordinal): one GPU per rank.
 #[cfg(feature = "cuda")]
-impl ReplicaDevice for burn::backend::Autodiff<burn::backend::Cuda> {
-    fn replica_device(index: usize) -> Self::Device {
-        burn::backend::cuda::CudaDevice { index }
+impl RankDevice for burn::backend::Autodiff<burn::backend::Cuda> {
+    fn rank_device(local_rank: usize) -> Self::Device {
+        burn::backend::cuda::CudaDevice { index: local_rank }
     }
 }
 
-/// wgpu's default adapter for every replica: adapters are not numbered alike on every platform.
+/// wgpu's default adapter for every rank: adapters are not numbered alike on every platform.
 #[cfg(feature = "wgpu")]
-impl ReplicaDevice for burn::backend::Autodiff<burn::backend::Wgpu> {
-    fn replica_device(_index: usize) -> Self::Device {
+impl RankDevice for burn::backend::Autodiff<burn::backend::Wgpu> {
+    fn rank_device(_local_rank: usize) -> Self::Device {
         Default::default()
     }
 }

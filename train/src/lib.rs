@@ -8,7 +8,7 @@
 //! - [`prediction`] (inference-mode renderings, symmetry means, ensembles), with [`crater_level`] (each crater
 //!   crop's brightness level, fitted beside an H1 run) → [`evaluation`] (against baselines,
 //!   [`baseline`], and the oracle; [`features`] matching) and [`inference`] (parameter GeoTIFFs from a DEM);
-//! - [`replicas`]: data-parallel fits (`fit --replicas`) over the same loop;
+//! - [`data_parallel`]: fits across MPI ranks (`mpirun`, `srun --mpi=pmix`) over the same loop;
 //! - [`report`] (speed against error, [`plot`]), [`results_page`] (docs/results.md from its records), [`views`] (the
 //!   novel-view ray caster), [`mod@bench`];
 //! - [`testing`]: fixtures for tests and benches; [`backend`]: which Burn backend a job runs on.
@@ -48,6 +48,7 @@ pub mod bench;
 pub mod calibration;
 pub mod crater_level;
 pub mod data;
+pub mod data_parallel;
 pub mod evaluation;
 pub mod features;
 pub mod fit_config;
@@ -58,7 +59,7 @@ pub mod model;
 pub mod plot;
 pub mod prediction;
 pub mod renderer_layer;
-pub mod replicas;
+
 pub mod report;
 pub mod results_page;
 pub mod run_dir;

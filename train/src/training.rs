@@ -24,11 +24,11 @@ use crate::data::{
     InputNormalisation, SampleSource, StreamConfig,
 };
 use crate::data::{for_each_sample_group, steep_row_weights, STEEP_SLOPE_DEG};
+use crate::data_parallel::{Ranks, Replica};
 use crate::kernels::{TrainBackend, TrainOps};
 use crate::metrics::{AggregateMetrics, MetricsAccumulator};
 use crate::model::{UNet, UNetConfig};
 use crate::renderer_layer::{render_loss, HostTerms, SceneTerms};
-use crate::replicas::Replica;
 use dataset::contract::schema::{Split, CROP_PX};
 
 use crate::fit_config::FitConfig;
@@ -175,36 +175,37 @@ pub fn fit<B: TrainBackend>(
     device: &B::Device,
     show_progress: bool,
 ) -> Result<FitOutcome> {
-    fit_replicated::<B>(
+    fit_ranks::<B>(
         source,
         config,
         out,
         resume,
         stop_after_steps,
-        std::slice::from_ref(device),
+        device,
+        &Ranks::alone(),
         show_progress,
     )
 }
 
-/// [`fit`] data-parallel: one replica per device, each with `config.stream.batch_size / devices.len()` crops a
-/// step ([`crate::replicas`]). One device is an ordinary fit, with no collective call.
-pub fn fit_replicated<B: TrainBackend>(
+/// [`fit`] as one of `ranks.world()` data-parallel ranks ([`crate::data_parallel`]), each with
+/// `config.stream.batch_size / ranks.world()` crops a step on its own `device`. Every rank calls this with the
+/// same arguments; rank 0 alone writes into `out`, which every rank reads on `--resume` (a shared file system).
+#[allow(clippy::too_many_arguments)]
+pub fn fit_ranks<B: TrainBackend>(
     source: Arc<dyn SampleSource>,
     config: &FitConfig,
     out: &Path,
     resume: bool,
     stop_after_steps: Option<u64>,
-    devices: &[B::Device],
+    device: &B::Device,
+    ranks: &Ranks,
     show_progress: bool,
 ) -> Result<FitOutcome> {
-    let Some(device) = devices.first() else {
-        bail!("a fit needs at least one device");
-    };
-    if !config.stream.batch_size.is_multiple_of(devices.len()) {
+    if !config.stream.batch_size.is_multiple_of(ranks.world()) {
         bail!(
-            "--batch {} does not split into {} replicas: choose a batch that the replica count divides",
+            "--batch {} does not split into {} ranks: choose a batch that the rank count divides",
             config.stream.batch_size,
-            devices.len()
+            ranks.world()
         );
     }
     if config.crop_level && !config.elevation_input {
@@ -213,14 +214,9 @@ pub fn fit_replicated<B: TrainBackend>(
     if config.film && !config.context_input {
         bail!("the decoder's modulation reads the context features: the run needs --context-input");
     }
-    if devices.len() > 1 && config.dropout {
-        bail!(
-            "dropout masks come from the backend's one random generator, which {} replicas would draw from in \
-             racing order: train replicas with --no-dropout",
-            devices.len()
-        );
+    if ranks.leads() {
+        std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     }
-    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let config_path = out.join("config.json");
     let last = out.join("last");
     let net_config = config.net_config();
@@ -272,26 +268,29 @@ pub fn fit_replicated<B: TrainBackend>(
                 out.display()
             );
         }
-        // Leftovers of a run that died before its first checkpoint would mix into this one's history.
-        let _ = std::fs::remove_file(out.join("metrics.jsonl"));
-        let _ = std::fs::remove_dir_all(out.join("best"));
-        let _ = std::fs::remove_dir_all(out.join("ema-best"));
-        write_json(&config_path, config)?;
-        // What evaluation and inference on a new DEM need from the training data: the input normalisation.
+        // What evaluation and inference on a new DEM need from the training data: the input normalisation (a
+        // pure function of the data, so every rank computes the same).
         let input = input_normalisation(&*source, config)?;
-        if let Some(e) = input.elevation {
-            tracing::info!(mean_m = e.mean_m, std_m = e.std_m, "elevation input plane");
+        if ranks.leads() {
+            // Leftovers of a run that died before its first checkpoint would mix into this one's history.
+            let _ = std::fs::remove_file(out.join("metrics.jsonl"));
+            let _ = std::fs::remove_dir_all(out.join("best"));
+            let _ = std::fs::remove_dir_all(out.join("ema-best"));
+            write_json(&config_path, config)?;
+            if let Some(e) = input.elevation {
+                tracing::info!(mean_m = e.mean_m, std_m = e.std_m, "elevation input plane");
+            }
+            if let Some(c) = input.context {
+                tracing::info!(gsd_m = c.gsd_m, std_m = c.std_m, "context input");
+            }
+            write_json(
+                &out.join("normalisation.json"),
+                &RunNormalisation {
+                    input,
+                    dataset: source.manifest().name.clone(),
+                },
+            )?;
         }
-        if let Some(c) = input.context {
-            tracing::info!(gsd_m = c.gsd_m, std_m = c.std_m, "context input");
-        }
-        write_json(
-            &out.join("normalisation.json"),
-            &RunNormalisation {
-                input,
-                dataset: source.manifest().name.clone(),
-            },
-        )?;
         B::seed(device, keyed_u64(seed, "init", 0));
         let net = net_config.init::<B>(device);
         let _ = net.num_params(); // materialise the lazily initialised weights now, in a fixed order
@@ -372,7 +371,8 @@ pub fn fit_replicated<B: TrainBackend>(
                 .with_epsilon(adam_epsilon)
                 .init::<B, UNet<B>>(),
             resume,
-            devices,
+            device,
+            ranks,
         ),
         Some(decay) => launch(
             run,
@@ -382,20 +382,21 @@ pub fn fit_replicated<B: TrainBackend>(
                 .with_weight_decay(decay as f32)
                 .init::<B, UNet<B>>(),
             resume,
-            devices,
+            device,
+            ranks,
         ),
     }
 }
 
-/// Give the replicas their optimiser (its saved state when resuming) and train.
+/// Give the rank its optimiser (its saved state when resuming) and train.
 fn launch<B: TrainBackend, O: FitOptimizer<B>>(
     run: RunContext,
     state: ReplicaState<B, ()>,
     optim: O,
     resume: bool,
-    devices: &[B::Device],
+    device: &B::Device,
+    ranks: &Ranks,
 ) -> Result<FitOutcome> {
-    let device = &devices[0];
     let optim = if resume {
         let last = run.out.join("last");
         optim.load_record(
@@ -413,10 +414,7 @@ fn launch<B: TrainBackend, O: FitOptimizer<B>>(
         history: state.history,
         average: state.average,
     };
-    if devices.len() == 1 {
-        return train_replica::<B, O>(&run, state, Replica::SOLE, device);
-    }
-    train_replicas::<B, O>(run, state, devices)
+    train_rank::<B, O>(&run, state, ranks, device)
 }
 
 /// What a fit steps with: Adam, or AdamW for a run with weight decay.
@@ -445,88 +443,14 @@ struct ReplicaState<B: TrainBackend, O> {
     average: Option<UNet<B::InnerBackend>>,
 }
 
-/// Run one thread per device and return replica 0's outcome, or the first error any replica ends with. A
-/// replica that fails leaves the others waiting in an all-reduce that cannot complete (burn-collective has no
-/// time-out or cancel); they end with the process, which the error ends.
-fn train_replicas<B: TrainBackend, O: FitOptimizer<B>>(
-    run: RunContext,
-    state: ReplicaState<B, O>,
-    devices: &[B::Device],
-) -> Result<FitOutcome> {
-    let world = devices.len();
-    if COLLECTIVE_LEFT_BROKEN.load(std::sync::atomic::Ordering::SeqCst) {
-        bail!(
-            "an earlier data-parallel fit in this process failed and left replicas waiting in burn-collective: \
-             start a new process (g2r-train does) to resume it"
-        );
-    }
-    tracing::info!(
-        replicas = world,
-        crops_per_replica = run.config.stream.batch_size / world,
-        "data-parallel fit"
-    );
-    crate::replicas::reset::<B::InnerBackend>();
-    let run = Arc::new(run);
-    let (report, outcomes) = std::sync::mpsc::channel();
-    let net_config = run.config.net_config();
-    for (rank, device) in devices.iter().enumerate() {
-        let replica = Replica { rank, world };
-        // Copies through records, not clones: a clone shares its BatchNorm running statistics with the original
-        // (Burn averages them over threads, in whatever order the threads update), which would make them depend
-        // on timing. Records keep the parameter ids the all-reduce pairs gradients by.
-        let state = ReplicaState {
-            net: net_config
-                .init::<B>(device)
-                .load_record(state.net.clone().into_record()),
-            optim: state.optim.clone(),
-            cursor: state.cursor.clone(),
-            history: state.history.clone(),
-            average: state.average.as_ref().map(|a| {
-                net_config
-                    .init::<B::InnerBackend>(device)
-                    .load_record(a.clone().into_record())
-            }),
-        };
-        let (run, device, report) = (run.clone(), device.clone(), report.clone());
-        std::thread::Builder::new()
-            .name(format!("replica-{rank}"))
-            .spawn(move || {
-                let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                    train_replica::<B, O>(&run, state, replica, &device)
-                }))
-                .unwrap_or_else(|_| Err(anyhow::anyhow!("replica {rank} panicked")));
-                let _ = report.send((rank, outcome));
-            })
-            .context("starting a replica thread")?;
-    }
-    drop(report);
-    let mut lead = None;
-    for _ in 0..world {
-        let (rank, outcome) = outcomes.recv().context("a replica thread vanished")?;
-        match outcome {
-            Ok(outcome) if rank == 0 => lead = Some(outcome),
-            Ok(_) => {}
-            Err(e) => {
-                COLLECTIVE_LEFT_BROKEN.store(true, std::sync::atomic::Ordering::SeqCst);
-                return Err(e.context(format!("replica {rank} of {world}")));
-            }
-        }
-    }
-    Ok(lead.expect("replica 0 reported"))
-}
-
-/// Set when a data-parallel fit ended with a failed replica: the others may still wait in an all-reduce whose
-/// messages would reach the next fit's collective, so this process starts no other.
-static COLLECTIVE_LEFT_BROKEN: std::sync::atomic::AtomicBool =
-    std::sync::atomic::AtomicBool::new(false);
-
-/// One replica's epochs (the whole fit when it is the only one).
-fn train_replica<B: TrainBackend, O: FitOptimizer<B>>(
+/// One rank's epochs (the whole fit when it is the only one).
+fn train_rank<B: TrainBackend, O: FitOptimizer<B>>(
     run: &RunContext,
     state: ReplicaState<B, O>,
-    replica: Replica,
+    ranks: &Ranks,
     device: &B::Device,
 ) -> Result<FitOutcome> {
+    let replica = ranks.replica();
     let RunContext {
         source,
         config,
@@ -550,12 +474,11 @@ fn train_replica<B: TrainBackend, O: FitOptimizer<B>>(
     let recorder = Rec::new();
     let seed = config.stream.seed;
     let last = out.join("last");
-    replica.join::<B::InnerBackend>(device)?;
     // Time in optimiser steps only (not data waits, validation or checkpoints), for s/step figures.
     let mut step_time = StepTime::default();
     // Without a terminal (a scheduler's log file) the bar is hidden: a structured line every minute instead.
     let mut progress_log =
-        (!show_progress && replica.leads()).then(|| ProgressLog::new(cursor.step));
+        (!show_progress && replica.leads()).then(|| ProgressLog::new(cursor.step, replica));
     while cursor.epoch < config.epochs {
         let epoch = cursor.epoch;
         let model = config.model;
@@ -592,8 +515,12 @@ fn train_replica<B: TrainBackend, O: FitOptimizer<B>>(
         bar.set_position(cursor.next_batch as u64);
         for prepared in stream {
             let (batch, terms) = prepared?;
-            // Dropout masks from (seed, step): a resumed run draws exactly what an uninterrupted one would.
-            B::seed(device, keyed_u64(seed, "dropout", cursor.step));
+            // Dropout masks from (seed, step, rank): a resumed run draws exactly what an uninterrupted one would,
+            // and each rank its own masks (rank 0 the masks of a one-rank run).
+            B::seed(
+                device,
+                keyed_u64(seed, "dropout", cursor.step) ^ replica.rank as u64,
+            );
             let step_started = Instant::now();
             let loss = train_loss_with_terms(&net, &batch, &terms, device);
             let loss_value: f64 = loss
@@ -603,17 +530,18 @@ fn train_replica<B: TrainBackend, O: FitOptimizer<B>>(
                 .to_vec::<f64>()
                 .expect("f64")[0];
             // Every replica checks (and the lead logs) the mean over the replicas, so all stop together.
-            let loss_value = replica.mean_scalar::<B::InnerBackend>(loss_value, device)?;
+            let loss_value = ranks.mean_scalar(loss_value, "loss", cursor.step);
             if !loss_value.is_finite() {
                 bail!(
                     "non-finite training loss at step {} (epoch {epoch}); lower --lr",
                     cursor.step
                 );
             }
-            let grads = replica.mean_gradients::<B::InnerBackend>(GradientsParams::from_grads(
-                loss.backward(),
+            let grads = ranks.mean_gradients(
                 &net,
-            ))?;
+                GradientsParams::from_grads(loss.backward(), &net),
+                cursor.step,
+            )?;
             // Every epoch has the same batch count, so the run's length is known from the first stream.
             let total_steps = (config.epochs * stream_batches) as u64;
             let rate = config
@@ -645,20 +573,22 @@ fn train_replica<B: TrainBackend, O: FitOptimizer<B>>(
                 );
             }
             if stop_after_steps.is_some_and(|s| cursor.step >= s) {
-                let (net, average) = mean_running_stats(replica, net, average)?;
+                let (net, average) = mean_running_stats(ranks, net, average, cursor.step);
                 if replica.leads() {
                     save_last(&net, &optim, average.as_ref(), &cursor, &last, &recorder)?;
                 }
                 bar.abandon_with_message(format!("stopped at step {} (resumable)", cursor.step));
-                replica.leave::<B::InnerBackend>()?;
+                ranks.barrier(EPOCH_END, cursor.step);
                 return Ok(outcome(cursor, history, trainable, step_time));
             }
         }
         bar.finish();
-        // Every replica's BatchNorm statistics averaged before validation; the lead alone validates and writes.
-        (net, average) = mean_running_stats(replica, net, average)?;
+        // Every rank's BatchNorm statistics averaged before validation; the lead alone validates and writes,
+        // while the others wait for it.
+        (net, average) = mean_running_stats(ranks, net, average, cursor.step);
         if !replica.leads() {
             cursor.next_epoch();
+            ranks.barrier(EPOCH_END, cursor.step);
             continue;
         }
         let validate_net = |network: &UNet<B::InnerBackend>| {
@@ -706,29 +636,30 @@ fn train_replica<B: TrainBackend, O: FitOptimizer<B>>(
         }
         cursor.next_epoch();
         save_last(&net, &optim, average.as_ref(), &cursor, &last, &recorder)?;
+        ranks.barrier(EPOCH_END, cursor.step);
     }
-    replica.leave::<B::InnerBackend>()?;
     Ok(outcome(cursor, history, trainable, step_time))
 }
 
-/// The network's and the weight average's BatchNorm statistics averaged over the replicas (unchanged alone).
-#[allow(clippy::type_complexity)]
+/// The collective at which the other ranks wait for the lead's validation and checkpoint.
+const EPOCH_END: &str = "epoch end (the lead validates and writes)";
+
+/// The network's and the weight average's BatchNorm statistics averaged over the ranks (unchanged alone).
 fn mean_running_stats<B: TrainBackend>(
-    replica: Replica,
+    ranks: &Ranks,
     net: UNet<B>,
     average: Option<UNet<B::InnerBackend>>,
-) -> Result<(UNet<B>, Option<UNet<B::InnerBackend>>)> {
-    if replica.world == 1 {
-        return Ok((net, average));
+    step: u64,
+) -> (UNet<B>, Option<UNet<B::InnerBackend>>) {
+    if ranks.world() == 1 {
+        return (net, average);
     }
     // Taking a record folds the last update into the statistics (Burn holds it apart until then).
     let _ = net.clone().into_record();
     let _ = average.clone().map(Module::into_record);
-    let net = replica.mean_running_stats::<B, _>(net)?;
-    let average = average
-        .map(|a| replica.mean_running_stats_inner::<B::InnerBackend, _>(a))
-        .transpose()?;
-    Ok((net, average))
+    let net = ranks.mean_running_stats(net, step);
+    let average = average.map(|a| ranks.mean_running_stats(a, step));
+    (net, average)
 }
 
 /// How often [`ProgressLog`] writes a line.
@@ -740,13 +671,16 @@ const PROGRESS_LOG_EVERY: std::time::Duration = std::time::Duration::from_secs(6
 struct ProgressLog {
     since: Instant,
     since_step: u64,
+    /// Named in every line, so that a cluster log says which rank of how many wrote it.
+    replica: Replica,
 }
 
 impl ProgressLog {
-    fn new(step: u64) -> Self {
+    fn new(step: u64, replica: Replica) -> Self {
         Self {
             since: Instant::now(),
             since_step: step,
+            replica,
         }
     }
 
@@ -757,6 +691,8 @@ impl ProgressLog {
         }
         let steps_per_s = (step - self.since_step) as f64 / elapsed.as_secs_f64();
         tracing::info!(
+            rank = self.replica.rank,
+            world = self.replica.world,
             epoch,
             step,
             total_steps,
@@ -765,7 +701,7 @@ impl ProgressLog {
             eta_s = ((total_steps - step) as f64 / steps_per_s).round() as u64,
             "training"
         );
-        *self = Self::new(step);
+        *self = Self::new(step, self.replica);
     }
 }
 

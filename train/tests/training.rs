@@ -12,11 +12,11 @@ use burn::record::{FullPrecisionSettings, NamedMpkFileRecorder};
 use dataset::contract::schema::CROP_PX;
 use dataset::science::brdf::{inverse_leaky_relu, BrdfModel};
 use train::data::{HostBatch, InputNormalisation, LocalSource, SampleSource, StreamConfig};
+use train::data_parallel::Replica;
 use train::fit_config::FitConfig;
 use train::model::UNetConfig;
 use train::prediction::predict_images;
 use train::renderer_layer::reference_render;
-use train::replicas::Replica;
 use train::testing::synthetic_samples;
 use train::training::fit;
 

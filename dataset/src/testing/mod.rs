@@ -1,8 +1,10 @@
 //! Fixtures for tests and benchmarks of this and the other crates: a varied synthetic sample and a published
 //! dataset directory written exactly as the publish stage lays it out (shards, manifest, summary, card, Croissant);
-//! an S3 server and a failing network link for the object-storage tests ([`s3`]).
+//! an S3 server and a failing network link for the object-storage tests ([`s3`]); a one-node Slurm cluster on
+//! loopback ([`slurm`]).
 
 pub mod s3;
+pub mod slurm;
 
 use std::collections::BTreeMap;
 use std::path::Path;

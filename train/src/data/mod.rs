@@ -23,7 +23,7 @@ use dataset::contract::schema::{Sample, Split};
 use rand::Rng;
 
 use crate::augment::Dihedral;
-use crate::replicas::Replica;
+use crate::data_parallel::Replica;
 
 /// How an epoch is streamed.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]

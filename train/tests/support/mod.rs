@@ -16,6 +16,8 @@ use train::model::UNet;
 pub type Ad = Autodiff<Flex>;
 pub type Rec = NamedMpkFileRecorder<FullPrecisionSettings>;
 
+pub mod mpi;
+
 /// Optimiser steps of [`config`]'s epoch.
 pub const STEPS: u64 = 4;
 

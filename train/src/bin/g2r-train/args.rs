@@ -168,12 +168,13 @@ pub struct TrainArgs {
     /// (at the shipped recipe 0.05 made held-out tiles worse: docs/results.md). Default: plain Adam, no decay.
     #[arg(long, value_name = "DECAY", value_parser = parse_weight_decay)]
     pub weight_decay: Option<f64>,
-    /// Train data-parallel with this many replicas in this process, each taking its share of --batch (which
-    /// N must divide), their gradients averaged after every backward pass (burn-collective): on cuda, GPUs
-    /// 0..N-1; on flex, threads sharing the CPU. The steps are those of one replica, except that each replica
-    /// normalises its BatchNorm layers over its own crops. Needs --no-dropout. --resume may change N.
-    #[arg(long, value_name = "N", default_value_t = 1, value_parser = parse_replicas)]
-    pub replicas: usize,
+    /// Data-parallel ranks (`mpirun -np N g2r-train fit ...`, `srun --mpi=pmix`; a binary built with the `mpi`
+    /// feature): the longest a rank waits in one all-reduce, in seconds, before it decides a peer is hung or
+    /// unreachable, logs which all-reduce at which step, and exits (status 124) so that the launcher ends the job.
+    /// Ranks other than 0 wait for rank 0's validation and checkpoint at every epoch's end, so this must cover
+    /// those. Resume from the last checkpoint.
+    #[arg(long, value_name = "SECONDS", default_value_t = 1800, value_parser = clap::value_parser!(u64).range(1..))]
+    pub collective_timeout: u64,
     /// Also train on this publication's train split (repeat the flag for more): a directory, server URL or
     /// object-storage prefix, as for --data. Validation and the run's choice stay on --data's held-out tiles.
     /// Another world of the same preset (`g2r-pipeline synth --seed`) shows the network the same kinds of terrain
@@ -235,13 +236,6 @@ fn parse_weight_decay(text: &str) -> Result<f64, String> {
         Err(format!(
             "{decay} is not a positive decay: each step shrinks the weights by the learning rate times it (leave the flag out for none)"
         ))
-    }
-}
-
-fn parse_replicas(text: &str) -> Result<usize, String> {
-    match text.parse::<usize>() {
-        Ok(n) if n >= 1 => Ok(n),
-        _ => Err(format!("{text:?} is not a replica count of at least 1")),
     }
 }
 

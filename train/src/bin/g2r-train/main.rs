@@ -10,10 +10,9 @@ use anyhow::Result;
 use clap::Parser;
 use dataset::science::brdf::BrdfModel;
 use train::backend::Inner;
-use train::backend::ReplicaDevice;
+use train::backend::RankDevice;
 use train::data::{open_source, PooledSource, SampleSource};
 use train::fit_config::FitConfig;
-use train::training::fit_replicated;
 use train::with_backend;
 
 use args::{Cli, Command, TrainArgs};
@@ -35,6 +34,7 @@ fn training_source(data: &str, args: &TrainArgs) -> Result<(Arc<dyn SampleSource
     Ok((Arc::new(pool), config))
 }
 
+/// Train as this process's rank ([`train::data_parallel::launch`]): the outcome, on the lead rank only.
 fn run_fit(
     source: Arc<dyn SampleSource>,
     config: &FitConfig,
@@ -42,12 +42,16 @@ fn run_fit(
     out: &std::path::Path,
     resume: bool,
     stop: Option<u64>,
-) -> Result<train::training::FitOutcome> {
-    train::replicas::refuse_launcher_world(|name| std::env::var(name).ok())?;
-    with_backend!(args.backend, B => {
-        let devices: Vec<_> = (0..args.replicas).map(<B as ReplicaDevice>::replica_device).collect();
-        fit_replicated::<B>(source, config, out, resume, stop, &devices, std::io::stderr().is_terminal())
+) -> Result<Option<train::training::FitOutcome>> {
+    let env = |name: &str| std::env::var(name).ok();
+    let timeout = std::time::Duration::from_secs(args.collective_timeout);
+    let ranks = train::data_parallel::launch(&env, timeout)?;
+    let outcome = with_backend!(args.backend, B => {
+        let device = <B as RankDevice>::rank_device(ranks.local_rank());
+        train::training::fit_ranks::<B>(source, config, out, resume, stop, &device, &ranks, std::io::stderr().is_terminal())
     })
+    .map_err(|e| ranks.end_on_error(e))?;
+    Ok(ranks.leads().then_some(outcome))
 }
 
 /// Keep freed activation-sized buffers (up to 17 MB at width 16, batch 8) in glibc's heap: with the defaults, which
@@ -382,14 +386,18 @@ fn run(cli: Cli) -> Result<()> {
                 );
             }
             let (source, config) = training_source(&data, &train)?;
-            let outcome = run_fit(
+            let Some(outcome) = run_fit(
                 source.clone(),
                 &config,
                 &train,
                 &out,
                 resume,
                 stop_after_steps,
-            )?;
+            )?
+            else {
+                // Another rank of a data-parallel fit: the lead reports and fits the crater level.
+                return Ok(());
+            };
             // The crater level is fitted and written before anything is printed: a reader that stops early
             // (`| head`) ends the process at its first print, and must not cut the fit short.
             let crater_level_text = if !crater_level {
@@ -424,7 +432,10 @@ fn run(cli: Cli) -> Result<()> {
             dataset::out!("{crater_level_text}");
         }
         Command::CompareModels { data, out, train } => {
-            train::replicas::refuse_launcher_world(|name| std::env::var(name).ok())?;
+            train::data_parallel::refuse_launcher_world(
+                &|name| std::env::var(name).ok(),
+                "compare-models",
+            )?;
             let (source, config) = training_source(&data, &train)?;
             let backend = train.backend.name();
             let markdown = with_backend!(train.backend, B => {

@@ -1,15 +1,19 @@
-//! Data-parallel fits (`fit --replicas`, [`train::replicas`]) on a tiny published dataset.
+//! Data-parallel fits across MPI ranks ([`train::data_parallel`]), on a tiny published dataset. Needs the `mpi`
+//! feature and Open MPI's `mpirun` (CI installs both); `mpirun` runs in a network namespace that has loopback
+//! only, and its ranks talk through shared memory ([`support::mpi`]).
 //!
-//! The expectation is computed by hand, without threads or burn-collective: each replica's crops (its stride of
-//! the one-replica batch), a loss and gradients per replica on its own copy of the network, the gradients
-//! averaged, one Adam step applied to every copy, and at the checkpoint the copies' BatchNorm running statistics
-//! averaged. A mean of two f32 values is exact up to one rounding whichever order adds them, so the bound is
-//! f32 rounding through four steps (1e-6 of each tensor's scale; measured: see the test's output).
+//! The expectation is computed by hand, without MPI: each rank's crops (its stride of the one-rank batch), a loss
+//! and gradients per rank on its own copy of the network, the gradients averaged, one Adam step applied to every
+//! copy, and at the checkpoint the copies' BatchNorm running statistics averaged. A sum of two f32 values is the
+//! same whichever order adds them, so the bound is f32 rounding through four steps (1e-6 of each tensor's scale;
+//! measured: see the test's output).
 //!
-//! Against one replica taking the whole batch the steps differ by design: each replica normalises its BatchNorm
-//! layers over its own crops (2 of them here, against 4), and Adam's first steps move every weight by about the
-//! learning rate whatever the gradient's size, so a small change in a gradient near zero flips a whole step. The
-//! test prints how far the two trajectories part rather than bounding it.
+//! Against one rank taking the whole batch the steps differ by design: each rank normalises its BatchNorm layers
+//! over its own crops (2 of them here, against 4), as PyTorch DDP does without `SyncBatchNorm`, and Adam's first
+//! steps move every weight by about the learning rate whatever the gradient's size, so a small change in a
+//! gradient near zero flips a whole step. The test prints how far the two trajectories part rather than bounding
+//! it.
+#![cfg(feature = "mpi")]
 
 use burn::backend::Flex;
 use burn::module::{AutodiffModule, Module, ModuleVisitor, Param, ParamId};
@@ -18,18 +22,14 @@ use burn::prelude::*;
 use burn::record::Recorder;
 use dataset::contract::schema::Split;
 use train::data::{EpochStream, HostBatch, StreamConfig};
-use train::fit_config::FitConfig;
+use train::data_parallel::Replica;
 use train::model::UNet;
-use train::replicas::Replica;
-use train::training::{fit, fit_replicated, input_normalisation, train_loss};
+use train::training::{fit, fit_ranks, input_normalisation, train_loss};
 
 mod support;
 
+use support::mpi::{mpirun, Job};
 use support::{config, is_running_stat, load, tensors, worst_relative, Ad, Rec, STEPS};
-
-/// burn-collective keeps one collective per backend type in the process, and Flex's RNG is process-global:
-/// tests that train replicas must not interleave.
-static SERIAL: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
 /// The mean of two replicas' gradients, parameter by parameter.
 struct MeanOf<'a> {
@@ -49,31 +49,66 @@ impl ModuleVisitor<Ad> for MeanOf<'_> {
     }
 }
 
+/// One rank of [`two_ranks_take_the_steps_of_their_averaged_gradients_and_repeat_bit_for_bit`]'s MPI runs: that
+/// test starts this one under `mpirun -np 2`, naming the dataset and the run in the environment.
 #[test]
-fn two_replicas_take_the_steps_of_their_averaged_gradients_and_repeat_bit_for_bit() {
-    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+#[ignore = "a rank of the MPI fit another test starts"]
+fn rank_of_a_two_rank_fit() {
+    let data = std::env::var("G2R_TEST_DATA").expect("started by the two-rank test");
+    let run = std::env::var("G2R_TEST_RUN").expect("started by the two-rank test");
+    let source: std::sync::Arc<dyn train::data::SampleSource> =
+        std::sync::Arc::new(train::data::LocalSource::open(std::path::Path::new(&data)).unwrap());
+    let env = |name: &str| std::env::var(name).ok();
+    let ranks = train::data_parallel::launch(&env, std::time::Duration::from_secs(120)).unwrap();
+    assert_eq!(
+        ranks.world(),
+        2,
+        "mpirun -np 2 joined {} ranks",
+        ranks.world()
+    );
+    let outcome = fit_ranks::<Ad>(
+        source,
+        &config(),
+        std::path::Path::new(&run),
+        true,
+        Some(STEPS),
+        &Default::default(),
+        &ranks,
+        false,
+    )
+    .unwrap();
+    assert_eq!(outcome.cursor.step, STEPS);
+}
+
+#[test]
+fn two_ranks_take_the_steps_of_their_averaged_gradients_and_repeat_bit_for_bit() {
     let tmp = tempfile::tempdir().unwrap();
     let source = train::testing::synthetic_source(tmp.path(), 300, 4);
     let cfg = config();
     let device = Default::default();
-    // One replica takes the first step; its checkpoint is the common start (and a resume may change N).
+    // One rank takes the first step; its checkpoint is the common start (and a resume may change the rank count).
     let start = tmp.path().join("start");
     fit::<Ad>(source.clone(), &cfg, &start, false, Some(1), &device, false).unwrap();
-    let two = [device, device];
     let mut replicated = Vec::new();
     for name in ["two-a", "two-b"] {
         let run = tmp.path().join(name);
         train::testing::copy_dir(&start, &run);
-        let outcome =
-            fit_replicated::<Ad>(source.clone(), &cfg, &run, true, Some(STEPS), &two, false)
-                .unwrap();
-        assert_eq!(outcome.cursor.step, STEPS);
+        let mut job = Job::start(
+            mpirun(2)
+                .arg(std::env::current_exe().unwrap())
+                .args(["--ignored", "--exact", "rank_of_a_two_rank_fit"])
+                .args(["--test-threads=1", "--nocapture"])
+                .env("G2R_TEST_DATA", tmp.path())
+                .env("G2R_TEST_RUN", &run),
+        );
+        let (status, log) = job.wait(std::time::Duration::from_secs(300));
+        assert!(status.success(), "mpirun -np 2 failed ({status}):\n{log}");
         replicated.push(tensors(&load(&run, &cfg)));
     }
-    // Thread timing must not show: the second run's every tensor equals the first's, bit for bit.
+    // Process timing must not show: the second run's every tensor equals the first's, bit for bit.
     assert_eq!(
         replicated[0], replicated[1],
-        "replicated fits differ between runs"
+        "two-rank fits differ between runs"
     );
 
     // By hand: two copies of the start, each fed its stride of the one-replica batch.
@@ -187,9 +222,9 @@ fn two_replicas_take_the_steps_of_their_averaged_gradients_and_repeat_bit_for_bi
         assert!(diff <= 1e-6, "{path}: {diff:e}");
         worst = worst.max(diff);
     }
-    println!("replicated against by hand, worst relative difference over every tensor: {worst:e}");
+    println!("two ranks against by hand, worst relative difference over every tensor: {worst:e}");
 
-    // One replica with the whole batch, for the record: BatchNorm over 4 crops instead of 2 moves the steps.
+    // One rank with the whole batch, for the record: BatchNorm over 4 crops instead of 2 moves the steps.
     let one = tmp.path().join("one");
     train::testing::copy_dir(&start, &one);
     fit::<Ad>(
@@ -217,32 +252,52 @@ fn two_replicas_take_the_steps_of_their_averaged_gradients_and_repeat_bit_for_bi
     }
     assert!(moved > 0.0);
     println!(
-        "one replica of batch 4 against two of 2: weight change differs by {:.3e} of its norm",
+        "one rank of batch 4 against two of 2: weight change differs by {:.3e} of its norm",
         (apart / moved).sqrt()
     );
 }
 
+/// Stands in for MPI in a refusal that comes before any collective.
+struct NoPeers;
+
+impl train::data_parallel::SumAllReduce for NoPeers {
+    fn sum_f32(&self, _: &mut [f32]) {
+        unreachable!("refused before any all-reduce")
+    }
+    fn sum_f64(&self, _: &mut [f64]) {
+        unreachable!("refused before any all-reduce")
+    }
+    fn abort(&self, _: i32) -> ! {
+        unreachable!("refused before any all-reduce")
+    }
+}
+
 #[test]
-fn a_batch_the_replicas_do_not_divide_and_dropout_are_refused_before_anything_is_written() {
+fn a_batch_the_ranks_do_not_divide_is_refused_before_anything_is_written() {
     let tmp = tempfile::tempdir().unwrap();
     let source = train::testing::synthetic_source(tmp.path(), 20, 4);
-    let device = Default::default();
-    let three = [device, device, device];
+    let three = train::data_parallel::Ranks::joined(
+        Replica { rank: 0, world: 3 },
+        0,
+        Box::new(NoPeers),
+        std::time::Duration::from_secs(60),
+    );
     let run = tmp.path().join("run");
-    let err = fit_replicated::<Ad>(source.clone(), &config(), &run, false, None, &three, false)
-        .unwrap_err()
-        .to_string();
+    let err = fit_ranks::<Ad>(
+        source,
+        &config(),
+        &run,
+        false,
+        None,
+        &Default::default(),
+        &three,
+        false,
+    )
+    .unwrap_err()
+    .to_string();
     assert!(
-        err.contains("--batch 4 does not split into 3 replicas"),
+        err.contains("--batch 4 does not split into 3 ranks"),
         "{err}"
     );
-    let dropout = FitConfig {
-        dropout: true,
-        ..config()
-    };
-    let err = fit_replicated::<Ad>(source, &dropout, &run, false, None, &three[..2], false)
-        .unwrap_err()
-        .to_string();
-    assert!(err.contains("--no-dropout"), "{err}");
     assert!(!run.exists(), "a refused fit wrote {}", run.display());
 }
