@@ -78,9 +78,11 @@ fn bad_config_file_is_named() {
 /// Nonsense partition counts are refused by clap in one line naming the flag, before the manifest is read.
 #[test]
 fn nonsense_partition_counts_name_the_flag() {
+    // `--merge=-2`: clap reads a separate `-2` as a flag, not a value.
     for (args, flag) in [
         (["--merge", "0"], "--merge"),
-        (["--merge", "-2"], "--merge"),
+        (["--merge=-2", "--force=publish"], "--merge"),
+        (["--merge", "two"], "--merge"),
         (["--partition", "4/4"], "--partition"),
         (["--partition", "0/0"], "--partition"),
     ] {

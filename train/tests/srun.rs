@@ -1,7 +1,8 @@
 //! The data-parallel fit under Slurm: `srun --mpi=pmix -n 2` on the one-node test cluster
 //! ([`dataset::testing::slurm`]) trains the same steps as `mpirun -np 2` (whose steps `data_parallel.rs` checks
 //! against steps computed by hand), bit for bit; every socket of the cluster, its job step and the ranks is on
-//! loopback; and nothing of it is left running afterwards. Needs the `mpi` feature, Open MPI and Slurm.
+//! loopback; two tasks without an MPI bootstrap (`srun --mpi=none`) are refused; and nothing of it is left running
+//! afterwards. Needs the `mpi` feature, Open MPI and Slurm.
 #![cfg(feature = "mpi")]
 
 use std::path::Path;
@@ -115,6 +116,32 @@ fn srun_with_pmix_trains_what_mpirun_trains_on_loopback_and_leaves_nothing_runni
             a.0
         );
     }
+
+    // Two tasks without an MPI bootstrap (`srun --mpi=none`) would be two unrelated copies: each refuses in one
+    // line before MPI starts, and nothing is written.
+    let refused = tmp.path().join("refused");
+    let out = cluster
+        .client("srun")
+        .args(["--mpi=none", "-n", "2", "--cpus-per-task=1"])
+        .arg(bin)
+        .args(fit_args(tmp.path(), &refused))
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "srun --mpi=none ran:\n{stderr}");
+    assert_eq!(
+        stderr
+            .lines()
+            .filter(|l| l.starts_with("error:") && l.contains("without an MPI bootstrap"))
+            .count(),
+        2,
+        "{stderr}"
+    );
+    assert!(
+        !refused.exists(),
+        "a refused fit wrote {}",
+        refused.display()
+    );
 
     let (marker, namespace) = (cluster.marker().to_string(), cluster.namespace());
     drop(cluster);

@@ -14,6 +14,10 @@ const LAUNCHER_WORLDS: [(&str, &str); 4] = [
     ("WORLD_SIZE", "torchrun"),
 ];
 
+/// Variables only an MPI launcher sets: `mpirun`'s, and PMIx's or PMI's (`srun --mpi=pmix|pmi2`).
+#[cfg(feature = "mpi")]
+const MPI_BOOTSTRAP: [&str; 3] = ["OMPI_COMM_WORLD_SIZE", "PMIX_RANK", "PMI_RANK"];
+
 /// Reads a process's environment (a closure in tests).
 pub type LaunchEnv<'a> = &'a dyn Fn(&str) -> Option<String>;
 
@@ -51,16 +55,18 @@ pub fn launch(env: LaunchEnv, timeout: std::time::Duration) -> Result<Ranks> {
     let stated = launcher_world(env)?;
     #[cfg(feature = "mpi")]
     {
-        // MPI is started only under a launcher: a plain `g2r-train fit` needs no MPI runtime on the machine.
-        let launched = [
-            "OMPI_COMM_WORLD_SIZE",
-            "PMIX_RANK",
-            "PMI_RANK",
-            "SLURM_STEP_ID",
-        ]
-        .iter()
-        .any(|v| env(v).is_some());
-        if launched || stated.is_some() {
+        // MPI is started only under an MPI launcher: a plain `g2r-train fit`, or `srun -n 1` on a site whose
+        // default is `--mpi=none`, needs no MPI runtime (Open MPI aborts there).
+        let bootstrap = MPI_BOOTSTRAP.iter().any(|v| env(v).is_some());
+        if let (Some((tasks, variable, launcher)), false) = (stated, bootstrap) {
+            // Several processes and no way for MPI to join them (`srun --mpi=none`): MPI_Init would abort each
+            // with a page of its own text; say it in one line instead.
+            bail!(
+                "{launcher} started {tasks} processes ({variable}={tasks}) without an MPI bootstrap (no PMIx or \
+                 mpirun in their environment), so they cannot join one fit: launch with `srun --mpi=pmix` or `mpirun`"
+            );
+        }
+        if bootstrap {
             let ranks = super::mpi_world::join(timeout)?;
             if let Some((tasks, variable, launcher)) = stated {
                 if ranks.world() != tasks {
@@ -129,6 +135,22 @@ mod tests {
     fn without_a_launcher_a_fit_is_one_rank() {
         let ranks = launch(&env(&[]), std::time::Duration::from_secs(1)).unwrap();
         assert_eq!((ranks.replica().rank, ranks.world()), (0, 1));
+    }
+
+    #[cfg(feature = "mpi")]
+    #[test]
+    fn several_tasks_without_an_mpi_bootstrap_are_refused_before_mpi_starts() {
+        let err = launch(
+            &env(&[("SLURM_NTASKS", "2"), ("SLURM_STEP_ID", "0")]),
+            std::time::Duration::from_secs(1),
+        )
+        .err()
+        .unwrap()
+        .to_string();
+        assert!(
+            err.contains("Slurm started 2 processes") && err.contains("--mpi=pmix"),
+            "{err}"
+        );
     }
 
     #[cfg(not(feature = "mpi"))]
