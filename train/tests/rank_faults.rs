@@ -9,44 +9,19 @@ use std::time::{Duration, Instant};
 
 mod support;
 
-use support::mpi::{mpirun, Job};
+use support::mpi::{fit_args as launcher_fit_args, mpirun, Job};
 
 /// The watchdog's limit these runs are given (`--collective-timeout`).
 const COLLECTIVE_TIMEOUT_S: u64 = 6;
-/// How long the launcher may take to end the job once a rank is gone, or once the watchdog fired.
-const END_WITHIN: Duration = Duration::from_secs(20);
+/// Long enough that the faults land mid-fit.
+const EPOCHS: usize = 1000;
 
 fn fit_args(data: &Path, run: &Path) -> Vec<String> {
-    let mut args: Vec<String> = ["fit", "--data"].map(String::from).to_vec();
-    args.push(data.display().to_string());
-    args.push("--out".into());
-    args.push(run.display().to_string());
-    args.extend(
-        [
-            "--model",
-            "m2",
-            "--width",
-            "4",
-            "--batch",
-            "4",
-            "--epochs",
-            "1000",
-            "--max-train-samples",
-            "16",
-            "--max-val-samples",
-            "4",
-            "--no-dropout",
-            "--seed",
-            "5",
-        ]
-        .map(String::from),
-    );
-    args.extend([
-        "--collective-timeout".into(),
-        COLLECTIVE_TIMEOUT_S.to_string(),
-    ]);
-    args
+    launcher_fit_args(data, run, EPOCHS, COLLECTIVE_TIMEOUT_S)
 }
+
+/// How long the launcher may take to end the job once a rank is gone, or once the watchdog fired.
+const END_WITHIN: Duration = Duration::from_secs(20);
 
 fn checkpoint_step(run: &Path) -> Option<u64> {
     let text = std::fs::read_to_string(run.join("last/cursor.json")).ok()?;

@@ -13,36 +13,12 @@ use dataset::testing::slurm::{marked_processes, processes_in_namespace, Cluster}
 mod support;
 
 use support::mpi::{mpirun, Job, LOOPBACK_ONLY};
-use support::{config, load, tensors};
 
-/// `fit` as the test runs it: `config()`'s run (M2, width 4, batch 4) for three epochs of four steps.
+/// Three epochs of four steps: the loopback check runs after the first checkpoint, while the ranks still train.
 fn fit_args(data: &Path, run: &Path) -> Vec<String> {
-    let mut args: Vec<String> = vec!["fit".into(), "--data".into(), data.display().to_string()];
-    args.extend(["--out".into(), run.display().to_string()]);
-    args.extend(
-        [
-            "--model",
-            "m2",
-            "--width",
-            "4",
-            "--batch",
-            "4",
-            "--epochs",
-            "3",
-            "--max-train-samples",
-            "16",
-            "--max-val-samples",
-            "4",
-            "--no-dropout",
-            "--seed",
-            "5",
-            "--collective-timeout",
-            "120",
-        ]
-        .map(String::from),
-    );
-    args
+    support::mpi::fit_args(data, run, 3, 120)
 }
+use support::{config, load, tensors};
 
 #[test]
 fn srun_with_pmix_trains_what_mpirun_trains_on_loopback_and_leaves_nothing_running() {
@@ -91,6 +67,10 @@ fn srun_with_pmix_trains_what_mpirun_trains_on_loopback_and_leaves_nothing_runni
         status.success(),
         "srun --mpi=pmix -n 2 failed ({status}):\n{stderr}{}",
         cluster.log_tails()
+    );
+    assert!(
+        !listening.is_empty(),
+        "the step ended before its sockets were checked"
     );
     println!("listening on loopback while the step ran: {listening:?}");
     assert!(

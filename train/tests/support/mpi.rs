@@ -2,7 +2,7 @@
 //! running, whether it ends, times out, or the test panics or is killed.
 
 use std::os::unix::process::CommandExt;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::{Child, Command, ExitStatus};
 use std::time::{Duration, Instant};
 
@@ -175,4 +175,36 @@ fn marked(marker: &str, also: Option<&str>) -> Vec<i32> {
         }
     }
     found
+}
+
+/// `g2r-train fit` arguments for the launcher tests: [`super::config`]'s run (M2, width 4, batch 4, four steps an
+/// epoch, seed 5, no dropout) on `data` into `run`, for `epochs` epochs, each all-reduce waiting at most
+/// `collective_timeout_s`.
+pub fn fit_args(data: &Path, run: &Path, epochs: usize, collective_timeout_s: u64) -> Vec<String> {
+    let mut args: Vec<String> = vec!["fit".into(), "--data".into(), data.display().to_string()];
+    args.extend(["--out".into(), run.display().to_string()]);
+    args.extend(
+        [
+            "--model",
+            "m2",
+            "--width",
+            "4",
+            "--batch",
+            "4",
+            "--max-train-samples",
+            "16",
+            "--max-val-samples",
+            "4",
+            "--no-dropout",
+            "--seed",
+            "5",
+        ]
+        .map(String::from),
+    );
+    args.extend(["--epochs".into(), epochs.to_string()]);
+    args.extend([
+        "--collective-timeout".into(),
+        collective_timeout_s.to_string(),
+    ]);
+    args
 }
