@@ -110,6 +110,31 @@ fn assert_same(reference: &BTreeMap<String, Vec<u8>>, build: &Path, what: &str) 
     }
 }
 
+/// Wait for a map array and its publish job; the publish job completed and published the single-process bytes.
+fn assert_published(
+    cluster: &Cluster,
+    map: &str,
+    publish: &str,
+    reference: &BTreeMap<String, Vec<u8>>,
+    build: &Path,
+    what: &str,
+) {
+    cluster.wait(&[map, publish], JOB_LIMIT);
+    let state = cluster.state(publish);
+    assert!(state.starts_with("JobState=COMPLETED"), "{what}: {state}");
+    assert_same(reference, build, what);
+}
+
+/// Wait for a map array and its publish job; a failed map task cancelled the publish job (not left pending).
+fn assert_publish_cancelled(cluster: &Cluster, map: &str, publish: &str) {
+    cluster.wait(&[map, publish], JOB_LIMIT);
+    let state = cluster.state(publish);
+    assert!(
+        state.contains("JobState=CANCELLED") && state.contains("DependencyNeverSatisfied"),
+        "{state}"
+    );
+}
+
 #[test]
 fn a_slurm_array_publishes_the_same_bytes_and_a_failed_task_publishes_nothing() {
     let tmp = tempfile::tempdir().unwrap();
@@ -145,13 +170,10 @@ fn a_slurm_array_publishes_the_same_bytes_and_a_failed_task_publishes_nothing() 
             partitions,
             &["--cpus-per-task=1"],
         );
-        cluster.wait(&[&map, &publish], JOB_LIMIT);
-        assert!(
-            cluster.state(&publish).starts_with("JobState=COMPLETED"),
-            "{}",
-            cluster.state(&publish)
-        );
-        assert_same(
+        assert_published(
+            &cluster,
+            &map,
+            &publish,
             &reference,
             &root.join(&name),
             &format!("{partitions}-task array"),
@@ -171,12 +193,7 @@ fn a_slurm_array_publishes_the_same_bytes_and_a_failed_task_publishes_nothing() 
     );
     cluster.command("scancel", &[&format!("{map}_3")]);
     cluster.command("scontrol", &["release", &map]);
-    cluster.wait(&[&map, &publish], JOB_LIMIT);
-    let state = cluster.state(&publish);
-    assert!(
-        state.contains("JobState=CANCELLED") && state.contains("DependencyNeverSatisfied"),
-        "{state}"
-    );
+    assert_publish_cancelled(&cluster, &map, &publish);
     assert!(
         !dir.join("out/demo-dataset/dataset/manifest.json").exists(),
         "nothing published"
@@ -189,13 +206,14 @@ fn a_slurm_array_publishes_the_same_bytes_and_a_failed_task_publishes_nothing() 
         "task 3 never ran"
     );
     let (map, publish) = submit(&cluster, &dir, &manifest, 4, &["--cpus-per-task=1"]);
-    cluster.wait(&[&map, &publish], JOB_LIMIT);
-    assert!(
-        cluster.state(&publish).starts_with("JobState=COMPLETED"),
-        "{}",
-        cluster.state(&publish)
+    assert_published(
+        &cluster,
+        &map,
+        &publish,
+        &reference,
+        &dir,
+        "resubmitted after a cancelled task",
     );
-    assert_same(&reference, &dir, "resubmitted after a cancelled task");
 
     // Tasks that fail while running: task 1 exits non-zero, task 2 is killed mid-stage. The publish job never
     // runs, nothing is published, and submitting again publishes the same bytes.
@@ -238,7 +256,7 @@ fn a_slurm_array_publishes_the_same_bytes_and_a_failed_task_publishes_nothing() 
     // Mid-stage: a second into its work.
     std::thread::sleep(Duration::from_secs(1));
     cluster.command("scancel", &["--signal=KILL", "--full", &task2]);
-    cluster.wait(&[&map, &publish], JOB_LIMIT);
+    assert_publish_cancelled(&cluster, &map, &publish);
     let task1 = cluster.state(&format!("{map}_1"));
     assert!(task1.contains("JobState=FAILED"), "task 1: {task1}");
     let task2_state = cluster.state(&task2);
@@ -246,23 +264,15 @@ fn a_slurm_array_publishes_the_same_bytes_and_a_failed_task_publishes_nothing() 
         !task2_state.contains("JobState=COMPLETED"),
         "task 2 was not killed mid-stage: {task2_state}"
     );
-    let state = cluster.state(&publish);
-    assert!(
-        state.contains("JobState=CANCELLED") && state.contains("DependencyNeverSatisfied"),
-        "{state}"
-    );
     assert!(
         !dir.join("out/demo-dataset/dataset").exists(),
         "something was published after failed tasks"
     );
     let (map, publish) = submit(&cluster, &dir, &manifest, 4, &["--cpus-per-task=1"]);
-    cluster.wait(&[&map, &publish], JOB_LIMIT);
-    assert!(
-        cluster.state(&publish).starts_with("JobState=COMPLETED"),
-        "{}",
-        cluster.state(&publish)
-    );
-    assert_same(
+    assert_published(
+        &cluster,
+        &map,
+        &publish,
         &reference,
         &dir,
         "resubmitted after a failed and a killed task",
