@@ -69,10 +69,16 @@ impl Job {
             std::process::id(),
             JOBS.fetch_add(1, std::sync::atomic::Ordering::SeqCst)
         );
+        // Each job its own Open MPI session directory and shared-memory files. Two `mpirun`s in PID namespaces of
+        // their own both run as pid 1, so Open MPI derives the same job id for both, and with shared defaults their
+        // ranks map each other's shared-memory segments (a test binary runs its tests at once: segfaults).
         command
             .stdout(file.try_clone().unwrap())
             .stderr(file)
-            .env(MARKER, &marker);
+            .env(MARKER, &marker)
+            .env("TMPDIR", dir.path())
+            .env("OMPI_MCA_orte_tmpdir_base", dir.path())
+            .env("OMPI_MCA_btl_vader_backing_directory", dir.path());
         // SAFETY: prctl is async-signal-safe, and nothing else runs between fork and exec.
         unsafe {
             command.pre_exec(|| {
