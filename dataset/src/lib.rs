@@ -8,7 +8,7 @@
 //!
 //! Beside them: the HTTP [`client`] of a served dataset (the server itself is the `g2r-dataset-server` crate),
 //! published datasets in object [`storage`] (S3 and the like),
-//! the binaries' allocator settings and logging, the provenance written next to measurements, and test fixtures.
+//! the binaries' allocator settings, logging and [`progress`], the provenance written next to measurements, and test fixtures.
 
 pub mod science;
 
@@ -16,6 +16,7 @@ pub mod contract;
 
 pub mod client;
 pub mod malloc;
+pub mod progress;
 pub mod provenance;
 pub mod storage;
 pub mod testing;

@@ -177,18 +177,17 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 (None, Some(count)) => RunScope::Merge(count),
                 (None, None) => RunScope::Whole,
             };
-            let progress = indicatif::ProgressBar::new(0);
-            progress.set_style(
-                indicatif::ProgressStyle::with_template(
-                    "{prefix:>10} [{bar:30}] {pos}/{len} crops {elapsed_precise} eta {eta}",
-                )?
-                .progress_chars("=> "),
-            );
-            progress.set_prefix("project");
+            // The projection's crops (the long stage); each stage's start and end are logged besides.
+            let progress = dataset::progress::Progress::start("pipeline", "crops", 0);
             let force: Vec<&str> = force.iter().map(String::as_str).collect();
-            let outcome =
-                pipeline::jobs::run(&manifest, scope, until.as_deref(), &force, progress.clone())?;
-            progress.finish_and_clear();
+            let outcome = pipeline::jobs::run(
+                &manifest,
+                scope,
+                until.as_deref(),
+                &force,
+                progress.bar().clone(),
+            )?;
+            progress.finish();
             if outcome.stages.is_empty() {
                 tracing::info!("everything up to date");
             } else {

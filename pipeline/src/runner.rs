@@ -342,6 +342,7 @@ impl<'a> Runner<'a> {
                     }
                     let _ = std::fs::remove_file(t);
                 }
+                tracing::info!(stage = stage.name, "stage started");
                 let started = std::time::Instant::now();
                 let inputs = self.hashes(&stage.inputs)?;
                 (stage.run)(&StageOutputs { paths: tmp.clone() })

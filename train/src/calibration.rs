@@ -115,7 +115,7 @@ pub fn calibrate(
     let (mut hapke, mut ll, mut seen) = (ScaleFit::default(), ScaleFit::default(), 0);
     let p = model.param_count();
     let (mut ata, mut atb) = (vec![vec![0.0; p]; p], vec![0.0; p]);
-    for_each_sample_group(source, Split::Train, Some(samples), |group| {
+    for_each_sample_group(source, Split::Train, Some(samples), "calibrate", |group| {
         for s in group {
             let (truth, valid) = truth_and_valid(s);
             hapke.add(&hapke_render(s, &params), &truth, &valid);

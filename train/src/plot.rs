@@ -227,6 +227,25 @@ pub fn write_scatter(plot: &Scatter, font: Option<&FontVec>, path: &Path) -> Res
     Ok(labelled)
 }
 
+/// `text` in black at (x, y), in the largest of a few sizes that fits `width` pixels (the smallest when none does):
+/// the column names and scale lines of image panels.
+pub fn draw_text_fitted(
+    img: &mut RgbImage,
+    font: &FontVec,
+    text: &str,
+    x: i32,
+    y: i32,
+    width: u32,
+) {
+    let sizes = [14.0, 12.0, 10.0, 9.0];
+    let scale = sizes
+        .iter()
+        .map(|&s| PxScale::from(s))
+        .find(|&scale| text_size(scale, font, text).0 <= width)
+        .unwrap_or(PxScale::from(sizes[sizes.len() - 1]));
+    draw_text_mut(img, Rgb([0, 0, 0]), x, y, scale, font, text);
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

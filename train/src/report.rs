@@ -144,7 +144,7 @@ pub fn brdf_model_rows(
     let candidates = candidates(source, calibration_samples)?;
     let (mut sse, mut seconds) = (vec![0.0; candidates.len()], vec![0.0; candidates.len()]);
     let (mut pixels, mut valid_pixels, mut images, mut geometry_s) = (0usize, 0usize, 0usize, 0.0);
-    for_each_sample_group(source, split, max_samples, |samples| {
+    for_each_sample_group(source, split, max_samples, "report", |samples| {
         for s in samples {
             let t0 = Instant::now();
             let geometry = s.pixel_geometry();

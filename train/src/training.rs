@@ -17,14 +17,13 @@ use burn::prelude::*;
 use burn::record::Recorder;
 use dataset::contract::rng::keyed_u64;
 use dataset::science::brdf::BrdfModel;
-use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::data::{
     crop_interior_m, ContextNormalisation, ElevationNormalisation, EpochStream, HostBatch,
     InputNormalisation, SampleSource, StreamConfig,
 };
 use crate::data::{for_each_sample_group, steep_row_weights, STEEP_SLOPE_DEG};
-use crate::data_parallel::{Ranks, Replica};
+use crate::data_parallel::Ranks;
 use crate::kernels::{TrainBackend, TrainOps};
 use crate::metrics::{AggregateMetrics, MetricsAccumulator};
 use crate::model::{UNet, UNetConfig};
@@ -57,6 +56,7 @@ pub fn input_normalisation(
         source,
         Split::Train,
         Some(ELEVATION_NORMALISATION_SAMPLES),
+        "input normalisation",
         |group| samples.extend(group.iter().cloned()),
     )?;
     let on_train = || format!("{}: train split", source.describe());
@@ -141,7 +141,7 @@ pub fn validate<B: TrainOps>(
 ) -> Result<AggregateMetrics> {
     input.check_dataset(source)?;
     let mut metrics = MetricsAccumulator::default();
-    for_each_sample_group(source, Split::Val, max, |samples| {
+    for_each_sample_group(source, Split::Val, max, "validate", |samples| {
         for chunk in samples.chunks(batch_size) {
             let batch = HostBatch::from_samples(chunk, input);
             let rendered = predict_images(net, model, &batch, device);
@@ -165,7 +165,8 @@ pub fn validate<B: TrainOps>(
 }
 
 /// Train (or resume) into `out`. `stop_after_steps` ends the run early with a resumable last checkpoint
-/// (used by the resume test and for wall-clock-bounded jobs).
+/// (used by the resume test and for wall-clock-bounded jobs). `show_progress` reports the steps
+/// ([`dataset::progress`]: a bar on a terminal, log lines elsewhere); off, the run reports only its epochs.
 pub fn fit<B: TrainBackend>(
     source: Arc<dyn SampleSource>,
     config: &FitConfig,
@@ -476,9 +477,14 @@ fn train_rank<B: TrainBackend, O: FitOptimizer<B>>(
     let last = out.join("last");
     // Time in optimiser steps only (not data waits, validation or checkpoints), for s/step figures.
     let mut step_time = StepTime::default();
-    // Without a terminal (a scheduler's log file) the bar is hidden: a structured line every minute instead.
-    let mut progress_log =
-        (!show_progress && replica.leads()).then(|| ProgressLog::new(cursor.step, replica));
+    // The run's steps: a bar on a terminal, structured lines naming the rank in a scheduler's log file.
+    let progress = if show_progress {
+        let context = format!("rank={} world={}", replica.rank, replica.world);
+        dataset::progress::Progress::start_in("fit", "steps", 0, &context)
+    } else {
+        dataset::progress::Progress::hidden()
+    };
+    progress.set_position(cursor.step);
     while cursor.epoch < config.epochs {
         let epoch = cursor.epoch;
         let model = config.model;
@@ -501,18 +507,9 @@ fn train_rank<B: TrainBackend, O: FitOptimizer<B>>(
             },
         )?;
         let stream_batches = stream.batches;
-        let bar = if show_progress {
-            ProgressBar::new(stream.batches as u64)
-        } else {
-            ProgressBar::hidden()
-        };
-        bar.set_style(
-            ProgressStyle::with_template("epoch {prefix} [{bar:30}] {pos}/{len} {msg} ({eta})")
-                .expect("valid template")
-                .progress_chars("=> "),
-        );
-        bar.set_prefix(format!("{}/{}", epoch + 1, config.epochs));
-        bar.set_position(cursor.next_batch as u64);
+        // Every epoch has the same batch count, so the run's length is known from the first stream.
+        let total_steps = (config.epochs * stream_batches) as u64;
+        progress.set_length(total_steps);
         for prepared in stream {
             let (batch, terms) = prepared?;
             // Dropout masks from (seed, step, rank): a resumed run draws exactly what an uninterrupted one would,
@@ -542,8 +539,6 @@ fn train_rank<B: TrainBackend, O: FitOptimizer<B>>(
                 GradientsParams::from_grads(loss.backward(), &net),
                 cursor.step,
             )?;
-            // Every epoch has the same batch count, so the run's length is known from the first stream.
-            let total_steps = (config.epochs * stream_batches) as u64;
             let rate = config
                 .lr_schedule
                 .rate(config.learning_rate, cursor.step, total_steps);
@@ -560,29 +555,23 @@ fn train_rank<B: TrainBackend, O: FitOptimizer<B>>(
             cursor.next_batch += 1;
             cursor.epoch_loss_sum += loss_value;
             cursor.epoch_batches += 1;
-            bar.inc(1);
+            progress.inc(1);
             let epoch_loss = cursor.epoch_loss_sum / cursor.epoch_batches as f64;
-            bar.set_message(format!("loss {epoch_loss:.3e}"));
-            if let Some(log) = progress_log.as_mut() {
-                log.tick(
-                    epoch,
-                    cursor.step,
-                    total_steps,
-                    epoch_loss,
-                    config.stream.batch_size,
-                );
-            }
+            progress.set_message(format!(
+                "epoch {}/{} loss {epoch_loss:.3e}",
+                epoch + 1,
+                config.epochs
+            ));
             if stop_after_steps.is_some_and(|s| cursor.step >= s) {
                 let (net, average) = mean_running_stats(ranks, net, average, cursor.step);
                 if replica.leads() {
                     save_last(&net, &optim, average.as_ref(), &cursor, &last, &recorder)?;
                 }
-                bar.abandon_with_message(format!("stopped at step {} (resumable)", cursor.step));
+                progress.set_message(format!("stopped at step {} (resumable)", cursor.step));
                 ranks.barrier(EPOCH_END, cursor.step);
                 return Ok(outcome(cursor, history, trainable, step_time));
             }
         }
-        bar.finish();
         // Every rank's BatchNorm statistics averaged before validation; the lead alone validates and writes,
         // while the others wait for it.
         (net, average) = mean_running_stats(ranks, net, average, cursor.step);
@@ -660,49 +649,6 @@ fn mean_running_stats<B: TrainBackend>(
     let net = ranks.mean_running_stats(net, step);
     let average = average.map(|a| ranks.mean_running_stats(a, step));
     (net, average)
-}
-
-/// How often [`ProgressLog`] writes a line.
-const PROGRESS_LOG_EVERY: std::time::Duration = std::time::Duration::from_secs(60);
-
-/// Progress as structured log lines, for runs whose stderr is a file: step, epoch, the epoch's mean loss so far,
-/// samples/s over the last interval (wall time: data waits included, as an ETA needs) and the ETA of the run's
-/// optimiser steps (validation passes not included).
-struct ProgressLog {
-    since: Instant,
-    since_step: u64,
-    /// Named in every line, so that a cluster log says which rank of how many wrote it.
-    replica: Replica,
-}
-
-impl ProgressLog {
-    fn new(step: u64, replica: Replica) -> Self {
-        Self {
-            since: Instant::now(),
-            since_step: step,
-            replica,
-        }
-    }
-
-    fn tick(&mut self, epoch: usize, step: u64, total_steps: u64, epoch_loss: f64, batch: usize) {
-        let elapsed = self.since.elapsed();
-        if elapsed < PROGRESS_LOG_EVERY && step < total_steps {
-            return;
-        }
-        let steps_per_s = (step - self.since_step) as f64 / elapsed.as_secs_f64();
-        tracing::info!(
-            rank = self.replica.rank,
-            world = self.replica.world,
-            epoch,
-            step,
-            total_steps,
-            loss = format!("{epoch_loss:.4e}"),
-            samples_per_s = format!("{:.2}", steps_per_s * batch as f64),
-            eta_s = ((total_steps - step) as f64 / steps_per_s).round() as u64,
-            "training"
-        );
-        *self = Self::new(step, self.replica);
-    }
 }
 
 #[derive(Default)]

@@ -527,3 +527,97 @@ fn fit_with_crater_level_leaves_a_crater_level_the_run_loads_with() {
     assert_eq!(level.bands[0].regression.train_crops, 20);
     assert_eq!(level.val_crops, 4);
 }
+
+/// `eval` off a terminal writes progress lines while it works (stderr, never stdout), and on a terminal (a pty
+/// from `script`) draws a bar instead of lines ([`dataset::progress`]).
+#[test]
+fn eval_reports_progress_as_lines_off_a_terminal_and_as_a_bar_on_one() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    train::testing::write_synthetic_dataset(
+        &d.join("data"),
+        train::testing::synthetic_samples(4, 1),
+        train::testing::synthetic_samples(12, 2),
+    );
+    let (data, run) = (
+        d.join("data").to_string_lossy().into_owned(),
+        d.join("run").to_string_lossy().into_owned(),
+    );
+    let (ok, stderr) = train_cli(&[
+        "fit", "--data", &data, "--out", &run, "--model", "m2", "--width", "4", "--batch", "2",
+        "--epochs", "1",
+    ]);
+    assert!(ok, "{stderr}");
+    let eval = |out: &str| -> Vec<String> {
+        [
+            "eval",
+            "--run",
+            &run,
+            "--data",
+            &data,
+            "--split",
+            "val",
+            "--batch",
+            "2",
+            "--out",
+            out,
+            "--calibration-samples",
+            "4",
+        ]
+        .map(String::from)
+        .to_vec()
+    };
+
+    // Off a terminal: lines every 20 ms (the variable), the eval's with its count before the end and at it.
+    let output = Command::new(env!("CARGO_BIN_EXE_g2r-train"))
+        .args(eval(&d.join("lines").to_string_lossy()))
+        .env("G2R_PROGRESS_SECONDS", "0.02")
+        .output()
+        .unwrap();
+    let (stdout, stderr) = (
+        String::from_utf8_lossy(&output.stdout),
+        String::from_utf8_lossy(&output.stderr),
+    );
+    assert!(output.status.success(), "{stderr}");
+    let eval_lines: Vec<&str> = stderr
+        .lines()
+        .filter(|l| l.contains("task=\"eval\"") && l.contains("total=12"))
+        .collect();
+    assert!(
+        eval_lines
+            .iter()
+            .any(|l| l.contains(" progress ") && !l.contains("done=12")),
+        "no progress line while eval worked:\n{stderr}"
+    );
+    assert!(
+        eval_lines
+            .last()
+            .is_some_and(|l| l.contains(" finished ") && l.contains("done=12")),
+        "no last line with every crop counted:\n{stderr}"
+    );
+    assert!(
+        !stdout.contains("progress") && stdout.contains("wrote"),
+        "progress on stdout, or no report:\n{stdout}"
+    );
+
+    // On a terminal: a bar, and no lines.
+    let command = std::iter::once(env!("CARGO_BIN_EXE_g2r-train").to_string())
+        .chain(eval(&d.join("bar").to_string_lossy()))
+        .collect::<Vec<_>>()
+        .join(" ");
+    let output = Command::new("script")
+        .args(["--quiet", "--return", "--command", &command, "/dev/null"])
+        .env("G2R_PROGRESS_SECONDS", "0.02")
+        .output()
+        .expect("script (util-linux) runs a command on a pty");
+    let terminal = String::from_utf8_lossy(&output.stdout);
+    assert!(output.status.success(), "{terminal}");
+    assert!(
+        terminal.contains("eval [") && terminal.contains("crops"),
+        "no bar on the terminal:\n{terminal}"
+    );
+    assert!(
+        !terminal.contains("task=\"eval\""),
+        "log lines on a terminal:\n{terminal}"
+    );
+}

@@ -215,8 +215,31 @@ fn eval_rows_equal_validation_and_direct_baselines() {
         "{md}"
     );
     let panel = image::open(panels.join("0.png")).unwrap();
-    // GT, six methods, |learned − GT|: eight 128-px tiles with 4-px gaps.
-    assert_eq!((panel.width(), panel.height()), (8 * 132 - 4, 128));
+    // GT, six methods, |learned − GT|: eight 128-px tiles with 4-px gaps, a label strip above, a scale below.
+    assert_eq!(
+        (panel.width(), panel.height()),
+        (
+            8 * 132 - 4,
+            train::evaluation::PANEL_HEADER_PX + 128 + train::evaluation::PANEL_FOOTER_PX
+        )
+    );
+    // The tiles' pixels sit below the label strip: the GT tile's first row is the panel's row PANEL_HEADER_PX.
+    let panel = panel.to_rgb8();
+    let top = train::evaluation::PANEL_HEADER_PX;
+    assert!(
+        (0..128).any(|x| panel.get_pixel(x, top).0 != [255, 255, 255]),
+        "the GT tile does not start below the label strip"
+    );
+    // With a font (CI installs DejaVu), the strips hold ink: column names above, the scale below.
+    if train::plot::system_font().is_some() {
+        let inked = |rows: std::ops::Range<u32>| {
+            rows.flat_map(|y| (0..panel.width()).map(move |x| (x, y)))
+                .filter(|&(x, y)| panel.get_pixel(x, y).0[0] < 128)
+                .count()
+        };
+        assert!(inked(0..top) > 100, "no column names");
+        assert!(inked(top + 128..panel.height()) > 100, "no scale line");
+    }
     assert!(!panels.join("2.png").exists());
 }
 

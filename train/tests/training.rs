@@ -685,7 +685,7 @@ fn a_pool_of_publications_trains_as_one_holding_both_train_splits() {
 
     let rows = |source: &dyn SampleSource, split: Split| {
         let mut rows = Vec::new();
-        for_each_sample_group(source, split, None, |group| {
+        for_each_sample_group(source, split, None, "rows", |group| {
             rows.extend(group.iter().map(|s| s.dem_m.clone()))
         })
         .unwrap();

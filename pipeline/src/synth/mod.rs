@@ -19,9 +19,9 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Context};
 use dataset::contract::manifest::{write_json_atomic, FileEntry};
 use dataset::contract::world as layout;
+use dataset::progress::Progress;
 use dataset::science::crs::LunarCrs;
 use dataset::science::raster::{write_geotiff, BandOut, BandValues, GeoTransform, RasterLayout};
-use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 use tracing::info;
 
@@ -109,15 +109,9 @@ struct WorldManifest<'a> {
     files: Vec<FileEntry>,
 }
 
-fn bar(len: u64, what: &str) -> ProgressBar {
-    let bar = ProgressBar::new(len);
-    bar.set_style(
-        ProgressStyle::with_template("{prefix:>14} [{bar:30}] {pos}/{len} {elapsed_precise}")
-            .expect("valid template")
-            .progress_chars("=> "),
-    );
-    bar.set_prefix(what.to_string());
-    bar
+/// Progress of one phase of the generation (phases run one after another, so one bar shows at a time).
+fn phase(what: &str, unit: &str, total: u64) -> Progress {
+    Progress::start(&format!("synth {what}"), unit, total)
 }
 
 /// Generate the world into `out` (built under `out.partial`, renamed when complete).
@@ -173,11 +167,13 @@ pub fn generate(
 
     // Terrain.
     let units = units::Units::new(&config.reflectance, seed);
+    let background = phase("background terrain", "grids", 1);
     let mut heights = terrain::background(&config.terrain, &fine, &units, w.base_height_m, seed);
+    background.finish();
     let craters = terrain::crater_catalogue(&config.terrain, &fine, &units, seed);
     let mut freshness = vec![0f32; fine.width * fine.height];
     let mut melt = vec![0f32; fine.width * fine.height];
-    let stamping = bar(craters.len() as u64, "craters");
+    let stamping = phase("craters", "craters", craters.len() as u64);
     for (i, chunk) in craters.chunks(1000).enumerate() {
         terrain::stamp_craters(
             &config.terrain,
@@ -190,7 +186,7 @@ pub fn generate(
         );
         stamping.inc(chunk.len() as u64);
     }
-    stamping.finish_and_clear();
+    stamping.finish();
     let complex_crater = config.complex_crater.as_ref().map(|cc| {
         (
             (cx + cc.offset_east_m, cy + cc.offset_north_m),
@@ -211,6 +207,7 @@ pub fn generate(
     info!(craters = craters.len(), "terrain done");
 
     // True reflectance.
+    let reflectance_phase = phase("true reflectance", "maps", 1);
     let maps = reflectance::hapke_maps(
         &config.reflectance,
         &fine,
@@ -222,6 +219,7 @@ pub fn generate(
     );
     drop(freshness);
     drop(melt);
+    reflectance_phase.finish();
 
     // Acquisitions and orthos.
     let strips = acquisition::plan(&config.acquisitions, &fine, &crs, w.base_height_m, seed);
@@ -229,7 +227,7 @@ pub fn generate(
     let mut orthos = Vec::new();
     let mut index_rows = Vec::new();
     for (k, strip) in strips.iter().enumerate() {
-        let progress = bar(0, &strip.meta.ortho_id);
+        let progress = phase(&strip.meta.ortho_id, "tiles", 0);
         let (image, stats) = orthos::render_ortho(
             &scene,
             &config.reflectance,
@@ -237,9 +235,9 @@ pub fn generate(
             strip,
             k,
             seed,
-            &progress,
+            progress.bar(),
         );
-        progress.finish_and_clear();
+        progress.finish();
         let g = &strip.grid;
         let path = partial.join(layout::ORTHO_DIR).join(&strip.meta.image_file);
         write_geotiff(
@@ -283,7 +281,9 @@ pub fn generate(
         });
     }
 
-    // Delivered DEM and truth.
+    // Delivered DEM and truth: six rasters and the crater list, each a step.
+    let truth_phase = phase("DEM product and truth", "files", 7);
+    truth_phase.set_message(layout::DEM);
     let dem = dem_product::degrade(&config.dem_product, &fine, &heights, &dem_grid, seed);
     let height_desc = "height_m above the 1737400 m lunar sphere";
     write_geotiff(
@@ -296,6 +296,8 @@ pub fn generate(
         &[("PRODUCT", "stereo-like DEM (synthetic)".into())],
     )?;
     drop(dem);
+    truth_phase.inc(1);
+    truth_phase.set_message(layout::TRUE_DEM);
     write_geotiff(
         &partial.join(layout::TRUE_DEM),
         &fine.layout(&crs, -32768.0),
@@ -333,12 +335,16 @@ pub fn generate(
             description: "theta_bar_deg (macroscopic roughness)",
         },
     ];
+    truth_phase.inc(1);
+    truth_phase.set_message(layout::TRUE_HAPKE);
     write_geotiff(
         &partial.join(layout::TRUE_HAPKE),
         &fine.layout(&crs, -1.0),
         &bands,
         &[("HAPKE_FORM", "Hapke 2012 IMSA, H-function 2002, K=1".into())],
     )?;
+    truth_phase.inc(1);
+    truth_phase.set_message(layout::TRUE_W_MORPHOLOGY);
     write_geotiff(
         &partial.join(layout::TRUE_W_MORPHOLOGY),
         &fine.layout(&crs, -1.0),
@@ -349,9 +355,15 @@ pub fn generate(
         }],
         &[],
     )?;
+    truth_phase.inc(1);
+    truth_phase.set_message(layout::TRUE_CRATERS);
     write_json_atomic(&partial.join(layout::TRUE_CRATERS), &craters)?;
+    truth_phase.inc(1);
+    truth_phase.set_message("terrain classes");
     // On the delivered DEM's grid: evaluation classifies crops, which live on that grid.
     let (class, highland) = terrain::terrain_classes(&dem_grid, &units, complex_crater);
+    truth_phase.inc(1);
+    truth_phase.set_message(layout::TRUE_TERRAIN_CLASS);
     write_geotiff(
         &partial.join(layout::TRUE_TERRAIN_CLASS),
         &dem_grid.layout(&crs, -1.0),
@@ -369,6 +381,8 @@ pub fn generate(
         &[],
     )?;
     drop((class, highland));
+    truth_phase.inc(1);
+    truth_phase.finish();
 
     let mut files = Vec::new();
     let mut relative: Vec<String> = vec![
@@ -389,9 +403,13 @@ pub fn generate(
         relative.push(format!("{}/{}.json", layout::ISD_DIR, s.meta.ortho_id));
     }
     relative.sort();
+    let hashing = phase("file hashes", "files", relative.len() as u64);
     for rel in &relative {
+        hashing.set_message(rel.clone());
         files.push(FileEntry::of(&partial, rel)?);
+        hashing.inc(1);
     }
+    hashing.finish();
     let manifest = WorldManifest {
         name: &w.name,
         world_version: layout::WORLD_VERSION,

@@ -83,27 +83,33 @@ pub fn fit_crater_level<B: TrainOps>(
     let params = HapkeParams::lunar_typical();
     let reach = BANDS.iter().map(|b| b.1).fold(0.0, f64::max);
     let (mut read, mut framed, mut train) = (0usize, 0usize, Vec::<TrainCrop>::new());
-    for_each_sample_group(source, Split::Train, options.train_samples, |group| {
-        read += group.len();
-        let crops: Vec<Option<TrainCrop>> = group
-            .par_iter()
-            .map(|s| {
-                let at = s.crater?;
-                if at.rho >= reach {
-                    return None;
-                }
-                let (truth, valid) = truth_and_valid(s);
-                let scale = best_uniform_scale(&hapke_render(s, &params), &truth, &valid)?;
-                Some(TrainCrop {
-                    at,
-                    slope_deg: mean_slope_deg(s),
-                    log_scale: scale.ln(),
+    for_each_sample_group(
+        source,
+        Split::Train,
+        options.train_samples,
+        "crater-level fit",
+        |group| {
+            read += group.len();
+            let crops: Vec<Option<TrainCrop>> = group
+                .par_iter()
+                .map(|s| {
+                    let at = s.crater?;
+                    if at.rho >= reach {
+                        return None;
+                    }
+                    let (truth, valid) = truth_and_valid(s);
+                    let scale = best_uniform_scale(&hapke_render(s, &params), &truth, &valid)?;
+                    Some(TrainCrop {
+                        at,
+                        slope_deg: mean_slope_deg(s),
+                        log_scale: scale.ln(),
+                    })
                 })
-            })
-            .collect();
-        framed += group.iter().filter(|s| s.crater.is_some()).count();
-        train.extend(crops.into_iter().flatten());
-    })?;
+                .collect();
+            framed += group.iter().filter(|s| s.crater.is_some()).count();
+            train.extend(crops.into_iter().flatten());
+        },
+    )?;
     if framed == 0 {
         bail!(
             "{}: no train crop has a crater frame: publish the dataset with inputs.crater_catalogue in its pipeline manifest (schema 1.3)",
@@ -123,38 +129,44 @@ pub fn fit_crater_level<B: TrainOps>(
 
     let runs = std::slice::from_ref(run);
     let mut val = Vec::<ValCrop>::new();
-    for_each_sample_group(source, Split::Val, options.val_samples, |group| {
-        for chunk in group.chunks(options.batch_size.max(1)) {
-            let learned = predict_ensemble(runs, chunk, false, device);
-            let px = CROP_PX * CROP_PX;
-            let crops: Vec<ValCrop> = chunk
-                .par_iter()
-                .enumerate()
-                .map(|(i, s)| {
-                    let l = &learned[i * px..(i + 1) * px];
-                    let hapke = hapke_render(s, &params);
-                    let (truth, valid) = truth_and_valid(s);
-                    let (mut ll, mut lg, mut gg) = (0.0, 0.0, 0.0);
-                    for ((&x, &t), &ok) in l.iter().zip(&truth).zip(&valid) {
-                        if ok && x.is_finite() {
-                            ll += x * x;
-                            lg += x * t;
-                            gg += t * t;
+    for_each_sample_group(
+        source,
+        Split::Val,
+        options.val_samples,
+        "crater-level choice",
+        |group| {
+            for chunk in group.chunks(options.batch_size.max(1)) {
+                let learned = predict_ensemble(runs, chunk, false, device);
+                let px = CROP_PX * CROP_PX;
+                let crops: Vec<ValCrop> = chunk
+                    .par_iter()
+                    .enumerate()
+                    .map(|(i, s)| {
+                        let l = &learned[i * px..(i + 1) * px];
+                        let hapke = hapke_render(s, &params);
+                        let (truth, valid) = truth_and_valid(s);
+                        let (mut ll, mut lg, mut gg) = (0.0, 0.0, 0.0);
+                        for ((&x, &t), &ok) in l.iter().zip(&truth).zip(&valid) {
+                            if ok && x.is_finite() {
+                                ll += x * x;
+                                lg += x * t;
+                                gg += t * t;
+                            }
                         }
-                    }
-                    ValCrop {
-                        at: s.crater,
-                        slope_deg: mean_slope_deg(s),
-                        network_scale: rendered_scale(l, &hapke).unwrap_or(0.0),
-                        ll,
-                        lg,
-                        gg,
-                    }
-                })
-                .collect();
-            val.extend(crops);
-        }
-    })?;
+                        ValCrop {
+                            at: s.crater,
+                            slope_deg: mean_slope_deg(s),
+                            network_scale: rendered_scale(l, &hapke).unwrap_or(0.0),
+                            ll,
+                            lg,
+                            gg,
+                        }
+                    })
+                    .collect();
+                val.extend(crops);
+            }
+        },
+    )?;
     if val.is_empty() {
         bail!(
             "{}: the val split is empty: nothing to choose the crater level on",

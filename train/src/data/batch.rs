@@ -133,7 +133,7 @@ pub fn steep_row_weights(
     steep_weight: f64,
 ) -> Result<Vec<f64>> {
     let mut weights = Vec::new();
-    for_each_sample_group(source, split, None, |samples| {
+    for_each_sample_group(source, split, None, "steep weights", |samples| {
         weights.extend(
             samples
                 .par_iter()

@@ -179,15 +179,17 @@ impl<T> Iterator for EpochStream<T> {
 /// Call `f` with the samples of each row group of a split in file order, one row group in memory at a time,
 /// whatever the split's size. With `max` below the split's size, the samples are `max` rows spread evenly over the
 /// whole split ([`dataset::contract::planner::spread_rows`]), not its first rows: evaluation, validation and calibration
-/// subsets then see every ortho and tile.
+/// subsets then see every ortho and tile. Progress is reported as `task`, in crops ([`dataset::progress`]).
 pub fn for_each_sample_group(
     source: &dyn SampleSource,
     split: Split,
     max: Option<usize>,
+    task: &str,
     mut f: impl FnMut(&[Sample]),
 ) -> Result<()> {
     let groups = source.row_groups(split)?;
     let picks = dataset::contract::planner::spread_rows(&groups, max.unwrap_or(usize::MAX));
+    let progress = dataset::progress::Progress::start(task, "crops", picks.len() as u64);
     // Picks are in file order, so each group is read once, and only groups that hold a pick are read.
     for chunk in picks.chunk_by(|a, b| a.group == b.group) {
         let group = &groups[chunk[0].group];
@@ -209,6 +211,7 @@ pub fn for_each_sample_group(
             let wanted: Vec<Sample> = chunk.iter().map(|r| samples[r.row].clone()).collect();
             f(&wanted);
         }
+        progress.inc(chunk.len() as u64);
     }
     Ok(())
 }

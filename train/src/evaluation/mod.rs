@@ -98,47 +98,53 @@ pub fn evaluate<B: TrainOps>(
     let model_form = truth_maps
         .and_then(TruthMaps::fixed_material)
         .and_then(|fixed| ModelFormTable::new(config.model, fixed));
-    for_each_sample_group(source, options.split, options.max_samples, |samples| {
-        for chunk in samples.chunks(options.batch_size) {
-            let learned = predict_ensemble(runs, chunk, options.symmetry_mean, device);
-            // Each crop's renderings, metrics and matches in parallel; then added up in crop order, so every
-            // sum (and so every reported bit) is the same whatever the thread count.
-            let scored: Vec<ScoredImage> = chunk
-                .par_iter()
-                .enumerate()
-                .map(|(i, sample)| {
-                    let px = CROP_PX * CROP_PX;
-                    let renderings = method_renderings(
-                        sample,
-                        &learned[i * px..(i + 1) * px],
-                        crater_level,
-                        &calibration,
-                        truth_maps,
-                        model_form.as_ref(),
+    for_each_sample_group(
+        source,
+        options.split,
+        options.max_samples,
+        "eval",
+        |samples| {
+            for chunk in samples.chunks(options.batch_size) {
+                let learned = predict_ensemble(runs, chunk, options.symmetry_mean, device);
+                // Each crop's renderings, metrics and matches in parallel; then added up in crop order, so every
+                // sum (and so every reported bit) is the same whatever the thread count.
+                let scored: Vec<ScoredImage> = chunk
+                    .par_iter()
+                    .enumerate()
+                    .map(|(i, sample)| {
+                        let px = CROP_PX * CROP_PX;
+                        let renderings = method_renderings(
+                            sample,
+                            &learned[i * px..(i + 1) * px],
+                            crater_level,
+                            &calibration,
+                            truth_maps,
+                            model_form.as_ref(),
+                        );
+                        score_image(sample, renderings, &matcher, truth_maps)
+                    })
+                    .collect();
+                for (sample, scored) in chunk.iter().zip(scored) {
+                    framed_crops += usize::from(sample.crater.is_some());
+                    crater_level_crops += usize::from(
+                        crater_level.is_some_and(|level| level.applies(sample.crater.as_ref())),
                     );
-                    score_image(sample, renderings, &matcher, truth_maps)
-                })
-                .collect();
-            for (sample, scored) in chunk.iter().zip(scored) {
-                framed_crops += usize::from(sample.crater.is_some());
-                crater_level_crops += usize::from(
-                    crater_level.is_some_and(|level| level.applies(sample.crater.as_ref())),
-                );
-                for (name, distances) in &scored.match_distances {
-                    matches.entry(name).or_default().add_distances(distances);
-                }
-                for (name, m) in &scored.image.metrics {
-                    accumulators.entry(name.clone()).or_default().add_metrics(m);
-                }
-                if failure.is_none() {
-                    if let Err(e) = on_image(per_image.len(), sample, &scored.renderings) {
-                        failure = Some(e);
+                    for (name, distances) in &scored.match_distances {
+                        matches.entry(name).or_default().add_distances(distances);
                     }
+                    for (name, m) in &scored.image.metrics {
+                        accumulators.entry(name.clone()).or_default().add_metrics(m);
+                    }
+                    if failure.is_none() {
+                        if let Err(e) = on_image(per_image.len(), sample, &scored.renderings) {
+                            failure = Some(e);
+                        }
+                    }
+                    per_image.push(scored.image);
                 }
-                per_image.push(scored.image);
             }
-        }
-    })?;
+        },
+    )?;
     if let Some(e) = failure {
         return Err(e);
     }

@@ -153,16 +153,22 @@ pub fn model_choice(
         tables.push(table);
     }
     let mut per_image: Vec<PerImage> = Vec::new();
-    for_each_sample_group(source, options.split, options.max_samples, |samples| {
-        let scored: Vec<PerImage> = samples
-            .par_iter()
-            .map(|sample| {
-                let renderings = renderings(sample, truth, &tables, &candidates);
-                super::image_scores(sample, &renderings, Some(truth)).0
-            })
-            .collect();
-        per_image.extend(scored);
-    })?;
+    for_each_sample_group(
+        source,
+        options.split,
+        options.max_samples,
+        "model-choice",
+        |samples| {
+            let scored: Vec<PerImage> = samples
+                .par_iter()
+                .map(|sample| {
+                    let renderings = renderings(sample, truth, &tables, &candidates);
+                    super::image_scores(sample, &renderings, Some(truth)).0
+                })
+                .collect();
+            per_image.extend(scored);
+        },
+    )?;
     if per_image.is_empty() {
         bail!(
             "{}: split '{}' has no samples to compare models on",

@@ -89,10 +89,8 @@ pub fn run(job: &RenderJob) -> Result<()> {
         methods.push(("learned", learned));
     }
     std::fs::create_dir_all(job.out)?;
-    let progress = indicatif::ProgressBar::new((poses.len() * methods.len()) as u64).with_style(
-        indicatif::ProgressStyle::with_template("render {bar:40} {pos}/{len} views {elapsed}")
-            .expect("valid template"),
-    );
+    let progress =
+        dataset::progress::Progress::start("render", "views", (poses.len() * methods.len()) as u64);
     let mut images = Vec::new();
     let mut records = Vec::new();
     for (view, pose) in poses.iter().enumerate() {
@@ -117,7 +115,7 @@ pub fn run(job: &RenderJob) -> Result<()> {
             progress.inc(1);
         }
     }
-    progress.finish_and_clear();
+    progress.finish();
     // One display scale for every image: the 99.5th percentile of all lit pixels, so views compare directly.
     let mut lit: Vec<f64> = images
         .iter()
@@ -146,6 +144,13 @@ pub fn run(job: &RenderJob) -> Result<()> {
             .with_context(|| format!("writing {}", path.display()))?;
         std::fs::rename(&tmp, &path)?;
     }
+    let sheet = contact_sheet(&images, &records, methods.len(), &job.options, scale);
+    let path = job.out.join(CONTACT_SHEET);
+    let tmp = dataset::science::raster::tmp_path(&path);
+    sheet
+        .save_with_format(&tmp, image::ImageFormat::Png)
+        .with_context(|| format!("writing {}", path.display()))?;
+    std::fs::rename(&tmp, &path)?;
     dataset::contract::manifest::write_json_atomic(
         &job.out.join("views.json"),
         &serde_json::json!({
@@ -158,10 +163,56 @@ pub fn run(job: &RenderJob) -> Result<()> {
         }),
     )?;
     dataset::outln!(
-        "{}: {} views × {} methods, I/F scale {scale:.4} (views.json)",
+        "{}: {} views × {} methods, I/F scale {scale:.4} (views.json; {CONTACT_SHEET} to look at)",
         job.out.display(),
         poses.len(),
         methods.len()
     );
     Ok(())
+}
+
+/// The views at a glance: one row per view, one column per method, each labelled, 8-bit on the views' shared
+/// scale (the 16-bit PNGs beside it are the data; this picture is for eyes).
+pub const CONTACT_SHEET: &str = "views.png";
+
+fn contact_sheet(
+    images: &[Vec<f64>],
+    records: &[ViewRecord],
+    methods: usize,
+    options: &raycast::ViewOptions,
+    scale: f64,
+) -> image::RgbImage {
+    const LABEL_PX: u32 = 18;
+    const GAP_PX: u32 = 4;
+    let (w, h) = (options.width as u32, options.height as u32);
+    let rows = images.len().div_ceil(methods.max(1)) as u32;
+    let (cell_w, cell_h) = (w + GAP_PX, LABEL_PX + h + GAP_PX);
+    let width = methods as u32 * cell_w - GAP_PX;
+    let height = rows * cell_h + LABEL_PX;
+    let mut sheet = image::RgbImage::from_pixel(width, height, image::Rgb([255, 255, 255]));
+    for (k, image) in images.iter().enumerate() {
+        let (x0, y0) = ((k % methods) as u32 * cell_w, (k / methods) as u32 * cell_h);
+        for (i, v) in image.iter().enumerate() {
+            let g = ((v / scale).clamp(0.0, 1.0) * 255.0).round() as u8;
+            let (x, y) = (i as u32 % w, i as u32 / w);
+            sheet.put_pixel(x0 + x, y0 + LABEL_PX + y, image::Rgb([g, g, g]));
+        }
+    }
+    if let Some(font) = crate::plot::system_font() {
+        for (k, record) in records.iter().enumerate() {
+            let (x0, y0) = ((k % methods) as u32 * cell_w, (k / methods) as u32 * cell_h);
+            let label = format!("view {} · {}", record.view, record.method);
+            crate::plot::draw_text_fitted(&mut sheet, &font, &label, x0 as i32, y0 as i32 + 2, w);
+        }
+        let caption = format!("grey: I/F 0 (black) to {scale:.4} (white), every view on one scale");
+        crate::plot::draw_text_fitted(
+            &mut sheet,
+            &font,
+            &caption,
+            0,
+            (rows * cell_h) as i32 + 2,
+            width,
+        );
+    }
+    sheet
 }

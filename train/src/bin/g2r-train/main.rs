@@ -3,7 +3,6 @@
 
 mod args;
 
-use std::io::IsTerminal;
 use std::sync::Arc;
 
 use anyhow::Result;
@@ -48,7 +47,7 @@ fn run_fit(
     let ranks = train::data_parallel::launch(&env, timeout)?;
     let outcome = with_backend!(args.backend, B => {
         let device = <B as RankDevice>::rank_device(ranks.local_rank());
-        train::training::fit_ranks::<B>(source, config, out, resume, stop, &device, &ranks, std::io::stderr().is_terminal())
+        train::training::fit_ranks::<B>(source, config, out, resume, stop, &device, &ranks, true)
     })
     .map_err(|e| ranks.end_on_error(e))?;
     Ok(ranks.leads().then_some(outcome))
@@ -234,12 +233,7 @@ fn run(cli: Cli) -> Result<()> {
             dem_std_m,
             craters,
         } => {
-            let progress = indicatif::ProgressBar::new(0).with_style(
-                indicatif::ProgressStyle::with_template(
-                    "infer {bar:40} {pos}/{len} batches {elapsed} {msg}",
-                )
-                .expect("valid template"),
-            );
+            let progress = dataset::progress::Progress::start("infer", "batches", 0);
             let raster = dataset::science::raster::read_raster(&dem)?;
             let crater_frames = craters
                 .catalogue
@@ -269,7 +263,7 @@ fn run(cli: Cli) -> Result<()> {
                     progress.set_position(done as u64);
                 })
             })?;
-            progress.finish_and_clear();
+            progress.finish();
             match maps.crater_level_crops {
                 Some(crops) => tracing::info!(crops, "crater level applied"),
                 None if std::fs::exists(runs.run.join(train::crater_level::CRATER_LEVEL_FILE))? => {
