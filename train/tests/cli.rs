@@ -621,3 +621,78 @@ fn eval_reports_progress_as_lines_off_a_terminal_and_as_a_bar_on_one() {
         "log lines on a terminal:\n{terminal}"
     );
 }
+
+/// `render` writes the 16-bit views and beside them `views.png`, a contact sheet: one row per view, one column per
+/// method, a label strip above each image and a caption below.
+#[test]
+fn render_writes_a_labelled_contact_sheet_of_its_views() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    // 2 km of gently sloping ground centred on (-43.31°, -11.36°).
+    let crs = dataset::science::crs::LunarCrs::equirectangular(-43.31, -11.36);
+    let (cx, cy) = crs.from_lonlat_deg(-11.36, -43.31).unwrap();
+    let mut dem = dataset::science::raster::Raster::new(
+        400,
+        400,
+        dataset::science::raster::GeoTransform::north_up(cx - 1000.0, cy + 1000.0, 5.0),
+        crs,
+        -1200.0,
+    );
+    for (k, h) in dem.data.iter_mut().enumerate() {
+        *h = -1200.0 + (k % 400) as f32 * 0.2;
+    }
+    dataset::science::raster::write_raster(&d.join("dem.tif"), &dem, &[]).unwrap();
+    // Two nadir views over the DEM's middle, 2.2 km above the ground (footprints about 780 m wide).
+    std::fs::write(
+        d.join("views.csv"),
+        "lon,lat,alt,yaw,pitch,roll\n-11.36,-43.31,1000,0,0,0\n-11.36,-43.31,1000,30,0,0\n",
+    )
+    .unwrap();
+    let path = |name: &str| d.join(name).to_string_lossy().into_owned();
+    let (ok, stderr) = train_cli(&[
+        "render",
+        "--dem",
+        &path("dem.tif"),
+        "--trajectory",
+        &path("views.csv"),
+        "--sun=1.4e11,-5.2e10,-1.2e10",
+        "--out",
+        &path("views"),
+        "--width",
+        "32",
+        "--height",
+        "24",
+        "--fov",
+        "20",
+        "--rays",
+        "1",
+    ]);
+    assert!(ok, "{stderr}");
+    let record: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(d.join("views/views.json")).unwrap())
+            .unwrap();
+    let views = record["views"].as_array().unwrap();
+    let methods: std::collections::BTreeSet<&str> = views
+        .iter()
+        .map(|v| v["method"].as_str().unwrap())
+        .collect();
+    let rows = (views.len() / methods.len()) as u32;
+    assert_eq!(rows, 2);
+    let sheet = image::open(d.join("views/views.png")).unwrap().to_rgb8();
+    // Cells of 32 × 24 px with a 4-px gap, an 18-px label strip above each, an 18-px caption row at the bottom.
+    assert_eq!(
+        (sheet.width(), sheet.height()),
+        (methods.len() as u32 * 36 - 4, rows * (18 + 24 + 4) + 18)
+    );
+    // Every ray meets the ground, and the first view's image sits under its label strip: lit ground in mid to
+    // light grey on the views' shared scale, neither the white background nor black.
+    assert!(
+        views.iter().all(|v| v["stats"]["hit_fraction"] == 1.0),
+        "{record}"
+    );
+    let grey = sheet.get_pixel(16, 18 + 12).0;
+    assert!(
+        grey[0] == grey[1] && (100..255).contains(&grey[0]),
+        "{grey:?}"
+    );
+}
