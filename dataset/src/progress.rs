@@ -5,7 +5,8 @@
 //! Work that takes less than one interval off a terminal logs nothing, so short runs and tests stay quiet.
 
 use std::io::IsTerminal;
-use std::sync::{Arc, Condvar, Mutex};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Condvar, Mutex, PoisonError};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
@@ -49,10 +50,14 @@ impl Output {
     }
 }
 
-/// One piece of long work: `task` counting `unit`s towards a total. Dropping it ends the report.
+/// One piece of long work: `task` counting `unit`s towards a total. [`Progress::finish`] ends the report as
+/// finished; dropped without it (an error, a stop), it ends as stopped where it was.
 pub struct Progress {
     bar: ProgressBar,
     logger: Option<Logger>,
+    /// The count the work resumed from: rates and ETAs count only what this run did.
+    resumed_from: Arc<AtomicU64>,
+    finished: bool,
 }
 
 impl Progress {
@@ -67,7 +72,7 @@ impl Progress {
         Self::with_output("", "", 0, Output::Hidden)
     }
 
-    /// Progress shown as `output` says; `context` (e.g. `rank 0/2`) is named in every line.
+    /// Progress shown as `output` says.
     pub fn with_output(task: &str, unit: &str, total: u64, output: Output) -> Self {
         Self::build(task, unit, total, output, "")
     }
@@ -79,6 +84,7 @@ impl Progress {
 
     fn build(task: &str, unit: &str, total: u64, output: Output, context: &str) -> Self {
         let bar = ProgressBar::with_draw_target(Some(total), ProgressDrawTarget::hidden());
+        let resumed_from = Arc::new(AtomicU64::new(0));
         let logger = match output {
             Output::Bar => {
                 let label = if context.is_empty() {
@@ -99,6 +105,7 @@ impl Progress {
             }
             Output::Log(every) => Some(Logger::start(
                 bar.clone(),
+                resumed_from.clone(),
                 LogLabels {
                     task: task.to_string(),
                     unit: unit.to_string(),
@@ -108,7 +115,12 @@ impl Progress {
             )),
             Output::Hidden => None,
         };
-        Self { bar, logger }
+        Self {
+            bar,
+            logger,
+            resumed_from,
+            finished: false,
+        }
     }
 
     /// The bar itself, for code that takes an `indicatif::ProgressBar`: its count is this progress's count.
@@ -124,6 +136,14 @@ impl Progress {
         self.bar.set_position(position);
     }
 
+    /// Start the count at `position`, work done before this run (a resumed fit): the rate and the ETA count only
+    /// what is done from here.
+    pub fn resume_at(&self, position: u64) {
+        self.bar.set_position(position);
+        self.bar.reset_eta();
+        self.resumed_from.store(position, Ordering::Relaxed);
+    }
+
     pub fn set_length(&self, total: u64) {
         self.bar.set_length(total);
     }
@@ -137,16 +157,24 @@ impl Progress {
         self.bar.set_message(message);
     }
 
-    /// End the report: the bar is cleared; off a terminal a last line is logged if any was.
-    pub fn finish(self) {}
+    /// End the report as finished: the bar is cleared; off a terminal a last `finished` line is logged if any
+    /// line was.
+    pub fn finish(mut self) {
+        self.finished = true;
+    }
 }
 
 impl Drop for Progress {
     fn drop(&mut self) {
         if let Some(logger) = self.logger.take() {
-            logger.stop();
+            logger.stop(self.finished);
         }
-        self.bar.finish_and_clear();
+        if self.finished {
+            self.bar.finish_and_clear();
+        } else {
+            // Left where it stopped, with its message (a stopped fit says how to resume).
+            self.bar.abandon();
+        }
     }
 }
 
@@ -158,13 +186,19 @@ struct LogLabels {
 
 /// The thread that writes the log lines: one every interval, and a last one at the end if it wrote any.
 struct Logger {
-    stop: Arc<(Mutex<bool>, Condvar)>,
+    /// Set once the work ends: whether it finished.
+    stop: Arc<(Mutex<Option<bool>>, Condvar)>,
     thread: Option<JoinHandle<()>>,
 }
 
 impl Logger {
-    fn start(bar: ProgressBar, labels: LogLabels, every: Duration) -> Self {
-        let stop = Arc::new((Mutex::new(false), Condvar::new()));
+    fn start(
+        bar: ProgressBar,
+        resumed_from: Arc<AtomicU64>,
+        labels: LogLabels,
+        every: Duration,
+    ) -> Self {
+        let stop = Arc::new((Mutex::new(None), Condvar::new()));
         let thread = {
             let stop = stop.clone();
             std::thread::Builder::new()
@@ -173,19 +207,21 @@ impl Logger {
                     let started = Instant::now();
                     let mut logged = false;
                     let (lock, wake) = &*stop;
-                    let mut stopped = lock.lock().expect("progress lock");
+                    let mut ended = lock.lock().unwrap_or_else(PoisonError::into_inner);
                     loop {
                         let (guard, _) = wake
-                            .wait_timeout_while(stopped, every, |stopped| !*stopped)
-                            .expect("progress lock");
-                        stopped = guard;
-                        if *stopped {
+                            .wait_timeout_while(ended, every, |ended| ended.is_none())
+                            .unwrap_or_else(PoisonError::into_inner);
+                        ended = guard;
+                        let from = resumed_from.load(Ordering::Relaxed);
+                        if let Some(finished) = *ended {
                             if logged {
-                                log_line(&bar, &labels, started.elapsed(), true);
+                                let end = if finished { "finished" } else { "stopped" };
+                                log_line(&bar, from, &labels, started.elapsed(), end);
                             }
                             return;
                         }
-                        log_line(&bar, &labels, started.elapsed(), false);
+                        log_line(&bar, from, &labels, started.elapsed(), "progress");
                         logged = true;
                     }
                 })
@@ -197,8 +233,9 @@ impl Logger {
         }
     }
 
-    fn stop(mut self) {
-        *self.stop.0.lock().expect("progress lock") = true;
+    /// End the thread, its last line saying whether the work `finished` or stopped short.
+    fn stop(mut self, finished: bool) {
+        *self.stop.0.lock().unwrap_or_else(PoisonError::into_inner) = Some(finished);
         self.stop.1.notify_all();
         if let Some(thread) = self.thread.take() {
             let _ = thread.join();
@@ -207,11 +244,18 @@ impl Logger {
 }
 
 /// `progress task=eval done=120 total=5337 unit=crops rate_per_s=3.21 eta_s=1624 elapsed_s=37`.
-fn log_line(bar: &ProgressBar, labels: &LogLabels, elapsed: Duration, last: bool) {
+/// `what` is `progress`, or `finished` / `stopped` for the last line; the rate counts from `resumed_from`.
+fn log_line(
+    bar: &ProgressBar,
+    resumed_from: u64,
+    labels: &LogLabels,
+    elapsed: Duration,
+    what: &str,
+) {
     let done = bar.position();
     let total = bar.length().unwrap_or(0);
     let elapsed_s = elapsed.as_secs_f64();
-    let rate = done as f64 / elapsed_s.max(f64::MIN_POSITIVE);
+    let rate = done.saturating_sub(resumed_from) as f64 / elapsed_s.max(f64::MIN_POSITIVE);
     let eta_s =
         (rate > 0.0 && total >= done).then(|| ((total - done) as f64 / rate).round() as u64);
     let message = bar.message();
@@ -225,8 +269,7 @@ fn log_line(bar: &ProgressBar, labels: &LogLabels, elapsed: Duration, last: bool
         eta_s,
         elapsed_s = elapsed_s.round() as u64,
         note = message.as_str(),
-        "{}",
-        if last { "finished" } else { "progress" }
+        "{what}"
     );
 }
 

@@ -484,7 +484,7 @@ fn train_rank<B: TrainBackend, O: FitOptimizer<B>>(
     } else {
         dataset::progress::Progress::hidden()
     };
-    progress.set_position(cursor.step);
+    progress.resume_at(cursor.step);
     while cursor.epoch < config.epochs {
         let epoch = cursor.epoch;
         let model = config.model;
@@ -627,6 +627,7 @@ fn train_rank<B: TrainBackend, O: FitOptimizer<B>>(
         save_last(&net, &optim, average.as_ref(), &cursor, &last, &recorder)?;
         ranks.barrier(EPOCH_END, cursor.step);
     }
+    progress.finish();
     Ok(outcome(cursor, history, trainable, step_time))
 }
 

@@ -169,6 +169,7 @@ pub fn generate(
     let units = units::Units::new(&config.reflectance, seed);
     let background = phase("background terrain", "grids", 1);
     let mut heights = terrain::background(&config.terrain, &fine, &units, w.base_height_m, seed);
+    background.inc(1);
     background.finish();
     let craters = terrain::crater_catalogue(&config.terrain, &fine, &units, seed);
     let mut freshness = vec![0f32; fine.width * fine.height];
@@ -219,6 +220,7 @@ pub fn generate(
     );
     drop(freshness);
     drop(melt);
+    reflectance_phase.inc(1);
     reflectance_phase.finish();
 
     // Acquisitions and orthos.
@@ -281,7 +283,7 @@ pub fn generate(
         });
     }
 
-    // Delivered DEM and truth: six rasters and the crater list, each a step.
+    // Delivered DEM and truth: five rasters, the crater list and the terrain classes, each a step.
     let truth_phase = phase("DEM product and truth", "files", 7);
     truth_phase.set_message(layout::DEM);
     let dem = dem_product::degrade(&config.dem_product, &fine, &heights, &dem_grid, seed);

@@ -213,5 +213,6 @@ pub fn for_each_sample_group(
         }
         progress.inc(chunk.len() as u64);
     }
+    progress.finish();
     Ok(())
 }
