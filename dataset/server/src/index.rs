@@ -4,6 +4,7 @@
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
+use std::sync::Arc;
 
 use anyhow::{bail, Context, Result};
 
@@ -13,6 +14,8 @@ use dataset::contract::publication::{CARD_FILE, MANIFEST_FILE, SUMMARY_FILE};
 use dataset::contract::schema::Sample;
 use dataset::contract::shard::ShardFile;
 use dataset::storage::DatasetLocation;
+
+use crate::cache::ServerCache;
 
 /// One row: its metadata and where it lives.
 pub struct RowEntry {
@@ -50,6 +53,8 @@ pub struct DatasetIndex {
     pub splits: BTreeMap<String, Vec<usize>>,
     pub row_groups: BTreeMap<String, Vec<RowGroupRef>>,
     pub tiles: Vec<TileEntry>,
+    /// Decoded rows and previews kept between requests, within the `serve --cache-mib` budget.
+    pub cache: ServerCache,
     by_id: HashMap<String, usize>,
 }
 
@@ -63,8 +68,8 @@ fn parse_tile_id(tile_id: &str) -> Option<(i64, i64)> {
 impl DatasetIndex {
     /// Load `manifest.json` from a directory or a prefix in object storage, check every shard's size (and blake3
     /// when `verify_hashes`: every shard read once), read all footers and row metadata (from a bucket: only the
-    /// metadata columns' bytes).
-    pub fn load(location: DatasetLocation, verify_hashes: bool) -> Result<Self> {
+    /// metadata columns' bytes). Decoded rows and previews are then kept within `cache_bytes`.
+    pub fn load(location: DatasetLocation, verify_hashes: bool, cache_bytes: u64) -> Result<Self> {
         let Some(manifest_bytes) = location.read_if_exists(MANIFEST_FILE)? else {
             bail!(
                 "{}: no manifest.json: point at a published dataset, a directory or its object-storage URL (g2r-pipeline run writes OUT/dataset)",
@@ -223,6 +228,7 @@ impl DatasetIndex {
             splits,
             row_groups,
             tiles: tiles.into_values().collect(),
+            cache: ServerCache::new(cache_bytes),
             by_id,
         })
     }
@@ -237,24 +243,36 @@ impl DatasetIndex {
         self.shard_names.iter().position(|n| n == name)
     }
 
-    /// Full samples (with rasters) of `rows`, reading each touched row group once with a row selection.
-    pub fn read_full(&self, rows: &[usize]) -> Result<Vec<Sample>> {
-        let mut out: Vec<Option<Sample>> = vec![None; rows.len()];
-        // Group requested rows by (shard, row group); read the covering contiguous range once per group.
-        let mut groups: BTreeMap<(usize, usize), Vec<(usize, usize)>> = BTreeMap::new();
+    /// Full samples (with rasters) of `rows`: from the cache, or their metadata from the index with the rasters
+    /// read from their row groups (the tensor columns' pages of those rows only) and kept in the cache.
+    pub fn read_full(&self, rows: &[usize]) -> Result<Vec<Arc<Sample>>> {
+        let mut out: Vec<Option<Arc<Sample>>> = rows.iter().map(|&i| self.cache.row(i)).collect();
+        // The rows not cached, by (shard, row group), each row once, in file order.
+        let mut groups: BTreeMap<(usize, usize), BTreeMap<usize, usize>> = BTreeMap::new();
         for (k, &i) in rows.iter().enumerate() {
-            let r = &self.rows[i];
-            groups
-                .entry((r.shard, r.row_group))
-                .or_default()
-                .push((r.row, k));
+            if out[k].is_none() {
+                let r = &self.rows[i];
+                groups
+                    .entry((r.shard, r.row_group))
+                    .or_default()
+                    .insert(r.row, i);
+            }
         }
         for ((shard, row_group), wanted) in groups {
-            let lo = wanted.iter().map(|w| w.0).min().expect("non-empty");
-            let hi = wanted.iter().map(|w| w.0).max().expect("non-empty") + 1;
-            let samples = self.shards[shard].read_rows(row_group, lo..hi)?;
-            for (row, k) in wanted {
-                out[k] = Some(samples[row - lo].clone());
+            let file_rows: Vec<usize> = wanted.keys().copied().collect();
+            let mut samples: Vec<Sample> = wanted
+                .values()
+                .map(|&i| self.rows[i].meta.clone())
+                .collect();
+            self.shards[shard].fill_tensors(row_group, &file_rows, &mut samples)?;
+            for (&i, sample) in wanted.values().zip(samples) {
+                let sample = Arc::new(sample);
+                self.cache.keep_row(i, sample.clone());
+                for (k, &row) in rows.iter().enumerate() {
+                    if row == i {
+                        out[k] = Some(sample.clone());
+                    }
+                }
             }
         }
         Ok(out

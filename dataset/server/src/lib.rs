@@ -20,6 +20,7 @@
 //! | `GET /v1/stream?split=&seed=&epoch=[&rank=&world=&window=]` | a training epoch as an Arrow IPC stream, rows in the planner's order |
 //! | `GET /v1/manifest`, `/v1/croissant` | `manifest.json`, Croissant JSON-LD |
 
+pub mod cache;
 pub mod index;
 pub mod loadtest;
 pub mod preview;
@@ -28,7 +29,7 @@ use std::collections::BTreeMap;
 use std::net::SocketAddr;
 use std::sync::Arc;
 
-use axum::body::Body;
+use axum::body::{Body, Bytes};
 use axum::extract::{Path as UrlPath, Query, Request, State};
 use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
 use axum::response::{Html, IntoResponse, Response};
@@ -53,6 +54,15 @@ use dataset::client::ARROW_STREAM;
 pub const MAX_STREAM_WINDOW: usize = 8;
 /// Epoch streams running at once; more wait their turn (each holds up to a window, a few hundred MB).
 const CONCURRENT_STREAMS: usize = 2;
+
+/// Tensor pages and previews built at once: as many as there are cores. Each is a burst of decoding and encoding;
+/// more at once only time-slice the cores, and every other request's answer waits behind them.
+fn raster_permits() -> &'static tokio::sync::Semaphore {
+    static PERMITS: std::sync::OnceLock<tokio::sync::Semaphore> = std::sync::OnceLock::new();
+    PERMITS.get_or_init(|| {
+        tokio::sync::Semaphore::new(std::thread::available_parallelism().map_or(2, usize::from))
+    })
+}
 
 /// Limits the epoch streams running at once, whatever clients ask for.
 static STREAM_PERMITS: tokio::sync::Semaphore =
@@ -110,16 +120,38 @@ pub fn router(index: Arc<DatasetIndex>) -> Router {
         .with_state(index)
 }
 
+/// How `serve` treats the dataset.
+#[derive(Debug, Clone, Copy)]
+pub struct ServeOptions {
+    /// Hash every shard against `manifest.json` before serving (sizes are always checked).
+    pub verify_hashes: bool,
+    /// Bytes of decoded rows and previews kept between requests ([`cache`]).
+    pub cache_bytes: u64,
+}
+
+impl Default for ServeOptions {
+    fn default() -> Self {
+        Self {
+            verify_hashes: false,
+            cache_bytes: cache::DEFAULT_CACHE_MIB << 20,
+        }
+    }
+}
+
 /// Serve the dataset at `location` (a directory, or an object-storage URL such as `s3://bucket/prefix`) on `addr`
 /// until Ctrl-C; `ready` is called with the bound address (port 0 picks a free one).
 pub async fn serve(
     location: &str,
     addr: SocketAddr,
-    verify_hashes: bool,
+    options: ServeOptions,
     ready: impl FnOnce(SocketAddr),
 ) -> anyhow::Result<()> {
     let index = tokio::task::block_in_place(|| {
-        DatasetIndex::load(DatasetLocation::open(location)?, verify_hashes)
+        DatasetIndex::load(
+            DatasetLocation::open(location)?,
+            options.verify_hashes,
+            options.cache_bytes,
+        )
     })?;
     tracing::info!(
         rows = index.rows.len(),
@@ -191,19 +223,77 @@ fn required_split<'a>(
     Ok((name.as_str(), split_rows(index, split)?))
 }
 
-/// A sample's metadata as JSON (column names as in the schema) plus where it lives.
-fn sample_json(index: &DatasetIndex, row: usize) -> serde_json::Value {
+/// A sample's metadata as JSON (column names as in the schema) plus where it lives, serialised straight from the
+/// index (fields in alphabetical order, as a JSON map would list them): the metadata pages are the load's most
+/// frequent request, and building a `serde_json::Value` map per row cost more than writing the row.
+#[derive(serde::Serialize)]
+struct SampleJson<'a> {
+    acq_time: &'a str,
+    camera_att: [f64; 4],
+    camera_pos_enu: [f64; 3],
+    center_lat: f64,
+    center_lon: f64,
+    center_x: f64,
+    center_y: f64,
+    emission_deg: f64,
+    enu_origin_height_m: f64,
+    footprint_lonlat: [f64; 8],
+    fov_deg: f64,
+    gsd_m: f64,
+    incidence_deg: f64,
+    location: LocationJson<'a>,
+    map_to_en: [f64; 4],
+    ortho_id: &'a str,
+    phase_deg: f64,
+    provenance: &'a str,
+    sample_id: &'a str,
+    split: dataset::contract::schema::Split,
+    sun_dir_enu: [f64; 3],
+    tile_id: &'a str,
+    /// Rasters, in `/v1/rows?tensors=base64` pages only.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    tensors: Option<serde_json::Value>,
+}
+
+#[derive(serde::Serialize)]
+struct LocationJson<'a> {
+    row: usize,
+    row_group: usize,
+    shard: &'a str,
+}
+
+fn sample_json(index: &DatasetIndex, row: usize) -> SampleJson<'_> {
     let r = &index.rows[row];
     let s = &r.meta;
-    serde_json::json!({
-        "sample_id": s.sample_id, "split": s.split, "tile_id": s.tile_id, "ortho_id": s.ortho_id,
-        "center_x": s.center_x_m, "center_y": s.center_y_m, "center_lon": s.center_lon_deg, "center_lat": s.center_lat_deg,
-        "footprint_lonlat": s.footprint_lonlat_deg, "sun_dir_enu": s.sun_dir_enu, "camera_pos_enu": s.camera_pos_enu_m,
-        "enu_origin_height_m": s.enu_origin_height_m, "map_to_en": s.map_to_en, "camera_att": s.camera_att,
-        "fov_deg": s.fov_deg, "gsd_m": s.gsd_m, "incidence_deg": s.incidence_deg, "emission_deg": s.emission_deg,
-        "phase_deg": s.phase_deg, "acq_time": s.acq_time, "provenance": s.provenance,
-        "location": { "shard": index.shard_names[r.shard], "row_group": r.row_group, "row": r.row },
-    })
+    SampleJson {
+        acq_time: &s.acq_time,
+        camera_att: s.camera_att,
+        camera_pos_enu: s.camera_pos_enu_m,
+        center_lat: s.center_lat_deg,
+        center_lon: s.center_lon_deg,
+        center_x: s.center_x_m,
+        center_y: s.center_y_m,
+        emission_deg: s.emission_deg,
+        enu_origin_height_m: s.enu_origin_height_m,
+        footprint_lonlat: s.footprint_lonlat_deg,
+        fov_deg: s.fov_deg,
+        gsd_m: s.gsd_m,
+        incidence_deg: s.incidence_deg,
+        location: LocationJson {
+            row: r.row,
+            row_group: r.row_group,
+            shard: &index.shard_names[r.shard],
+        },
+        map_to_en: s.map_to_en,
+        ortho_id: &s.ortho_id,
+        phase_deg: s.phase_deg,
+        provenance: &s.provenance,
+        sample_id: &s.sample_id,
+        split: s.split,
+        sun_dir_enu: s.sun_dir_enu,
+        tile_id: &s.tile_id,
+        tensors: None,
+    }
 }
 
 /// Rasters as little-endian base64 with dtype and shape (row-major, north row first).
@@ -267,7 +357,7 @@ async fn splits(State(index): Shared) -> Json<serde_json::Value> {
     Json(serde_json::json!({ "splits": splits }))
 }
 
-async fn rows(State(index): Shared, Query(params): Params) -> ApiResult<Json<serde_json::Value>> {
+async fn rows(State(index): Shared, Query(params): Params) -> ApiResult<Response> {
     let (split, rows) = required_split(&index, &params)?;
     let offset = integer(&params, "offset", Some(0))? as usize;
     let length = integer(&params, "length", Some(20))? as usize;
@@ -286,20 +376,63 @@ async fn rows(State(index): Shared, Query(params): Params) -> ApiResult<Json<ser
         }
     };
     let selected: Vec<usize> = rows.iter().skip(offset).take(length).copied().collect();
-    let mut listed: Vec<serde_json::Value> =
-        selected.iter().map(|&r| sample_json(&index, r)).collect();
-    if tensors && !selected.is_empty() {
-        let full = {
-            let (index, selected) = (index.clone(), selected.clone());
-            blocking(move || index.read_full(&selected)).await?
-        };
-        for (row, sample) in listed.iter_mut().zip(&full) {
-            row["tensors"] = tensors_json(sample);
+    let page = RowsPage {
+        split: split.to_string(),
+        offset,
+        total: rows.len(),
+        selected,
+    };
+    if !tensors || page.selected.is_empty() {
+        return Ok(Json(page.json(&index, &[])).into_response());
+    }
+    // Rasters as base64 are ~0.35 MB of JSON a row: read, encoded and serialised on the blocking pool, so the
+    // event loop's few threads keep answering other requests meanwhile.
+    let _permit = raster_permits()
+        .acquire()
+        .await
+        .map_err(ApiError::internal)?;
+    let body = blocking(move || {
+        let full = index.read_full(&page.selected)?;
+        Ok(serde_json::to_vec(&page.json(&index, &full))?)
+    })
+    .await?;
+    Ok(([(header::CONTENT_TYPE, "application/json")], body).into_response())
+}
+
+#[derive(serde::Serialize)]
+struct PageJson<'a> {
+    offset: usize,
+    rows: Vec<SampleJson<'a>>,
+    split: &'a str,
+    total: usize,
+}
+
+/// One `/v1/rows` answer: rows `selected` (indices into the index's rows) of a split, from `offset` of `total`.
+struct RowsPage {
+    split: String,
+    offset: usize,
+    total: usize,
+    selected: Vec<usize>,
+}
+
+impl RowsPage {
+    /// The page as JSON, each row with its rasters when `full` holds its samples (in `selected`'s order).
+    fn json<'a>(&'a self, index: &'a DatasetIndex, full: &[Arc<Sample>]) -> PageJson<'a> {
+        let mut rows: Vec<SampleJson> = self
+            .selected
+            .iter()
+            .map(|&r| sample_json(index, r))
+            .collect();
+        for (row, sample) in rows.iter_mut().zip(full) {
+            row.tensors = Some(tensors_json(sample));
+        }
+        PageJson {
+            offset: self.offset,
+            rows,
+            split: &self.split,
+            total: self.total,
         }
     }
-    Ok(Json(serde_json::json!({
-        "split": split, "offset": offset, "total": rows.len(), "rows": listed,
-    })))
 }
 
 /// `lon0,lat0,lon1,lat1` in degrees.
@@ -344,7 +477,7 @@ async fn filter(State(index): Shared, Query(params): Params) -> ApiResult<Json<s
                 })
         })
         .collect();
-    let listed: Vec<serde_json::Value> = matches
+    let listed: Vec<SampleJson> = matches
         .iter()
         .take(limit)
         .map(|&r| sample_json(&index, r))
@@ -364,11 +497,8 @@ fn row_of(index: &DatasetIndex, id: &str) -> ApiResult<usize> {
         .ok_or_else(|| ApiError::not_found(format!("no sample '{id}' in this dataset")))
 }
 
-async fn sample(
-    State(index): Shared,
-    UrlPath(id): UrlPath<String>,
-) -> ApiResult<Json<serde_json::Value>> {
-    Ok(Json(sample_json(&index, row_of(&index, &id)?)))
+async fn sample(State(index): Shared, UrlPath(id): UrlPath<String>) -> ApiResult<Response> {
+    Ok(Json(sample_json(&index, row_of(&index, &id)?)).into_response())
 }
 
 async fn sample_preview(
@@ -381,11 +511,24 @@ async fn sample_preview(
         ))
     })?;
     let row = row_of(&index, &id)?;
-    let png = blocking(move || {
-        let sample = index.read_full(&[row])?.pop().expect("one row");
-        Ok(preview::preview_png(&sample, preview))
-    })
-    .await?
+    let png = match index.cache.preview(row, preview) {
+        Some(png) => Some(png),
+        None => {
+            let _permit = raster_permits()
+                .acquire()
+                .await
+                .map_err(ApiError::internal)?;
+            blocking(move || {
+                let sample = index.read_full(&[row])?.pop().expect("one row");
+                let png = preview::preview_png(&sample, preview).map(Bytes::from);
+                if let Some(png) = &png {
+                    index.cache.keep_preview(row, preview, png.clone());
+                }
+                Ok(png)
+            })
+            .await?
+        }
+    }
     .ok_or_else(|| {
         ApiError::not_found(format!(
             "sample '{id}' has no context window: the dataset predates schema 1.2; re-publish it for context"

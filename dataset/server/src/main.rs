@@ -62,6 +62,11 @@ enum Command {
         /// Hash every shard against manifest.json before serving (sizes are always checked).
         #[arg(long)]
         verify: bool,
+        /// Memory for decoded rows and PNG previews kept between requests, MiB (0 keeps none). A request whose row
+        /// is not kept decodes it from its shard, as without a cache.
+        #[arg(long, default_value_t = dataset_server::cache::DEFAULT_CACHE_MIB,
+              value_parser = clap::value_parser!(u64).range(0..=1 << 24))]
+        cache_mib: u64,
     },
     /// Hammer a running server with concurrent clients (metadata pages, tensor rows, previews, shard range reads)
     /// and print requests/s, rows/s, MB/s and latency percentiles as JSON; exit 1 if any request failed.
@@ -159,9 +164,18 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 manifest.shards.len()
             );
         }
-        Command::Serve { dir, addr, verify } => {
+        Command::Serve {
+            dir,
+            addr,
+            verify,
+            cache_mib,
+        } => {
+            let options = dataset_server::ServeOptions {
+                verify_hashes: verify,
+                cache_bytes: cache_mib << 20,
+            };
             let runtime = tokio::runtime::Runtime::new()?;
-            runtime.block_on(dataset_server::serve(&dir, addr, verify, |bound| {
+            runtime.block_on(dataset_server::serve(&dir, addr, options, |bound| {
                 // A banner nobody reads must not stop a server: a closed stdout is ignored here.
                 let _ = writeln!(
                     std::io::stdout(),

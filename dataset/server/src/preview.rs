@@ -7,7 +7,7 @@ use image::{ImageEncoder, Rgb, RgbImage};
 use dataset::contract::schema::{ContextWindow, Sample, CONTEXT_PX, CROP_PX, DEM_PX};
 
 /// Which preview.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum Preview {
     Dem,
     Image,

@@ -500,19 +500,71 @@ fn list_values<'a, T: 'static>(
 
 /// Decode a record batch back into samples.
 pub fn batch_to_samples(batch: &RecordBatch) -> Result<Vec<Sample>, SchemaError> {
-    decode(batch, true)
+    let mut samples = decode(batch)?;
+    fill_tensors(batch, &mut samples)?;
+    Ok(samples)
 }
 
 /// Decode the metadata columns only (a batch read with a projection that leaves out [`TENSOR_COLUMNS`]):
 /// the samples' raster fields are empty. For indexes and listings that must not decode 215 KB per row.
 pub fn batch_to_sample_metadata(batch: &RecordBatch) -> Result<Vec<Sample>, SchemaError> {
-    decode(batch, false)
+    decode(batch)
+}
+
+/// The columns [`fill_tensors`] reads: every per-pixel column, and the context window's cell size.
+pub const TENSOR_FILL_COLUMNS: [&str; 6] = [
+    "dem",
+    "image",
+    "valid",
+    "sun_lit",
+    "context_dem",
+    "context_gsd_m",
+];
+
+/// Set the raster fields (and the context window) of `samples`, row `i` of `batch` into `samples[i]`, from a batch
+/// that holds at least [`TENSOR_FILL_COLUMNS`] (a schema 1.1 batch has no context: the samples get none). With the
+/// metadata from elsewhere (a server's index), a read of these columns alone gives the whole samples.
+pub fn fill_tensors(batch: &RecordBatch, samples: &mut [Sample]) -> Result<(), SchemaError> {
+    assert_eq!(
+        batch.num_rows(),
+        samples.len(),
+        "one sample per row of the batch"
+    );
+    let (dem, dem_len) = list_values::<Float32Array>(batch, "dem")?;
+    let (image, img_len) = list_values::<Float32Array>(batch, "image")?;
+    let (valid, valid_len) = list_values::<UInt8Array>(batch, "valid")?;
+    let (lit, lit_len) = list_values::<Float32Array>(batch, "sun_lit")?;
+    check_len("dem", dem_len, DEM_PX * DEM_PX)?;
+    check_len("image", img_len, CROP_PX * CROP_PX)?;
+    check_len("valid", valid_len, CROP_PX * CROP_PX)?;
+    check_len("sun_lit", lit_len, CROP_PX * CROP_PX)?;
+    // Absent from schema 1.1 shards: those samples have no context.
+    let context = match batch.column_by_name("context_dem") {
+        Some(_) => {
+            let (heights, len) = list_values::<Float32Array>(batch, "context_dem")?;
+            check_len("context_dem", len, CONTEXT_PX * CONTEXT_PX)?;
+            Some((heights, column::<Float64Array>(batch, "context_gsd_m")?))
+        }
+        None => None,
+    };
+    for (i, sample) in samples.iter_mut().enumerate() {
+        sample.dem_m = slice_row(dem.values(), i, DEM_PX * DEM_PX);
+        sample.image = slice_row(image.values(), i, CROP_PX * CROP_PX);
+        sample.valid = slice_row(valid.values(), i, CROP_PX * CROP_PX);
+        sample.sun_lit = slice_row(lit.values(), i, CROP_PX * CROP_PX);
+        sample.context = context.map(|(heights, gsd)| ContextWindow {
+            gsd_m: gsd.value(i),
+            heights_m: slice_row(heights.values(), i, CONTEXT_PX * CONTEXT_PX),
+        });
+    }
+    Ok(())
 }
 
 /// Every per-pixel column; everything else is per-sample metadata.
 pub const TENSOR_COLUMNS: [&str; 5] = ["dem", "image", "valid", "sun_lit", "context_dem"];
 
-fn decode(batch: &RecordBatch, tensors: bool) -> Result<Vec<Sample>, SchemaError> {
+/// The metadata of every row of `batch`: raster fields empty, no context window ([`fill_tensors`] sets them).
+fn decode(batch: &RecordBatch) -> Result<Vec<Sample>, SchemaError> {
     let s = |name| column::<StringArray>(batch, name);
     let f = |name| column::<Float64Array>(batch, name);
     let (sample_id, split, tile_id, ortho_id, acq_time, provenance) = (
@@ -538,28 +590,6 @@ fn decode(batch: &RecordBatch, tensors: bool) -> Result<Vec<Sample>, SchemaError
         f("phase_deg")?,
     );
     let (foot, _) = list_values::<Float64Array>(batch, "footprint_lonlat")?;
-    let rasters = if tensors {
-        let (dem, dem_len) = list_values::<Float32Array>(batch, "dem")?;
-        let (image, img_len) = list_values::<Float32Array>(batch, "image")?;
-        let (valid, valid_len) = list_values::<UInt8Array>(batch, "valid")?;
-        let (lit, lit_len) = list_values::<Float32Array>(batch, "sun_lit")?;
-        check_len("dem", dem_len, DEM_PX * DEM_PX)?;
-        check_len("image", img_len, CROP_PX * CROP_PX)?;
-        check_len("valid", valid_len, CROP_PX * CROP_PX)?;
-        check_len("sun_lit", lit_len, CROP_PX * CROP_PX)?;
-        Some((dem, image, valid, lit))
-    } else {
-        None
-    };
-    // Absent from schema 1.1 shards (and from metadata-only reads): those samples have no context.
-    let context = match (tensors, batch.column_by_name("context_dem")) {
-        (true, Some(_)) => {
-            let (heights, len) = list_values::<Float32Array>(batch, "context_dem")?;
-            check_len("context_dem", len, CONTEXT_PX * CONTEXT_PX)?;
-            Some((heights, f("context_gsd_m")?))
-        }
-        _ => None,
-    };
     // Absent from shards older than schema 1.3; NaN in datasets built without a crater catalogue.
     let crater = match (
         batch.column_by_name("crater_rho"),
@@ -595,11 +625,10 @@ fn decode(batch: &RecordBatch, tensors: bool) -> Result<Vec<Sample>, SchemaError
             center_lon_deg: clon.value(i),
             center_lat_deg: clat.value(i),
             footprint_lonlat_deg: arr(foot, i, 8).try_into().expect("length checked by type"),
-            dem_m: rasters.map_or_else(Vec::new, |r| slice_row(r.0.values(), i, DEM_PX * DEM_PX)),
-            image: rasters.map_or_else(Vec::new, |r| slice_row(r.1.values(), i, CROP_PX * CROP_PX)),
-            valid: rasters.map_or_else(Vec::new, |r| slice_row(r.2.values(), i, CROP_PX * CROP_PX)),
-            sun_lit: rasters
-                .map_or_else(Vec::new, |r| slice_row(r.3.values(), i, CROP_PX * CROP_PX)),
+            dem_m: Vec::new(),
+            image: Vec::new(),
+            valid: Vec::new(),
+            sun_lit: Vec::new(),
             sun_dir_enu: arr(sun, i, 3).try_into().expect("length checked by type"),
             camera_pos_enu_m: arr(cam, i, 3).try_into().expect("length checked by type"),
             enu_origin_height_m: origin_h.value(i),
@@ -614,10 +643,7 @@ fn decode(batch: &RecordBatch, tensors: bool) -> Result<Vec<Sample>, SchemaError
             phase_deg: pha.value(i),
             acq_time: acq_time.value(i).to_string(),
             provenance: provenance.value(i).to_string(),
-            context: context.map(|(heights, gsd)| ContextWindow {
-                gsd_m: gsd.value(i),
-                heights_m: slice_row(heights.values(), i, CONTEXT_PX * CONTEXT_PX),
-            }),
+            context: None,
             crater: crater.and_then(|(rho, relative)| {
                 (rho.value(i).is_finite() && relative.value(i).is_finite()).then(|| {
                     CraterPosition {

@@ -40,7 +40,7 @@ pub enum ShardError {
     },
     /// A remote shard's bytes did not arrive after object_store's retries: the network or the store failed, the
     /// shard itself may be whole.
-    #[error("{message}; the network or the store failed: run again, or allow more retries (G2R_STORE_MAX_RETRIES, G2R_STORE_RETRY_TIMEOUT_S)")]
+    #[error("{path}: {message}; the network or the store failed: run again, or allow more retries (G2R_STORE_MAX_RETRIES, G2R_STORE_RETRY_TIMEOUT_S)")]
     Fetch { path: PathBuf, message: String },
     #[error("{path}: {source}")]
     Schema { path: PathBuf, source: SchemaError },
@@ -55,13 +55,34 @@ pub enum ShardError {
 }
 
 impl ShardError {
-    /// A Parquet error while reading `path`. An external error is a remote read that failed
-    /// ([`crate::storage::RemoteObject::fetch`] is where one comes from): reported as such, not as a damaged shard.
-    pub fn reading(path: &std::path::Path, source: parquet::errors::ParquetError) -> Self {
+    /// A Parquet error while reading `path`, a remote object when `remote`. There an external error is a read that
+    /// failed ([`crate::storage::RemoteObject::fetch`] is where one comes from): reported as such, not as a damaged
+    /// shard. From a local file an external error is the file's own I/O error: a short read is a file cut short (a
+    /// damaged shard), any other (a full descriptor table, a failing disk) is reported as itself.
+    pub fn reading(
+        path: &std::path::Path,
+        source: parquet::errors::ParquetError,
+        remote: bool,
+    ) -> Self {
+        use parquet::errors::ParquetError::External;
         match source {
-            parquet::errors::ParquetError::External(inner) => ShardError::Fetch {
+            External(inner) if remote => ShardError::Fetch {
                 path: path.to_path_buf(),
                 message: inner.to_string(),
+            },
+            External(inner) => match inner.downcast::<std::io::Error>() {
+                Ok(io) if io.kind() != std::io::ErrorKind::UnexpectedEof => ShardError::Io {
+                    path: path.to_path_buf(),
+                    source: *io,
+                },
+                Ok(io) => ShardError::Parquet {
+                    path: path.to_path_buf(),
+                    source: External(io),
+                },
+                Err(inner) => ShardError::Parquet {
+                    path: path.to_path_buf(),
+                    source: External(inner),
+                },
             },
             source => ShardError::Parquet {
                 path: path.to_path_buf(),
@@ -254,6 +275,24 @@ mod tests {
             missing.contains("no row group 2 (the shard has 2)"),
             "{missing}"
         );
+        // Metadata plus the tensor columns of scattered rows (page edges, the first and last rows, neighbours)
+        // give the whole samples, as a full read does.
+        for (group, rows) in [
+            (0, vec![0, 14, 15, 16, 100, 255]),
+            (1, vec![3, 43]),
+            (1, vec![]),
+        ] {
+            let first = group * ROW_GROUP_ROWS;
+            let mut filled: Vec<Sample> =
+                rows.iter().map(|&r| metadata[first + r].clone()).collect();
+            shard.fill_tensors(group, &rows, &mut filled).unwrap();
+            let expected: Vec<Sample> = rows.iter().map(|&r| samples[first + r].clone()).collect();
+            assert_eq!(filled, expected, "row group {group}, rows {rows:?}");
+        }
+        let missing = shard
+            .fill_tensors(2, &[0], &mut metadata[..1].to_vec())
+            .unwrap_err();
+        assert!(missing.to_string().contains("no row group 2"), "{missing}");
     }
 
     #[test]

@@ -9,10 +9,11 @@ use parquet::arrow::arrow_reader::{
     RowSelector,
 };
 use parquet::arrow::ProjectionMask;
+use parquet::file::metadata::PageIndexPolicy;
 
 use crate::contract::schema::{
-    batch_to_sample_metadata, batch_to_samples, sample_schema, Sample, SCHEMA_VERSION,
-    TENSOR_COLUMNS,
+    batch_to_sample_metadata, batch_to_samples, fill_tensors, sample_schema, Sample,
+    SCHEMA_VERSION, TENSOR_COLUMNS, TENSOR_FILL_COLUMNS,
 };
 use crate::storage::ShardBytes;
 
@@ -37,14 +38,18 @@ impl ShardFile {
         self.metadata.schema().clone()
     }
 
-    /// Open and parse the footer; refuses a shard written with another major schema version.
+    /// Open and parse the footer with its offset index; refuses a shard written with another major schema version.
+    /// The offset index (where each page starts, and its first row) lets a read of a few rows skip the pages before
+    /// them unread: without it every page before a selected row is decompressed to count its rows, and that was
+    /// most of a dataset server's tensor and preview requests (profiled, docs/usage.md).
     pub fn open(path: &Path) -> Result<Self, ShardError> {
         let file = File::open(path).map_err(|source| ShardError::Io {
             path: path.to_path_buf(),
             source,
         })?;
-        let metadata = ArrowReaderMetadata::load(&file, ArrowReaderOptions::default())
-            .map_err(|source| ShardError::reading(path, source))?;
+        let options = ArrowReaderOptions::new().with_offset_index_policy(PageIndexPolicy::Optional);
+        let metadata = ArrowReaderMetadata::load(&file, options)
+            .map_err(|source| ShardError::reading(path, source, false))?;
         Self::checked(path.to_path_buf(), metadata, None)
     }
 
@@ -52,7 +57,7 @@ impl ShardFile {
     pub fn open_remote(object: crate::storage::RemoteObject) -> Result<Self, ShardError> {
         let path = PathBuf::from(object.url());
         let metadata = ArrowReaderMetadata::load(&object, ArrowReaderOptions::default())
-            .map_err(|source| ShardError::reading(&path, source))?;
+            .map_err(|source| ShardError::reading(&path, source, true))?;
         Self::checked(path, metadata, Some(object))
     }
 
@@ -92,7 +97,7 @@ impl ShardFile {
     }
 
     fn parquet_err(&self, source: parquet::errors::ParquetError) -> ShardError {
-        ShardError::reading(&self.path, source)
+        ShardError::reading(&self.path, source, self.remote.is_some())
     }
 
     /// A reader of the whole file (local), or of `row_group` (remote: the column chunks of `columns`, or of every
@@ -224,6 +229,72 @@ impl ShardFile {
         rows: std::ops::Range<usize>,
     ) -> Result<Vec<Sample>, ShardError> {
         self.decode(&self.read_batches(row_group, Some(rows), true)?, true)
+    }
+
+    /// Fill the rasters of `samples` (metadata from elsewhere: a server's index) with rows `rows` of `row_group`
+    /// (ascending, distinct; `samples[k]` is row `rows[k]`), reading only [`TENSOR_FILL_COLUMNS`] and only the pages
+    /// those rows lie on: a few column chunks instead of every column's (each chunk read sets up a codec, and the
+    /// metadata columns' dozens of chunks cost more than the rasters' pages of one row).
+    pub fn fill_tensors(
+        &self,
+        row_group: usize,
+        rows: &[usize],
+        samples: &mut [Sample],
+    ) -> Result<(), ShardError> {
+        assert_eq!(rows.len(), samples.len(), "one sample per row");
+        assert!(
+            rows.windows(2).all(|w| w[0] < w[1]),
+            "rows ascending and distinct"
+        );
+        let sizes = self.row_group_sizes();
+        let Some(&group_rows) = sizes.get(row_group) else {
+            return Err(ShardError::RowGroup {
+                path: self.path.clone(),
+                row_group,
+                count: sizes.len(),
+            });
+        };
+        assert!(
+            rows.last().is_none_or(|&last| last < group_rows),
+            "rows within the row group's {group_rows}"
+        );
+        let mut selectors = Vec::new();
+        let mut next = 0;
+        for &row in rows {
+            selectors.push(RowSelector::skip(row - next));
+            selectors.push(RowSelector::select(1));
+            next = row + 1;
+        }
+        selectors.push(RowSelector::skip(group_rows - next));
+        let builder = self
+            .builder(Some(row_group), Some(&TENSOR_FILL_COLUMNS))?
+            .with_row_groups(vec![row_group])
+            .with_batch_size(ROW_GROUP_ROWS)
+            .with_row_selection(RowSelection::from(selectors));
+        let mask = ProjectionMask::columns(builder.parquet_schema(), TENSOR_FILL_COLUMNS);
+        let reader = builder
+            .with_projection(mask)
+            .build()
+            .map_err(|e| self.parquet_err(e))?;
+        let mut filled = 0;
+        for batch in reader {
+            let batch = batch.map_err(|e| self.parquet_err(e.into()))?;
+            let end = filled + batch.num_rows();
+            let into = samples
+                .get_mut(filled..end)
+                .expect("a row selection yields the rows it selects");
+            fill_tensors(&batch, into).map_err(|source| ShardError::Schema {
+                path: self.path.clone(),
+                source,
+            })?;
+            filled = end;
+        }
+        assert_eq!(
+            filled,
+            rows.len(),
+            "a row selection yields the rows it selects"
+        );
+        Ok(())
     }
 
     /// Metadata of every row (raster fields empty), reading only the small columns.
