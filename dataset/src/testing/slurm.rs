@@ -146,6 +146,11 @@ impl Cluster {
     /// The cluster's PID namespace (`pid:[inode]`), which every daemon and job step of it is in (slurmd hands
     /// its job steps a cleaned environment, without [`MARKER`]).
     pub fn namespace(&self) -> String {
+        self.find_namespace().expect("slurmctld runs")
+    }
+
+    /// [`Cluster::namespace`], or `None` once slurmctld is gone.
+    fn find_namespace(&self) -> Option<String> {
         marked_processes(&self.marker)
             .into_iter()
             .find(|pid| {
@@ -154,7 +159,6 @@ impl Cluster {
             })
             .and_then(|pid| std::fs::read_link(format!("/proc/{pid}/ns/pid")).ok())
             .map(|link| link.display().to_string())
-            .expect("slurmctld runs")
     }
 
     /// A Slurm client command (sbatch, srun, squeue…) against this cluster, its jobs marked as the cluster's; it
@@ -302,8 +306,21 @@ impl Drop for Cluster {
             }
             std::thread::sleep(Duration::from_millis(200));
         }
+        let namespace = self.find_namespace();
         let _ = self.namespace.kill();
         let _ = self.namespace.wait();
+        // The kernel kills the namespace's other processes once its first is gone, but not at once (a loaded
+        // machine took long enough for a test to see them): wait, at most 10 s, until none is left, so that whoever
+        // dropped the cluster finds nothing of it running.
+        let started = Instant::now();
+        while started.elapsed() < Duration::from_secs(10)
+            && !(marked_processes(&self.marker).is_empty()
+                && namespace
+                    .as_deref()
+                    .is_none_or(|ns| processes_in_namespace(ns).is_empty()))
+        {
+            std::thread::sleep(Duration::from_millis(50));
+        }
     }
 }
 
