@@ -1,14 +1,13 @@
 //! `g2r-dataset serve` end to end over loopback: every endpoint's shape, rows equal to what pyarrow reads, exact
 //! Range bytes, hostile requests refused, 32 concurrent clients without errors, the trainer streaming the same
-//! batches over HTTP as from local files, and the viewer rendered by a real headless Chromium. Faults: 256 clients,
-//! clients that disconnect mid-stream, readers that stop reading, and shards that vanish or are cut short.
+//! batches over HTTP as from local files, and the viewer rendered by a real headless Chromium. Faults are in
+//! `server_faults.rs`.
 
-use std::collections::BTreeMap;
 use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpStream};
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::process::Command;
-use std::sync::{Arc, OnceLock};
+use std::sync::Arc;
 
 use dataset::client::HttpClient;
 use dataset::contract::planner::plan_epoch;
@@ -20,130 +19,10 @@ use train::data::{
 };
 use train::data_parallel::Replica;
 
-const TILE_M: f64 = 2560.0;
-/// (split, rows per shard): train spans two shards and three row groups.
-const LAYOUT: [(&str, &[usize]); 3] = [("train", &[300, 40]), ("val", &[30]), ("test", &[20])];
+#[path = "server_fixture.rs"]
+mod server_fixture;
 
-/// A varied sample: each split owns its own 2 × 2 tiles (a 6 × 2 tile map), centres and lon/lat spread so filters have something to find.
-fn sample(split_index: usize, split: &str, i: usize) -> Sample {
-    let n = CROP_PX * CROP_PX;
-    let tile = (
-        split_index as i64 * 2 + (i % 2) as i64,
-        -512 + ((i / 2) % 2) as i64,
-    );
-    let x = tile.0 as f64 * TILE_M + 200.0 + (i % 9) as f64 * 100.0;
-    let y = tile.1 as f64 * TILE_M + 300.0 + (i % 5) as f64 * 150.0;
-    Sample {
-        sample_id: format!("M{split_index}:{i}:{}", i * 7 % 1000),
-        split: split.parse().expect("a split name"),
-        tile_id: format!("t_{}_{}", tile.0, tile.1),
-        ortho_id: format!("M{split_index}"),
-        center_x_m: x,
-        center_y_m: y,
-        center_lon_deg: -11.5 + x / 30_000.0,
-        center_lat_deg: -43.3 + (y + 1_310_000.0) / 30_000.0,
-        footprint_lonlat_deg: [i as f64, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.5],
-        image: (0..n)
-            .map(|k| ((k * 31 + i * 17) % 1000) as f32 / 20_000.0)
-            .collect(),
-        valid: (0..n)
-            .map(|k| u8::from(!(k + i).is_multiple_of(11)))
-            .collect(),
-        sun_lit: (0..n).map(|k| ((k + i) % 5) as f32 / 4.0).collect(),
-        camera_pos_enu_m: [i as f64, -20.0, 50_000.0],
-        enu_origin_height_m: -1200.0 + i as f64 * 0.5,
-        incidence_deg: 40.0 + (i % 30) as f64,
-        phase_deg: 41.0 + (i % 30) as f64,
-        ..dataset::testing::synthetic_sample(i)
-    }
-}
-
-struct Fixture {
-    dir: PathBuf,
-    addr: SocketAddr,
-    samples: BTreeMap<String, Vec<Sample>>,
-    _root: tempfile::TempDir,
-}
-
-impl Fixture {
-    fn url(&self) -> String {
-        format!("http://{}", self.addr)
-    }
-    fn client(&self) -> HttpClient {
-        HttpClient::new(&self.url()).unwrap()
-    }
-}
-
-/// Publish the fixture dataset under `root/dataset` (plus a secret file next to it, outside the served dir).
-fn publish(root: &Path) -> (PathBuf, BTreeMap<String, Vec<Sample>>) {
-    let dir = root.join("dataset");
-    std::fs::write(root.join("secret.txt"), "TOP-SECRET-OUTSIDE-DIR").unwrap();
-    let mut layout = Vec::new();
-    let mut all = BTreeMap::new();
-    for (s, (split, sizes)) in LAYOUT.iter().enumerate() {
-        let mut next = 0;
-        let shards: Vec<Vec<Sample>> = sizes
-            .iter()
-            .map(|&size| {
-                next += size;
-                (next - size..next).map(|i| sample(s, split, i)).collect()
-            })
-            .collect();
-        all.insert(split.to_string(), shards.concat());
-        layout.push((*split, shards));
-    }
-    let split_summary = serde_json::json!({ "dropped_straddling_splits": 0, "tile_size_m": TILE_M, "guard_band_m": 0.0 });
-    dataset::testing::write_dataset(&dir, "server-fixture", &layout, split_summary).unwrap();
-    (dir, all)
-}
-
-/// Tests of this file run one at a time: the load test measures this process's memory, and the others would
-/// add theirs (the trainer test holds f64 batches).
-static SERIAL: std::sync::Mutex<()> = std::sync::Mutex::new(());
-
-/// One server for the whole file, on a free loopback port, in its own runtime thread.
-fn fixture() -> (&'static Fixture, std::sync::MutexGuard<'static, ()>) {
-    let guard = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    (fixture_once(), guard)
-}
-
-/// Serve `dir` on a free loopback port from a runtime thread of its own (it ends with the test process).
-fn serve_in_background(dir: &Path) -> SocketAddr {
-    let (send, receive) = std::sync::mpsc::channel();
-    let serve_dir = dir.to_path_buf();
-    std::thread::spawn(move || {
-        let runtime = tokio::runtime::Runtime::new().unwrap();
-        runtime
-            .block_on(dataset_server::serve(
-                serve_dir.to_str().unwrap(),
-                "127.0.0.1:0".parse().unwrap(),
-                dataset_server::ServeOptions {
-                    verify_hashes: true,
-                    ..Default::default()
-                },
-                |addr| {
-                    send.send(addr).unwrap();
-                },
-            ))
-            .unwrap();
-    });
-    receive.recv().expect("server started")
-}
-
-fn fixture_once() -> &'static Fixture {
-    static FIXTURE: OnceLock<Fixture> = OnceLock::new();
-    FIXTURE.get_or_init(|| {
-        let root = tempfile::tempdir().unwrap();
-        let (dir, samples) = publish(root.path());
-        let addr = serve_in_background(&dir);
-        Fixture {
-            dir,
-            addr,
-            samples,
-            _root: root,
-        }
-    })
-}
+use server_fixture::{fixture, sample, serve_in_background, TILE_M};
 
 /// Send raw request bytes (no client-side path normalisation) and return (status, body).
 fn raw_get(addr: SocketAddr, target: &str) -> (u16, String) {
@@ -834,150 +713,6 @@ fn a_schema_1_1_dataset_serves_and_streams_its_rows_without_context() {
     assert_eq!(
         client
             .get(&format!("/v1/samples/{id}/dem.png"), &[])
-            .unwrap()
-            .status,
-        200
-    );
-}
-
-/// More clients than the server has threads (tokio's workers, the blocking pool's cores) queue; none fails.
-#[test]
-fn two_hundred_fifty_six_clients_queue_and_get_no_errors() {
-    let (f, _serial) = fixture();
-    let report = dataset_server::loadtest::run(&f.url(), 256, 768, 4).unwrap();
-    assert_eq!(report.errors, 0, "{:?}", report.error_samples);
-    assert_eq!(report.requests, 768);
-}
-
-/// The epoch request the disconnect and slow-reader tests start (Arrow IPC, one row group a window).
-fn stream_request(seed: u32) -> String {
-    format!(
-        "GET /v1/stream?split=train&seed={seed}&epoch=0&window=1 HTTP/1.1\r\nHost: localhost\r\nAccept: {}\r\n\r\n",
-        dataset::client::ARROW_STREAM
-    )
-}
-
-/// Clients that go away mid-stream give their stream's place back: with more of them than the streams allowed at
-/// once, a later stream still runs to its end, and other requests are answered meanwhile.
-#[test]
-fn clients_that_disconnect_mid_stream_leave_the_server_streaming() {
-    let (f, _serial) = fixture();
-    for seed in 0..3 {
-        let mut stream = TcpStream::connect(f.addr).unwrap();
-        stream
-            .set_read_timeout(Some(std::time::Duration::from_secs(60)))
-            .unwrap();
-        stream.write_all(stream_request(seed).as_bytes()).unwrap();
-        let mut first = [0u8; 4096];
-        stream.read_exact(&mut first).unwrap();
-        assert!(
-            first.starts_with(b"HTTP/1.1 200"),
-            "{}",
-            String::from_utf8_lossy(&first[..64])
-        );
-        drop(stream); // mid-stream: the first window alone is larger than what was read
-    }
-    let url = f.url();
-    let (send, receive) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        let client = HttpClient::new(&url).unwrap();
-        let path = "/v1/stream?split=train&seed=9&epoch=0&window=1";
-        send.send(client.get(path, &[("Accept", dataset::client::ARROW_STREAM)]))
-            .unwrap();
-    });
-    let whole = receive
-        .recv_timeout(std::time::Duration::from_secs(120))
-        .expect("a stream after the disconnects did not finish: a gone client kept its place")
-        .unwrap();
-    assert_eq!(whole.status, 200);
-    let streamed = dataset::contract::wire::samples_from_ipc_stream(&whole.body).unwrap();
-    assert_eq!(streamed.len(), f.samples["train"].len());
-    assert_eq!(f.client().get("/v1/info", &[]).unwrap().status, 200);
-}
-
-/// Readers that take nothing off their sockets (a whole shard each, and epoch streams) hold only their own
-/// requests: meanwhile 32 clients get every answer.
-#[test]
-fn slow_readers_do_not_hold_up_other_clients() {
-    let (f, _serial) = fixture();
-    let mut slow = Vec::new();
-    for k in 0..8 {
-        let mut stream = TcpStream::connect(f.addr).unwrap();
-        let request = if k % 2 == 0 {
-            "GET /v1/shards/train-00000-of-00002.parquet HTTP/1.1\r\nHost: localhost\r\n\r\n"
-                .to_string()
-        } else {
-            stream_request(100 + k)
-        };
-        stream.write_all(request.as_bytes()).unwrap();
-        slow.push(stream); // never read
-    }
-    let report = dataset_server::loadtest::run(&f.url(), 32, 320, 5).unwrap();
-    assert_eq!(report.errors, 0, "{:?}", report.error_samples);
-    drop(slow);
-}
-
-/// A shard removed or cut short while the server runs: requests that need its bytes get a 4xx/5xx naming it, the
-/// server stays up, and requests for the other shards are answered as before.
-#[test]
-fn a_shard_that_vanishes_or_is_truncated_fails_only_its_own_requests() {
-    let root = tempfile::tempdir().unwrap();
-    let (dir, _) = publish(root.path());
-    let addr = serve_in_background(&dir);
-    let client = HttpClient::new(&format!("http://{addr}")).unwrap();
-    let tensors = |split: &str, offset: usize| {
-        client
-            .get(
-                &format!("/v1/rows?split={split}&offset={offset}&length=2&tensors=base64"),
-                &[],
-            )
-            .unwrap()
-    };
-    let failed_naming = |response: dataset::client::HttpResponse, shard: &str| {
-        assert!(
-            (400..600).contains(&response.status) && response.text().contains(shard),
-            "{shard}: HTTP {} {}",
-            response.status,
-            response.text()
-        );
-    };
-    let kept = tensors("val", 20);
-    assert_eq!(kept.status, 200);
-
-    // The second train shard holds the split's rows 300..340; the first, rows 0..300.
-    let gone = "train-00001-of-00002.parquet";
-    std::fs::remove_file(dir.join(gone)).unwrap();
-    failed_naming(tensors("train", 310), gone);
-    let whole = client.get(&format!("/v1/shards/{gone}"), &[]).unwrap();
-    assert!((400..600).contains(&whole.status), "HTTP {}", whole.status);
-    assert_eq!(tensors("train", 10).status, 200);
-
-    // Cut to its first 4 KiB: no tensor page of any row is whole.
-    let cut = "val-00000-of-00001.parquet";
-    let bytes = std::fs::read(dir.join(cut)).unwrap();
-    std::fs::write(dir.join(cut), &bytes[..4096]).unwrap();
-    failed_naming(tensors("val", 0), cut);
-    let id = client
-        .get_json::<serde_json::Value>("/v1/rows?split=val&offset=1&length=1")
-        .unwrap()["rows"][0]["sample_id"]
-        .as_str()
-        .unwrap()
-        .to_string();
-    failed_naming(
-        client
-            .get(&format!("/v1/samples/{id}/dem.png"), &[])
-            .unwrap(),
-        cut,
-    );
-    // Rows read before the cut are kept in memory (the cache): served as they were, byte for byte.
-    let again = tensors("val", 20);
-    assert_eq!((again.status, &again.body), (200, &kept.body));
-
-    assert_eq!(tensors("train", 100).status, 200);
-    assert_eq!(client.get("/v1/info", &[]).unwrap().status, 200);
-    assert_eq!(
-        client
-            .get("/v1/shards/test-00000-of-00001.parquet", &[])
             .unwrap()
             .status,
         200

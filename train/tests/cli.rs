@@ -15,6 +15,19 @@ fn train_cli(args: &[&str]) -> (bool, String) {
     )
 }
 
+/// A synthetic dataset of `train` and `val` crops written to `d/data`, and the run directory `d/run`: their paths.
+fn data_and_run(
+    d: &Path,
+    train: Vec<dataset::contract::schema::Sample>,
+    val: Vec<dataset::contract::schema::Sample>,
+) -> (String, String) {
+    train::testing::write_synthetic_dataset(&d.join("data"), train, val);
+    (
+        d.join("data").to_string_lossy().into_owned(),
+        d.join("run").to_string_lossy().into_owned(),
+    )
+}
+
 fn error_line(stderr: &str) -> &str {
     stderr
         .lines()
@@ -273,14 +286,10 @@ fn bad_inputs_fail_with_one_line_naming_the_file_and_the_fix() {
 fn a_resume_with_other_flags_names_each_setting_that_differs() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    train::testing::write_synthetic_dataset(
-        &d.join("data"),
+    let (data, run) = data_and_run(
+        d,
         train::testing::synthetic_samples(4, 1),
         train::testing::synthetic_samples(2, 2),
-    );
-    let (data, run) = (
-        d.join("data").to_string_lossy().into_owned(),
-        d.join("run").to_string_lossy().into_owned(),
     );
     let fit = |lr: &str, seed: &str, resume: bool| {
         let mut args = vec![
@@ -489,11 +498,7 @@ fn fit_with_crater_level_leaves_a_crater_level_the_run_loads_with() {
         }
         samples
     };
-    train::testing::write_synthetic_dataset(&d.join("data"), framed(20, 1), framed(4, 2));
-    let (data, run) = (
-        d.join("data").to_string_lossy().into_owned(),
-        d.join("run").to_string_lossy().into_owned(),
-    );
+    let (data, run) = data_and_run(d, framed(20, 1), framed(4, 2));
     let (ok, stderr) = train_cli(&[
         "fit",
         "--data",
@@ -534,14 +539,10 @@ fn fit_with_crater_level_leaves_a_crater_level_the_run_loads_with() {
 fn eval_reports_progress_as_lines_off_a_terminal_and_as_a_bar_on_one() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    train::testing::write_synthetic_dataset(
-        &d.join("data"),
+    let (data, run) = data_and_run(
+        d,
         train::testing::synthetic_samples(4, 1),
         train::testing::synthetic_samples(12, 2),
-    );
-    let (data, run) = (
-        d.join("data").to_string_lossy().into_owned(),
-        d.join("run").to_string_lossy().into_owned(),
     );
     let (ok, stderr) = train_cli(&[
         "fit", "--data", &data, "--out", &run, "--model", "m2", "--width", "4", "--batch", "2",

@@ -246,11 +246,11 @@ impl DatasetIndex {
     /// Full samples (with rasters) of `rows`: from the cache, or their metadata from the index with the rasters
     /// read from their row groups (the tensor columns' pages of those rows only) and kept in the cache.
     pub fn read_full(&self, rows: &[usize]) -> Result<Vec<Arc<Sample>>> {
-        let mut out: Vec<Option<Arc<Sample>>> = rows.iter().map(|&i| self.cache.row(i)).collect();
+        let cached: Vec<Option<Arc<Sample>>> = rows.iter().map(|&i| self.cache.row(i)).collect();
         // The rows not cached, by (shard, row group), each row once, in file order.
         let mut groups: BTreeMap<(usize, usize), BTreeMap<usize, usize>> = BTreeMap::new();
-        for (k, &i) in rows.iter().enumerate() {
-            if out[k].is_none() {
+        for (&i, kept) in rows.iter().zip(&cached) {
+            if kept.is_none() {
                 let r = &self.rows[i];
                 groups
                     .entry((r.shard, r.row_group))
@@ -258,6 +258,7 @@ impl DatasetIndex {
                     .insert(r.row, i);
             }
         }
+        let mut read: HashMap<usize, Arc<Sample>> = HashMap::new();
         for ((shard, row_group), wanted) in groups {
             let file_rows: Vec<usize> = wanted.keys().copied().collect();
             let mut samples: Vec<Sample> = wanted
@@ -268,16 +269,13 @@ impl DatasetIndex {
             for (&i, sample) in wanted.values().zip(samples) {
                 let sample = Arc::new(sample);
                 self.cache.keep_row(i, sample.clone());
-                for (k, &row) in rows.iter().enumerate() {
-                    if row == i {
-                        out[k] = Some(sample.clone());
-                    }
-                }
+                read.insert(i, sample);
             }
         }
-        Ok(out
+        Ok(cached
             .into_iter()
-            .map(|s| s.expect("every row read"))
+            .zip(rows)
+            .map(|(cached, i)| cached.unwrap_or_else(|| read[i].clone()))
             .collect())
     }
 }

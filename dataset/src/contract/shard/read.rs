@@ -159,14 +159,7 @@ impl ShardFile {
         rows: Option<std::ops::Range<usize>>,
         tensors: bool,
     ) -> Result<Vec<RecordBatch>, ShardError> {
-        let sizes = self.row_group_sizes();
-        let Some(&group_rows) = sizes.get(row_group) else {
-            return Err(ShardError::RowGroup {
-                path: self.path.clone(),
-                row_group,
-                count: sizes.len(),
-            });
-        };
+        let group_rows = self.group_rows(row_group)?;
         // The metadata columns' names only when they are asked for: a tensor read (the trainer's per-row-group
         // path) builds no schema.
         let schema = (!tensors).then(sample_schema);
@@ -178,27 +171,52 @@ impl ShardFile {
                 .filter(|n| !TENSOR_COLUMNS.contains(n))
                 .collect()
         });
-        let columns = metadata_columns.as_deref();
+        let selection = rows.map(|rows| {
+            let rows = rows.start.min(group_rows)..rows.end.min(group_rows);
+            RowSelection::from(vec![
+                RowSelector::skip(rows.start),
+                RowSelector::select(rows.len()),
+                RowSelector::skip(group_rows - rows.end),
+            ])
+        });
+        self.read_selected(row_group, selection, metadata_columns.as_deref())?
+            .collect()
+    }
+
+    /// The row count of `row_group`, or an error naming the shard's count.
+    fn group_rows(&self, row_group: usize) -> Result<usize, ShardError> {
+        let sizes = self.row_group_sizes();
+        sizes
+            .get(row_group)
+            .copied()
+            .ok_or_else(|| ShardError::RowGroup {
+                path: self.path.clone(),
+                row_group,
+                count: sizes.len(),
+            })
+    }
+
+    /// The batches of `row_group`'s rows in `selection` (all when `None`), of `columns` (all when `None`; a remote
+    /// shard fetches only those columns' chunks).
+    fn read_selected(
+        &self,
+        row_group: usize,
+        selection: Option<RowSelection>,
+        columns: Option<&[&str]>,
+    ) -> Result<impl Iterator<Item = Result<RecordBatch, ShardError>> + '_, ShardError> {
         let mut builder = self
             .builder(Some(row_group), columns)?
             .with_row_groups(vec![row_group])
             .with_batch_size(ROW_GROUP_ROWS);
-        if let Some(rows) = rows {
-            let rows = rows.start.min(group_rows)..rows.end.min(group_rows);
-            builder = builder.with_row_selection(RowSelection::from(vec![
-                RowSelector::skip(rows.start),
-                RowSelector::select(rows.len()),
-                RowSelector::skip(group_rows - rows.end),
-            ]));
+        if let Some(selection) = selection {
+            builder = builder.with_row_selection(selection);
         }
         if let Some(columns) = columns {
             let mask = ProjectionMask::columns(builder.parquet_schema(), columns.iter().copied());
             builder = builder.with_projection(mask);
         }
         let reader = builder.build().map_err(|e| self.parquet_err(e))?;
-        reader
-            .map(|b| b.map_err(|e| self.parquet_err(e.into())))
-            .collect()
+        Ok(reader.map(|b| b.map_err(|e| self.parquet_err(e.into()))))
     }
 
     fn decode(&self, batches: &[RecordBatch], tensors: bool) -> Result<Vec<Sample>, ShardError> {
@@ -246,14 +264,7 @@ impl ShardFile {
             rows.windows(2).all(|w| w[0] < w[1]),
             "rows ascending and distinct"
         );
-        let sizes = self.row_group_sizes();
-        let Some(&group_rows) = sizes.get(row_group) else {
-            return Err(ShardError::RowGroup {
-                path: self.path.clone(),
-                row_group,
-                count: sizes.len(),
-            });
-        };
+        let group_rows = self.group_rows(row_group)?;
         assert!(
             rows.last().is_none_or(|&last| last < group_rows),
             "rows within the row group's {group_rows}"
@@ -266,19 +277,14 @@ impl ShardFile {
             next = row + 1;
         }
         selectors.push(RowSelector::skip(group_rows - next));
-        let builder = self
-            .builder(Some(row_group), Some(&TENSOR_FILL_COLUMNS))?
-            .with_row_groups(vec![row_group])
-            .with_batch_size(ROW_GROUP_ROWS)
-            .with_row_selection(RowSelection::from(selectors));
-        let mask = ProjectionMask::columns(builder.parquet_schema(), TENSOR_FILL_COLUMNS);
-        let reader = builder
-            .with_projection(mask)
-            .build()
-            .map_err(|e| self.parquet_err(e))?;
+        let batches = self.read_selected(
+            row_group,
+            Some(RowSelection::from(selectors)),
+            Some(&TENSOR_FILL_COLUMNS),
+        )?;
         let mut filled = 0;
-        for batch in reader {
-            let batch = batch.map_err(|e| self.parquet_err(e.into()))?;
+        for batch in batches {
+            let batch = batch?;
             let end = filled + batch.num_rows();
             let into = samples
                 .get_mut(filled..end)
