@@ -389,8 +389,7 @@ fn copy_metadata(ortho_dir: &Path, id: &str, image_file: &str) {
     let world = world();
     let mut meta = AcquisitionMetadata::load(&world.join(format!("ortho/{id}.json"))).unwrap();
     meta.image_file = image_file.to_string();
-    dataset::contract::manifest::write_json_atomic(&ortho_dir.join(format!("{id}.json")), &meta)
-        .unwrap();
+    dataset::files::write_json_atomic(&ortho_dir.join(format!("{id}.json")), &meta).unwrap();
 }
 
 /// Same crops, same pixels; returns the largest camera-position (m) and emission-angle (°) differences.

@@ -53,7 +53,7 @@ fn every_endpoint_answers_with_its_documented_shape() {
     );
     assert_eq!(
         info["manifest_blake3"].as_str().unwrap(),
-        dataset::contract::manifest::hash_file(&f.dir.join("manifest.json")).unwrap()
+        dataset::files::hash_file(&f.dir.join("manifest.json")).unwrap()
     );
     assert!(info["card"]
         .as_str()

@@ -45,7 +45,7 @@ fn same_seed_gives_byte_identical_world_and_other_seed_differs() {
     // And the listed hashes are those of the files on disk.
     for (path, hash) in &ha {
         assert_eq!(
-            &dataset::contract::manifest::hash_file(&a.join(path)).unwrap(),
+            &dataset::files::hash_file(&a.join(path)).unwrap(),
             hash,
             "{path}"
         );

@@ -7,14 +7,16 @@
 //!   planner that reads them back.
 //!
 //! Beside them: the HTTP [`client`] of a served dataset (the server itself is the `g2r-dataset-server` crate),
-//! published datasets in object [`storage`] (S3 and the like),
-//! the binaries' allocator settings, logging and [`progress`], the provenance written next to measurements, and test fixtures.
+//! published datasets in object [`storage`] (S3 and the like), atomic writes and hashes of [`files`], the
+//! binaries' allocator settings, logging and [`progress`], the provenance written next to measurements, and test
+//! fixtures.
 
 pub mod science;
 
 pub mod contract;
 
 pub mod client;
+pub mod files;
 pub mod malloc;
 pub mod progress;
 pub mod provenance;

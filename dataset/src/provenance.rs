@@ -59,7 +59,7 @@ impl Provenance {
 
     /// Write it as `path` (JSON, atomically).
     pub fn write(&self, path: &std::path::Path) -> anyhow::Result<()> {
-        Ok(crate::contract::manifest::write_json_atomic(path, self)?)
+        Ok(crate::files::write_json_atomic(path, self)?)
     }
 }
 

@@ -437,7 +437,7 @@ impl DatasetLocation {
     /// The blake3 hash of file `name`, as manifests record it (hex).
     pub fn blake3(&self, name: &str) -> Result<String> {
         match self {
-            Self::Local(dir) => crate::contract::manifest::hash_file(&dir.join(name))
+            Self::Local(dir) => crate::files::hash_file(&dir.join(name))
                 .with_context(|| format!("{}: cannot read", dir.join(name).display())),
             Self::Remote(remote) => Ok(blake3::hash(&remote.get(name)?).to_hex().to_string()),
         }

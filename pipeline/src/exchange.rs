@@ -16,7 +16,7 @@ use serde::{Deserialize, Serialize};
 use crate::manifest::PipelineManifest;
 use crate::partition::{self, Partition};
 use crate::runner::HashMemo;
-use dataset::science::raster::tmp_path;
+use dataset::files::tmp_path;
 use dataset::storage::RemoteDir;
 
 /// The last object of a partition's copy: what it holds.
@@ -45,8 +45,8 @@ pub fn prefix(url: &str, part: Partition) -> String {
 }
 
 /// The files under `dir`, relative (`/`-separated) and sorted, leaving out unfinished `*.tmp` outputs.
-fn files_under(dir: &Path) -> Result<Vec<String>> {
-    Ok(crate::runner::files_under(dir)?
+fn finished_files_under(dir: &Path) -> Result<Vec<String>> {
+    Ok(dataset::files::files_under(dir)?
         .into_iter()
         .filter(|(path, _)| path.extension().is_none_or(|e| e != "tmp"))
         .map(|(path, _)| {
@@ -73,7 +73,7 @@ pub fn send(
     let mut listing = Listing {
         files: BTreeMap::new(),
     };
-    for name in files_under(&dir)? {
+    for name in finished_files_under(&dir)? {
         let path = dir.join(&name);
         let bytes = std::fs::metadata(&path)?.len();
         let blake3 = memo

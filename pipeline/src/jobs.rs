@@ -135,7 +135,7 @@ pub fn run(
         "inputs_fetched": inputs,
         "provenance": dataset::provenance::Provenance::capture(),
     });
-    dataset::contract::manifest::write_json_atomic(&record_path, &record)?;
+    dataset::files::write_json_atomic(&record_path, &record)?;
     copy()?;
     Ok(RunOutcome {
         stages: ran,
@@ -292,7 +292,7 @@ pub fn world_config(preset: &str, config_path: Option<&Path>) -> Result<WorldCon
 
 /// Bytes of the files under `dir` (what `synth` reports having written).
 pub fn tree_bytes(dir: &Path) -> u64 {
-    runner::files_under(dir)
+    dataset::files::files_under(dir)
         .map(|files| files.iter().map(|(_, bytes)| bytes).sum())
         .unwrap_or(0)
 }

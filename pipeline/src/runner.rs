@@ -10,8 +10,7 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use dataset::contract::manifest::{hash_file, write_json_atomic};
-use dataset::science::raster::tmp_path;
+use dataset::files::{files_under, hash_file, tmp_path, write_json_atomic};
 use serde::{Deserialize, Serialize};
 
 /// What a stage function receives: where to write each declared output (temporary names).
@@ -444,29 +443,6 @@ impl<'a> Runner<'a> {
         }
         Ok(removed)
     }
-}
-
-/// Every file under `dir` (recursively) with its size, sorted by path; none when `dir` does not exist.
-pub fn files_under(dir: &Path) -> anyhow::Result<Vec<(PathBuf, u64)>> {
-    let (mut found, mut pending) = (Vec::new(), vec![dir.to_path_buf()]);
-    while let Some(d) = pending.pop() {
-        let entries = match std::fs::read_dir(&d) {
-            Ok(entries) => entries,
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => continue,
-            Err(e) => return Err(anyhow::Error::new(e).context(format!("listing {}", d.display()))),
-        };
-        for entry in entries {
-            let entry = entry?;
-            let meta = entry.metadata()?;
-            if meta.is_dir() {
-                pending.push(entry.path());
-            } else {
-                found.push((entry.path(), meta.len()));
-            }
-        }
-    }
-    found.sort();
-    Ok(found)
 }
 
 /// One stage that ran, as `g2r-pipeline run` records it in `run-record.json`.

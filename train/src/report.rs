@@ -594,7 +594,7 @@ pub fn run_job<B: TrainOps>(job: &ReportJob, device: &B::Device) -> Result<Repor
 pub fn write(report: &Report, out: &Path) -> Result<()> {
     std::fs::create_dir_all(out)?;
     dataset::provenance::Provenance::capture().write(&out.join("provenance.json"))?;
-    dataset::contract::manifest::write_json_atomic(&out.join("report.json"), report)?;
+    dataset::files::write_json_atomic(&out.join("report.json"), report)?;
     let mut text = markdown(report);
     let font = crate::plot::system_font();
     for (file, title, x_label, points) in plots(report) {
@@ -619,6 +619,6 @@ pub fn write(report: &Report, out: &Path) -> Result<()> {
         );
         text.push_str("\n(Plots drawn without labels: no system font was found.)\n");
     }
-    dataset::contract::manifest::write_text_atomic(&out.join("report.md"), &text)?;
+    dataset::files::write_text_atomic(&out.join("report.md"), &text)?;
     Ok(())
 }

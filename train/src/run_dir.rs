@@ -143,7 +143,7 @@ pub(crate) fn save_model<B: Backend>(net: &UNet<B>, path: &Path, recorder: &Rec)
 }
 
 pub(crate) fn write_json<T: serde::Serialize>(path: &Path, value: &T) -> Result<()> {
-    dataset::contract::manifest::write_json_atomic(path, value)
+    dataset::files::write_json_atomic(path, value)
         .with_context(|| format!("writing {}", path.display()))
 }
 

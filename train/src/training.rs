@@ -740,10 +740,10 @@ pub fn compare_models<B: TrainBackend>(
     );
     std::fs::create_dir_all(out)?;
     let markdown = format!("{budget}{table}");
-    dataset::contract::manifest::write_text_atomic(
+    dataset::files::write_text_atomic(
         &out.join("compare.md"),
         &format!("# BRDF model comparison\n\n{markdown}"),
     )?;
-    dataset::contract::manifest::write_json_atomic(&out.join("compare.json"), &rows)?;
+    dataset::files::write_json_atomic(&out.join("compare.json"), &rows)?;
     Ok(markdown)
 }

@@ -7,24 +7,7 @@ use std::io;
 use std::path::{Path, PathBuf};
 
 use crate::contract::schema::SCHEMA_VERSION;
-
-/// blake3 of a file's bytes, hex.
-pub fn hash_file(path: &Path) -> io::Result<String> {
-    use std::io::Read;
-    let mut hasher = blake3::Hasher::new();
-    // 16 MiB reads hashed across the rayon pool: stage outputs run to gigabytes. (Not mmap: mapped pages
-    // count as resident and would swamp the pipeline's peak-RSS figure.)
-    let mut file = std::fs::File::open(path)?;
-    let mut buffer = vec![0u8; 16 << 20];
-    loop {
-        let read = file.read(&mut buffer)?;
-        if read == 0 {
-            break;
-        }
-        hasher.update_rayon(&buffer[..read]);
-    }
-    Ok(hasher.finalize().to_hex().to_string())
-}
+use crate::files::hash_file;
 
 /// One Parquet shard of a published dataset.
 #[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -168,23 +151,10 @@ impl DatasetManifest {
     }
 }
 
-/// Write JSON atomically (temp name, then rename), pretty-printed with a trailing newline.
-pub fn write_json_atomic<T: serde::Serialize>(path: &Path, value: &T) -> io::Result<()> {
-    let mut text = serde_json::to_string_pretty(value).map_err(io::Error::other)?;
-    text.push('\n');
-    write_text_atomic(path, &text)
-}
-
-/// Write text atomically: a temp name, then rename, so a reader never sees half a file.
-pub fn write_text_atomic(path: &Path, text: &str) -> io::Result<()> {
-    let tmp = crate::science::raster::tmp_path(path);
-    std::fs::write(&tmp, text)?;
-    std::fs::rename(&tmp, path)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::files::write_json_atomic;
 
     #[test]
     fn verify_detects_tampering_and_truncation() {

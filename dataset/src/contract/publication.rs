@@ -5,8 +5,9 @@
 use std::collections::BTreeMap;
 use std::path::Path;
 
-use crate::contract::manifest::{write_json_atomic, DatasetManifest};
+use crate::contract::manifest::DatasetManifest;
 use crate::contract::schema::{sample_schema, schema_markdown, SCHEMA_VERSION};
+use crate::files::write_json_atomic;
 
 /// The manifest's own name is defined beside the manifest (which loads itself by it) and listed here with the
 /// rest of the published file names.
@@ -122,10 +123,7 @@ pub fn write_descriptions(dir: &Path, manifest: &DatasetManifest) -> anyhow::Res
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => serde_json::Value::Null,
         Err(e) => return Err(anyhow::anyhow!("{}: {e}", summary_path.display())),
     };
-    crate::contract::manifest::write_text_atomic(
-        &dir.join(CARD_FILE),
-        &dataset_card(manifest, &summary),
-    )?;
+    crate::files::write_text_atomic(&dir.join(CARD_FILE), &dataset_card(manifest, &summary))?;
     write_json_atomic(&dir.join(CROISSANT_FILE), &croissant(manifest))?;
     Ok(())
 }

@@ -404,7 +404,7 @@ pub fn write_geotiff(
         crs,
         nodata,
     } = layout.clone();
-    let tmp = tmp_path(path);
+    let tmp = crate::files::tmp_path(path);
     limit_gdal_block_cache();
     let driver = DriverManager::get_driver_by_name("GTiff").map_err(gdal_err(path))?;
     let options = RasterCreationOptions::from_iter([
@@ -492,16 +492,6 @@ pub fn write_raster(
         }],
         metadata,
     )
-}
-
-/// The temporary name an output is written under before the atomic rename.
-pub fn tmp_path(path: &Path) -> PathBuf {
-    let mut name = path
-        .file_name()
-        .map(|n| n.to_os_string())
-        .unwrap_or_default();
-    name.push(".tmp");
-    path.with_file_name(name)
 }
 
 /// Separable Gaussian blur (kernel ±3σ, edges clamped) of a row-major `w × h` grid: the world's DEM smoothing
@@ -600,7 +590,7 @@ mod tests {
         raster.data[3] = f32::NAN;
         raster.description = "height_m".into();
         write_raster(&path, &raster, &[("UNITS", "m".into())]).unwrap();
-        assert!(!tmp_path(&path).exists());
+        assert!(!crate::files::tmp_path(&path).exists());
         let back = read_raster(&path).unwrap();
         assert_eq!((back.width, back.height), (7, 4));
         assert_eq!(back.transform, raster.transform);

@@ -10,11 +10,12 @@ use std::collections::BTreeMap;
 use std::path::Path;
 
 use crate::contract::crater_frame::CraterPosition;
-use crate::contract::manifest::{write_json_atomic, DatasetManifest};
+use crate::contract::manifest::DatasetManifest;
 use crate::contract::schema::{
     ContextWindow, Sample, Split, CONTEXT_PX, CROP_PX, DEM_PX, SCHEMA_VERSION,
 };
 use crate::contract::shard::{shard_name, ShardWriter};
+use crate::files::write_json_atomic;
 
 /// Sample `i`: every field set, rasters varying with `i` (split "train", tile "t_3_4").
 pub fn synthetic_sample(i: usize) -> Sample {
@@ -138,7 +139,7 @@ pub fn downgrade_to_schema_1_1(dir: &Path) -> anyhow::Result<()> {
         }
         writer.close()?;
         shard.bytes = std::fs::metadata(&path)?.len();
-        shard.blake3 = crate::contract::manifest::hash_file(&path)?;
+        shard.blake3 = crate::files::hash_file(&path)?;
     }
     manifest.schema_version = "1.1.0".into();
     write_json_atomic(&dir.join("manifest.json"), &manifest)?;

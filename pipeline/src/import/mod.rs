@@ -145,11 +145,9 @@ pub fn import(
         }
     };
     let meta = finish(&geometry, image, out)?;
-    dataset::contract::manifest::write_json_atomic(out, &meta).map_err(|source| {
-        ImportError::Io {
-            path: out.to_path_buf(),
-            source,
-        }
+    dataset::files::write_json_atomic(out, &meta).map_err(|source| ImportError::Io {
+        path: out.to_path_buf(),
+        source,
     })?;
     Ok(meta)
 }

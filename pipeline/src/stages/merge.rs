@@ -12,8 +12,8 @@ use super::{pipeline, pipeline_scoped, row_group_rows, Layout, Scope};
 use crate::manifest::PipelineManifest;
 use crate::partition::{dir, Partition};
 use crate::runner::{HashMemo, Runner, Staleness};
-use dataset::contract::manifest::write_json_atomic;
 use dataset::contract::shard::{EncodedRowGroups, ShardFile, ShardWriter};
+use dataset::files::write_json_atomic;
 
 /// The reduce: check that every partition of `count` is finished, join their outputs into the single-process
 /// layout, record those stages in the manifest's lock as run, and return the single-process runner, whose `run`
@@ -132,9 +132,7 @@ fn write_via_tmp(
     if let Some(parent) = path.parent() {
         std::fs::create_dir_all(parent)?;
     }
-    let tmp = dataset::science::raster::tmp_path(path);
-    write(&tmp)?;
-    std::fs::rename(&tmp, path)
+    dataset::files::write_atomic(path, write)
         .with_context(|| format!("{}: cannot move into place", path.display()))
 }
 

@@ -526,10 +526,10 @@ pub fn run(
             .join()
             .map_err(|_| anyhow::anyhow!("shard writer thread panicked"))?;
         projected?;
-        dataset::contract::manifest::write_json_atomic(out.train_dem, &written?)?;
+        dataset::files::write_json_atomic(out.train_dem, &written?)?;
         Ok(())
     })?;
-    dataset::contract::manifest::write_json_atomic(out.rejections, &rejections)?;
+    dataset::files::write_json_atomic(out.rejections, &rejections)?;
     Ok(())
 }
 

@@ -6,8 +6,9 @@
 use std::collections::BTreeMap;
 use std::path::Path;
 
-use dataset::contract::manifest::{write_json_atomic, DatasetManifest, ShardEntry};
+use dataset::contract::manifest::{DatasetManifest, ShardEntry};
 use dataset::contract::publication::{croissant, dataset_card};
+use dataset::files::write_json_atomic;
 
 use dataset::contract::schema::SCHEMA_VERSION;
 use dataset::contract::shard::{shard_name, EncodedRowGroups, ShardWriter};

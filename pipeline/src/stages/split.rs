@@ -120,7 +120,7 @@ pub fn run(
             ("tile_id", Col::Str(tiles)),
         ],
     )?;
-    dataset::contract::manifest::write_json_atomic(
+    dataset::files::write_json_atomic(
         summary_out,
         &SplitSummary {
             dropped_straddling_splits: dropped,

@@ -17,8 +17,9 @@ pub mod units;
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context};
-use dataset::contract::manifest::{write_json_atomic, FileEntry};
+use dataset::contract::manifest::FileEntry;
 use dataset::contract::world as layout;
+use dataset::files::write_json_atomic;
 use dataset::progress::Progress;
 use dataset::science::crs::LunarCrs;
 use dataset::science::raster::{write_geotiff, BandOut, BandValues, GeoTransform, RasterLayout};

@@ -265,8 +265,8 @@ pub fn comparison_markdown(c: &Comparison, names: (&str, &str)) -> String {
 pub fn write_comparison(c: &Comparison, markdown: &str, out: &Path) -> Result<()> {
     std::fs::create_dir_all(out)
         .with_context(|| format!("{}: cannot create the output directory", out.display()))?;
-    dataset::contract::manifest::write_json_atomic(&out.join("comparison.json"), c)?;
-    dataset::contract::manifest::write_text_atomic(&out.join("comparison.md"), markdown)?;
+    dataset::files::write_json_atomic(&out.join("comparison.json"), c)?;
+    dataset::files::write_text_atomic(&out.join("comparison.md"), markdown)?;
     dataset::provenance::Provenance::capture().write(&out.join("provenance.json"))?;
     Ok(())
 }

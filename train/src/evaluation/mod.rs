@@ -353,8 +353,8 @@ pub fn run_job<B: TrainOps>(job: &EvalJob, device: &B::Device) -> Result<EvalRep
 /// Write `metrics.json` and `metrics.md` into `out` (atomically).
 pub fn write_report(report: &EvalReport, out: &Path) -> Result<()> {
     std::fs::create_dir_all(out)?;
-    dataset::contract::manifest::write_json_atomic(&out.join("metrics.json"), report)?;
-    dataset::contract::manifest::write_text_atomic(&out.join("metrics.md"), &markdown(report))?;
+    dataset::files::write_json_atomic(&out.join("metrics.json"), report)?;
+    dataset::files::write_text_atomic(&out.join("metrics.md"), &markdown(report))?;
     Ok(())
 }
 

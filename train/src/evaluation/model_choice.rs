@@ -320,8 +320,8 @@ pub fn model_choice_markdown(report: &ModelChoiceReport) -> String {
 /// beside them.
 pub fn write_model_choice(report: &ModelChoiceReport, out: &Path) -> Result<()> {
     std::fs::create_dir_all(out)?;
-    dataset::contract::manifest::write_json_atomic(&out.join("model-choice.json"), report)?;
-    dataset::contract::manifest::write_text_atomic(
+    dataset::files::write_json_atomic(&out.join("model-choice.json"), report)?;
+    dataset::files::write_text_atomic(
         &out.join("model-choice.md"),
         &model_choice_markdown(report),
     )?;

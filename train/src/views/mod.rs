@@ -139,19 +139,19 @@ pub fn run(job: &RenderJob) -> Result<()> {
             },
         );
         let path = job.out.join(&record.file);
-        let tmp = dataset::science::raster::tmp_path(&path);
+        let tmp = dataset::files::tmp_path(&path);
         png.save_with_format(&tmp, image::ImageFormat::Png)
             .with_context(|| format!("writing {}", path.display()))?;
         std::fs::rename(&tmp, &path)?;
     }
     let sheet = contact_sheet(&images, &records, methods.len(), &job.options, scale);
     let path = job.out.join(CONTACT_SHEET);
-    let tmp = dataset::science::raster::tmp_path(&path);
+    let tmp = dataset::files::tmp_path(&path);
     sheet
         .save_with_format(&tmp, image::ImageFormat::Png)
         .with_context(|| format!("writing {}", path.display()))?;
     std::fs::rename(&tmp, &path)?;
-    dataset::contract::manifest::write_json_atomic(
+    dataset::files::write_json_atomic(
         &job.out.join("views.json"),
         &serde_json::json!({
             "i_over_f_scale": scale,

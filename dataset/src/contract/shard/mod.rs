@@ -140,9 +140,9 @@ mod tests {
     use std::fs::File;
 
     use super::*;
-    use crate::contract::manifest::hash_file;
     use crate::contract::schema::Sample;
     use crate::contract::wire::{ipc_stream_bytes, samples_from_ipc_stream};
+    use crate::files::hash_file;
     use crate::testing::synthetic_sample;
 
     #[test]

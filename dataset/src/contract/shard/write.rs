@@ -10,9 +10,10 @@ use parquet::file::metadata::ParquetMetaData;
 use parquet::file::writer::SerializedFileWriter;
 use rayon::prelude::*;
 
-use crate::contract::manifest::{hash_file, ShardEntry};
+use crate::contract::manifest::ShardEntry;
 use crate::contract::schema::{sample_schema, samples_to_batch, Sample};
-use crate::science::raster::tmp_path;
+use crate::files::hash_file;
+use crate::files::tmp_path;
 
 use super::{writer_properties, ShardError, ROW_GROUP_ROWS};
 

@@ -60,6 +60,7 @@ pub fn conv_backward() -> ConvBackward {
 
 /// `impl TrainOps for $backend`: the four convolution gradients through [`conv`] unless switched to stock, the
 /// rest the trait's defaults.
+#[cfg(any(feature = "cuda", feature = "wgpu"))]
 macro_rules! cubecl_train_ops {
     ($backend:ty) => {
         impl TrainOps for $backend {
