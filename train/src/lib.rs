@@ -9,8 +9,7 @@
 //!   crop's brightness level, fitted beside an H1 run) → [`evaluation`] (against baselines,
 //!   [`baseline`], and the oracle; [`features`] matching) and [`inference`] (parameter GeoTIFFs from a DEM);
 //! - [`data_parallel`]: fits across MPI ranks (`mpirun`, `srun --mpi=pmix`) over the same loop;
-//! - [`report`] (speed against error, [`plot`]), [`results_page`] (docs/results.md from its records), [`views`] (the
-//!   novel-view ray caster), [`mod@bench`];
+//! - [`report`] (speed against error, [`plot`]), [`views`] (the novel-view ray caster), [`mod@bench`];
 //! - [`testing`]: fixtures for tests and benches; [`backend`]: which Burn backend a job runs on.
 
 /// Names for enums chosen on command lines and in configs: `NAMES[i]` is `ALL[i]`'s, and `FromStr` accepts them.
@@ -61,7 +60,6 @@ pub mod prediction;
 pub mod renderer_layer;
 
 pub mod report;
-pub mod results_page;
 pub mod run_dir;
 pub mod testing;
 pub mod training;

@@ -53,7 +53,6 @@ fn help_lists_every_command() {
         "models",
         "model-choice",
         "compare-evals",
-        "results-page",
         "crater-level",
     ] {
         assert!(
@@ -338,58 +337,6 @@ fn a_resume_with_other_flags_names_each_setting_that_differs() {
         std::fs::read(d.join("run/last/model.mpk")).unwrap(),
         checkpoint
     );
-}
-
-#[test]
-fn results_page_writes_the_page_and_check_fails_when_it_differs() {
-    let dir = tempfile::tempdir().unwrap();
-    let d = dir.path();
-    std::fs::create_dir(d.join("records")).unwrap();
-    std::fs::write(
-        d.join("records/10-a.json"),
-        r#"{"title": "A", "columns": ["what"], "rows": [{"cells": ["x"]}]}"#,
-    )
-    .unwrap();
-    let readme_block = "<!-- generated: results-page 10-a.json -->\n<!-- end generated -->\n";
-    std::fs::write(d.join("README.md"), readme_block).unwrap();
-    let records = d.join("records").to_string_lossy().into_owned();
-    let page = d.join("results.md").to_string_lossy().into_owned();
-    let readme = d.join("README.md").to_string_lossy().into_owned();
-    let write = [
-        "results-page",
-        "--records",
-        records.as_str(),
-        "--out",
-        page.as_str(),
-        "--embed-in",
-        readme.as_str(),
-    ];
-    let check = [&write[..], &["--check"][..]].concat();
-    // No page yet: the check names it.
-    let (ok, stderr) = train_cli(&check);
-    assert!(
-        !ok && error_line(&stderr).contains("results.md"),
-        "{stderr}"
-    );
-    let (ok, stderr) = train_cli(&write);
-    assert!(ok, "{stderr}");
-    let (ok, stderr) = train_cli(&check);
-    assert!(ok, "{stderr}");
-    std::fs::write(d.join("results.md"), "edited by hand\n").unwrap();
-    let (ok, stderr) = train_cli(&check);
-    let line = error_line(&stderr);
-    assert!(
-        !ok && line.contains("differs") && line.contains("results-page --records"),
-        "{stderr}"
-    );
-    // The README's block was filled with the record's table, and an edit to it fails the check too.
-    let (ok, stderr) = train_cli(&write);
-    assert!(ok, "{stderr}");
-    let filled = std::fs::read_to_string(d.join("README.md")).unwrap();
-    assert!(filled.contains("| what |\n|---|\n| x |\n"), "{filled}");
-    std::fs::write(d.join("README.md"), filled.replace("| x |", "| y |")).unwrap();
-    let (ok, stderr) = train_cli(&check);
-    assert!(!ok && error_line(&stderr).contains("README.md"), "{stderr}");
 }
 
 /// `compare-evals` on two `metrics.json` of the same crops writes its comparison; on crops that differ it fails
