@@ -304,7 +304,7 @@ fn maria_are_darker_smoother_and_less_cratered_than_highlands() {
     let config =
         pipeline::synth::WorldConfig::from_toml(pipeline::synth::config::preset("demo").unwrap())
             .unwrap();
-    let units = pipeline::synth::units::Units::new(&config.reflectance, 42);
+    let units = pipeline::synth::geologic_units::Units::new(&config.reflectance, 42);
     let dem = read_raster(&demo_world().join("dem/dem.tif")).unwrap();
     let w_map = read_raster(&demo_world().join("truth/hapke_params.tif")).unwrap();
     // Per unit (0 = mare, 1 = highland; the soft boundary is left out): cells, summed slope², summed w.

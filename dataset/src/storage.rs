@@ -442,17 +442,6 @@ impl DatasetLocation {
             Self::Remote(remote) => Ok(blake3::hash(&remote.get(name)?).to_hex().to_string()),
         }
     }
-
-    /// Shard `name`, its footer parsed.
-    pub fn open_shard(&self, name: &str) -> Result<crate::contract::shard::ShardFile> {
-        use crate::contract::shard::ShardFile;
-        Ok(match self {
-            Self::Local(dir) => ShardFile::open(&dir.join(name))?,
-            Self::Remote(remote) => {
-                ShardFile::open_remote(RemoteObject::open(remote.clone(), name)?)?
-            }
-        })
-    }
 }
 
 /// The files of a published dataset besides its shards, uploaded when present; `manifest.json` goes last.

@@ -6,9 +6,6 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 use serde::{Deserialize, Serialize};
 
-use crate::stages::project::ProjectParams;
-use crate::stages::split::SplitParams;
-
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct PipelineManifest {
@@ -189,7 +186,7 @@ impl PipelineManifest {
             anyhow::bail!(
                 "{}: project.context_gsd_m = {context_gsd_m}: use a positive cell size in metres (default {})",
                 path.display(),
-                crate::stages::project::DEFAULT_CONTEXT_GSD_M
+                DEFAULT_CONTEXT_GSD_M
             );
         }
         Ok(manifest)
@@ -212,4 +209,48 @@ impl PipelineManifest {
     pub fn dataset_dir(&self) -> PathBuf {
         self.out_dir().join("dataset")
     }
+}
+/// The project stage's rejection thresholds, shadow sampling, context window and crater frame (`stages::project`).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ProjectParams {
+    /// Reject crops with fewer usable image pixels than this share.
+    pub min_valid_fraction: f64,
+    /// Reject crops where more than this share of usable pixels sees less than half the sun.
+    pub max_shadowed_fraction: f64,
+    /// Reject crops where more than this share of pixels is hidden from the camera.
+    pub max_occluded_fraction: f64,
+    /// Elevation samples across the sun disk for soft shadows on the 5 m DEM.
+    pub sun_disk_samples: usize,
+    /// Cell size of each sample's context window (`dataset::contract::context`): 32 cells of 512 m see 16 km around the
+    /// crop, enough to hold a crater of ~10–20 km across and its ejecta.
+    #[serde(default = "default_context_gsd_m")]
+    pub context_gsd_m: f64,
+    /// Catalogued craters at least this wide frame the samples (`inputs.crater_catalogue`): the complex ones,
+    /// whose walls hide a unit's level (`dataset::contract::crater_frame`).
+    #[serde(default = "default_crater_min_diameter_m")]
+    pub crater_min_diameter_m: f64,
+}
+
+fn default_crater_min_diameter_m() -> f64 {
+    dataset::contract::crater_frame::DEFAULT_MIN_DIAMETER_M
+}
+
+/// See [`ProjectParams::context_gsd_m`].
+pub const DEFAULT_CONTEXT_GSD_M: f64 = 512.0;
+
+fn default_context_gsd_m() -> f64 {
+    DEFAULT_CONTEXT_GSD_M
+}
+
+/// The tile-based geographic split (`stages::split`).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SplitParams {
+    pub tile_size_m: f64,
+    /// Target shares of tiles (train is the rest).
+    pub val_fraction: f64,
+    pub test_fraction: f64,
+    /// Extra margin around each footprint that must also lie in the sample's split, metres.
+    pub guard_band_m: f64,
 }

@@ -47,7 +47,7 @@ pub struct FitConfig {
     /// Feed the crop's height relative to its crater's median profile as a context plane
     /// ([`crate::data::ContextNormalisation::crater_rms_m`]); needs `context_input`.
     pub crater_input: bool,
-    /// Keep an exponential moving average of the weights with this decay ([`crate::averaging`]), validated and
+    /// Keep an exponential moving average of the weights with this decay ([`crate::weight_average`]), validated and
     /// checkpointed beside the raw network; `None`: no average.
     pub ema_decay: Option<f64>,
     /// How much more often an epoch draws a steep crop than another ([`crate::data::steep_row_weights`]); 1:
@@ -60,7 +60,7 @@ pub struct FitConfig {
     /// The decoder's modulation by the context ([`UNetConfig::film`]); needs `context_input`.
     pub film: bool,
     /// Start the head at the non-negative least-squares uniform fit
-    /// ([`crate::calibration::Calibration::model_uniform_nonnegative`]) rather than the unconstrained one.
+    /// ([`crate::uniform_fit::Calibration::model_uniform_nonnegative`]) rather than the unconstrained one.
     pub nonnegative_start: bool,
     /// Decoupled weight decay (Burn's AdamW): every optimiser step first shrinks each weight by the step's learning
     /// rate times this, then applies the Adam update. `None`: plain Adam, no decay.

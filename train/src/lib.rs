@@ -4,10 +4,10 @@
 //!   the batched twin of `dataset::science::brdf`) → [`metrics`];
 //! - [`training`] (the fit loop) writing a run directory ([`run_dir`]: history, checkpoints, loading; what defines
 //!   the run in [`fit_config`]), with
-//!   [`averaging`] (the weight average) and [`calibration`] (uniform least-squares fits);
+//!   [`weight_average`] and [`uniform_fit`] (uniform least-squares fits of a model);
 //! - [`prediction`] (inference-mode renderings, symmetry means, ensembles), with [`crater_level`] (each crater
-//!   crop's brightness level, fitted beside an H1 run) → [`evaluation`] (against baselines,
-//!   [`baseline`], and the oracle; [`features`] matching) and [`inference`] (parameter GeoTIFFs from a DEM);
+//!   crop's brightness level, fitted beside an H1 run by [`crater_level_fit`]) → [`evaluation`] (against baselines,
+//!   [`baseline`], and the oracle; [`feature_matching`]) and [`inference`] (parameter GeoTIFFs from a DEM);
 //! - [`data_parallel`]: fits across MPI ranks (`mpirun`, `srun --mpi=pmix`) over the same loop;
 //! - [`report`] (speed against error, [`plot`]), [`views`] (the novel-view ray caster), [`mod@bench`];
 //! - [`testing`]: fixtures for tests and benches; [`backend`]: which Burn backend a job runs on.
@@ -40,16 +40,15 @@ macro_rules! named_enum {
 }
 
 pub mod augment;
-pub mod averaging;
 pub mod backend;
 pub mod baseline;
 pub mod bench;
-pub mod calibration;
 pub mod crater_level;
+pub mod crater_level_fit;
 pub mod data;
 pub mod data_parallel;
 pub mod evaluation;
-pub mod features;
+pub mod feature_matching;
 pub mod fit_config;
 pub mod inference;
 pub mod kernels;
@@ -58,6 +57,8 @@ pub mod model;
 pub mod plot;
 pub mod prediction;
 pub mod renderer_layer;
+pub mod uniform_fit;
+pub mod weight_average;
 
 pub mod report;
 pub mod run_dir;

@@ -23,7 +23,6 @@ use dataset::science::hapke::HapkeParams;
 use dataset::science::raster::Raster;
 
 use crate::baseline::hapke_from_geometry;
-use crate::calibration::{calibrate, lunar_lambert_from_geometry, model_uniform_from_geometry};
 use crate::data::{for_each_sample_group, SampleSource};
 use crate::inference::{
     crater_frames_from_catalogue, infer_params, render_maps, seam_score, InferOptions,
@@ -32,6 +31,7 @@ use crate::kernels::TrainOps;
 use crate::model::UNet;
 use crate::plot::{write_scatter, Axis, Point, Scatter};
 use crate::run_dir::{load_trained, Checkpoint};
+use crate::uniform_fit::{calibrate, lunar_lambert_from_geometry, model_uniform_from_geometry};
 
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct ModelRow {

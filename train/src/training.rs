@@ -295,7 +295,7 @@ pub fn fit_ranks<B: TrainBackend>(
         B::seed(device, keyed_u64(seed, "init", 0));
         let net = net_config.init::<B>(device);
         let _ = net.num_params(); // materialise the lazily initialised weights now, in a fixed order
-        let fit = crate::calibration::calibrate(&*source, UNIFORM_INIT_SAMPLES, config.model)?;
+        let fit = crate::uniform_fit::calibrate(&*source, UNIFORM_INIT_SAMPLES, config.model)?;
         let start = if config.nonnegative_start {
             &fit.model_uniform_nonnegative
         } else {
@@ -544,10 +544,10 @@ fn train_rank<B: TrainBackend, O: FitOptimizer<B>>(
                 .rate(config.learning_rate, cursor.step, total_steps);
             net = optim.step(rate, net, grads);
             if let (Some(decay), Some(avg)) = (config.ema_decay, average.take()) {
-                average = Some(crate::averaging::ema_update(
+                average = Some(crate::weight_average::ema_update(
                     avg,
                     &net.valid(),
-                    crate::averaging::ema_decay_at(decay, cursor.step),
+                    crate::weight_average::ema_decay_at(decay, cursor.step),
                 ));
             }
             step_time.add(step_started);

@@ -9,7 +9,6 @@ use dataset::contract::schema::{Split, CROP_PX};
 use dataset::science::brdf::BrdfModel;
 use dataset::science::hapke::HapkeParams;
 use train::baseline::{hapke_render, normalise_like_paper};
-use train::calibration::calibrate;
 use train::data::{HostBatch, InputNormalisation, LocalSource, SampleSource, StreamConfig};
 use train::evaluation::{evaluate, panel_png, write_report, EvalOptions};
 use train::fit_config::FitConfig;
@@ -19,6 +18,7 @@ use train::prediction::predict_images;
 use train::run_dir::TrainedRun;
 use train::testing::{synthetic_samples, write_synthetic_dataset};
 use train::training::validate;
+use train::uniform_fit::calibrate;
 
 /// The FitConfig of the small untrained M2 networks these tests evaluate.
 fn m2_config() -> FitConfig {
@@ -358,7 +358,7 @@ fn uniform_model_fit_recovers_the_coefficients_that_rendered_the_images() {
     let truth = [0.021, 0.008, 0.004];
     let mut train = synthetic_samples(4, 5);
     for s in &mut train {
-        let rendered = train::calibration::model_uniform_render(s, BrdfModel::M2, &truth);
+        let rendered = train::uniform_fit::model_uniform_render(s, BrdfModel::M2, &truth);
         s.image = rendered.iter().map(|&v| v as f32).collect();
     }
     write_synthetic_dataset(dir.path(), train, synthetic_samples(2, 6));

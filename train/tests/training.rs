@@ -188,7 +188,7 @@ fn a_nonnegative_start_renders_the_nonnegative_uniform_fit() {
         .into_iter()
         .map(|m| {
             let fit =
-                train::calibration::calibrate(&*source, train::training::UNIFORM_INIT_SAMPLES, m)
+                train::uniform_fit::calibrate(&*source, train::training::UNIFORM_INIT_SAMPLES, m)
                     .unwrap();
             (m, fit)
         })

@@ -120,7 +120,7 @@ impl DatasetIndex {
             .collect();
         for split in manifest.split_counts.keys() {
             for name in manifest.split_shards(split) {
-                let file = location.open_shard(name)?;
+                let file = dataset::contract::shard::ShardFile::open_in(&location, name)?;
                 let shard = shards.len();
                 let sizes = file.row_group_sizes();
                 let metadata = file.read_metadata()?;

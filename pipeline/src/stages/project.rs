@@ -17,38 +17,7 @@ use dataset::science::horizon::{
 use dataset::science::raster::Raster;
 use dataset::science::resample::{resample_cells, ResampleKernel};
 
-/// Rejection thresholds and shadow sampling, from the pipeline manifest.
-#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct ProjectParams {
-    /// Reject crops with fewer usable image pixels than this share.
-    pub min_valid_fraction: f64,
-    /// Reject crops where more than this share of usable pixels sees less than half the sun.
-    pub max_shadowed_fraction: f64,
-    /// Reject crops where more than this share of pixels is hidden from the camera.
-    pub max_occluded_fraction: f64,
-    /// Elevation samples across the sun disk for soft shadows on the 5 m DEM.
-    pub sun_disk_samples: usize,
-    /// Cell size of each sample's context window (`dataset::contract::context`): 32 cells of 512 m see 16 km around the
-    /// crop, enough to hold a crater of ~10–20 km across and its ejecta.
-    #[serde(default = "default_context_gsd_m")]
-    pub context_gsd_m: f64,
-    /// Catalogued craters at least this wide frame the samples (`inputs.crater_catalogue`): the complex ones,
-    /// whose walls hide a unit's level (`dataset::contract::crater_frame`).
-    #[serde(default = "default_crater_min_diameter_m")]
-    pub crater_min_diameter_m: f64,
-}
-
-fn default_crater_min_diameter_m() -> f64 {
-    dataset::contract::crater_frame::DEFAULT_MIN_DIAMETER_M
-}
-
-/// See [`ProjectParams::context_gsd_m`].
-pub const DEFAULT_CONTEXT_GSD_M: f64 = 512.0;
-
-fn default_context_gsd_m() -> f64 {
-    DEFAULT_CONTEXT_GSD_M
-}
+pub use crate::manifest::ProjectParams;
 
 /// Why a crop was not published. Every rejection is counted by reason.
 #[derive(
@@ -612,8 +581,8 @@ mod tests {
             max_shadowed_fraction: 0.2,
             max_occluded_fraction: 0.01,
             sun_disk_samples: 4,
-            context_gsd_m: DEFAULT_CONTEXT_GSD_M,
-            crater_min_diameter_m: default_crater_min_diameter_m(),
+            context_gsd_m: crate::manifest::DEFAULT_CONTEXT_GSD_M,
+            crater_min_diameter_m: dataset::contract::crater_frame::DEFAULT_MIN_DIAMETER_M,
         }
     }
 

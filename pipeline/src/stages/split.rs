@@ -8,16 +8,7 @@ use serde::{Deserialize, Serialize};
 /// The split itself is part of the data contract: one type for schema, manifests, sources and command lines.
 pub use dataset::contract::schema::Split;
 
-#[derive(Debug, Clone, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct SplitParams {
-    pub tile_size_m: f64,
-    /// Target shares of tiles (train is the rest).
-    pub val_fraction: f64,
-    pub test_fraction: f64,
-    /// Extra margin around each footprint that must also lie in the sample's split, metres.
-    pub guard_band_m: f64,
-}
+pub use crate::manifest::SplitParams;
 
 /// Tile index (column, row) of a map point: floor(x / size), floor(y / size).
 pub fn tile_of(x: f64, y: f64, tile_size_m: f64) -> (i64, i64) {

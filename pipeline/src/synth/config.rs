@@ -52,7 +52,7 @@ pub struct TerrainConfig {
     /// Relief of the background fBm on mare relative to highland (maria are smoother plains), 0..1.
     pub mare_relief_factor: f64,
     /// Craters older than this (crater age runs 0 = now .. 1 = oldest surface) predate the mare flood and are
-    /// buried where they formed on mare, so maria carry fewer, fresher craters (see `synth::units`).
+    /// buried where they formed on mare, so maria carry fewer, fresher craters (see `synth::geologic_units`).
     pub mare_flood_age: f64,
     /// How far mare plains lie below highlands, metres.
     pub mare_depth_m: f64,

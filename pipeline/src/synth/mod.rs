@@ -7,12 +7,12 @@
 pub mod acquisition;
 pub mod config;
 pub mod dem_product;
+pub mod geologic_units;
 pub mod lroc_products;
 pub mod noise;
 pub mod orthos;
 pub mod reflectance;
 pub mod terrain;
-pub mod units;
 
 use std::path::{Path, PathBuf};
 
@@ -167,7 +167,7 @@ pub fn generate(
     info!(world = %w.name, seed, fine_px = fine.width * fine.height, dem_px = dem_grid.width * dem_grid.height, "generating synthetic lunar world");
 
     // Terrain.
-    let units = units::Units::new(&config.reflectance, seed);
+    let units = geologic_units::Units::new(&config.reflectance, seed);
     let background = phase("background terrain", "grids", 1);
     let mut heights = terrain::background(&config.terrain, &fine, &units, w.base_height_m, seed);
     background.inc(1);

@@ -4,9 +4,9 @@
 use rayon::prelude::*;
 
 use super::config::ReflectanceConfig;
+use super::geologic_units::Units;
 use super::noise::smoothstep;
 use super::noise::Fbm;
-use super::units::Units;
 use super::Grid;
 use crate::rng::keyed_u64;
 

@@ -7,8 +7,8 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::config::{ComplexCraterConfig, TerrainConfig};
+use super::geologic_units::Units;
 use super::noise::{smoothstep, Fbm};
-use super::units::Units;
 use super::Grid;
 use crate::rng::{keyed_rng, keyed_u64};
 use dataset::contract::world::TerrainClass;

@@ -4,8 +4,8 @@ use dataset::contract::schema::Sample;
 use dataset::science::hapke::HapkeParams;
 
 use crate::baseline::{hapke_render, normalise_like_paper, truth_and_valid};
-use crate::calibration::{lunar_lambert_render, model_uniform_render, Calibration};
 use crate::crater_level::CraterLevel;
+use crate::uniform_fit::{lunar_lambert_render, model_uniform_render, Calibration};
 
 use super::model_form::ModelFormTable;
 use super::truth::{TrueAlbedo, TruthMaps};

@@ -40,13 +40,13 @@ use dataset::contract::schema::{Sample, Split, CROP_PX};
 use rayon::prelude::*;
 
 use crate::baseline::truth_and_valid;
-use crate::calibration::{calibrate, Calibration};
 use crate::data::{for_each_sample_group, mean_slope_deg, SampleSource};
-use crate::features::{FeatureMatcher, MatchStats};
+use crate::feature_matching::{FeatureMatcher, MatchStats};
 use crate::kernels::TrainOps;
 use crate::metrics::{image_metrics, MetricsAccumulator};
 use crate::prediction::predict_ensemble;
 use crate::run_dir::{load_ensemble, Checkpoint, TrainedRun};
+use crate::uniform_fit::{calibrate, Calibration};
 
 #[derive(Debug, Clone)]
 pub struct EvalOptions {
@@ -361,8 +361,8 @@ pub fn write_report(report: &EvalReport, out: &Path) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::calibration::{lunar_lambert_render, ScaleFit};
     use crate::metrics::ImageMetrics;
+    use crate::uniform_fit::{lunar_lambert_render, ScaleFit};
     use dataset::contract::world::TerrainClass;
     use dataset::science::crs::LunarCrs;
     use dataset::science::hapke::lunar_lambert_i_over_f;

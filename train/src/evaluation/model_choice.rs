@@ -24,8 +24,8 @@ use dataset::science::hapke::HapkeParams;
 use rayon::prelude::*;
 
 use crate::baseline::{hapke_render, normalise_like_paper, truth_and_valid};
-use crate::calibration::{calibrate, model_uniform_render};
 use crate::data::{for_each_sample_group, SampleSource};
+use crate::uniform_fit::{calibrate, model_uniform_render};
 
 use super::model_form::ModelFormTable;
 use super::tables::{breakdowns, group_images, PerImage};

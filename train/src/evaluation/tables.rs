@@ -3,9 +3,9 @@
 use dataset::contract::schema::Split;
 use std::collections::BTreeMap;
 
-use crate::calibration::Calibration;
-use crate::features::MatchSummary;
+use crate::feature_matching::MatchSummary;
 use crate::metrics::{AggregateMetrics, ImageMetrics};
+use crate::uniform_fit::Calibration;
 
 /// One image's metrics per method, with what is known of its ground and light (the breakdowns' keys).
 #[derive(Debug, Clone, serde::Serialize)]
@@ -242,7 +242,7 @@ pub struct EvalReport {
     /// The same against `oracle_morphology` (the oracle without the albedo no terrain predicts), when it ran.
     pub hapke_to_morphology_oracle_gap_closed: Option<f64>,
     /// FAST + BRIEF reciprocal matches between the ground truth and each method's rendering (see
-    /// [`crate::features`]); the paper's Table 1 used a learned matcher.
+    /// [`crate::feature_matching`]); the paper's Table 1 used a learned matcher.
     pub feature_matching: BTreeMap<String, MatchSummary>,
     /// How the run's crater level was applied to "learned", when the run keeps one.
     pub crater_level: Option<CraterLevelUse>,

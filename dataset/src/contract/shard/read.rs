@@ -15,7 +15,7 @@ use crate::contract::schema::{
     batch_to_sample_metadata, batch_to_samples, fill_tensors, sample_schema, Sample,
     SCHEMA_VERSION, TENSOR_COLUMNS, TENSOR_FILL_COLUMNS,
 };
-use crate::storage::ShardBytes;
+use crate::storage::{DatasetLocation, RemoteObject, ShardBytes};
 
 use super::{ShardError, ROW_GROUP_ROWS};
 
@@ -28,7 +28,7 @@ pub struct ShardFile {
     /// The file's path, or the object's URL (for messages).
     path: PathBuf,
     metadata: ArrowReaderMetadata,
-    remote: Option<crate::storage::RemoteObject>,
+    remote: Option<RemoteObject>,
 }
 
 impl ShardFile {
@@ -53,8 +53,18 @@ impl ShardFile {
         Self::checked(path.to_path_buf(), metadata, None)
     }
 
+    /// Shard `name` of a published dataset, in a directory or under a bucket prefix, its footer parsed.
+    pub fn open_in(location: &DatasetLocation, name: &str) -> anyhow::Result<Self> {
+        Ok(match location {
+            DatasetLocation::Local(dir) => Self::open(&dir.join(name))?,
+            DatasetLocation::Remote(remote) => {
+                Self::open_remote(RemoteObject::open(remote.clone(), name)?)?
+            }
+        })
+    }
+
     /// Open a shard in object storage: its footer is read with two ranged GETs (the length, then the metadata).
-    pub fn open_remote(object: crate::storage::RemoteObject) -> Result<Self, ShardError> {
+    pub fn open_remote(object: RemoteObject) -> Result<Self, ShardError> {
         let path = PathBuf::from(object.url());
         let metadata = ArrowReaderMetadata::load(&object, ArrowReaderOptions::default())
             .map_err(|source| ShardError::reading(&path, source, true))?;
@@ -64,7 +74,7 @@ impl ShardFile {
     fn checked(
         path: PathBuf,
         metadata: ArrowReaderMetadata,
-        remote: Option<crate::storage::RemoteObject>,
+        remote: Option<RemoteObject>,
     ) -> Result<Self, ShardError> {
         let found = metadata
             .schema()

@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Result;
 use clap::Args;
 use train::backend::{BackendKind, Inner};
-use train::crater_level::CraterLevelOptions;
+use train::crater_level_fit::CraterLevelOptions;
 use train::data::{open_source, SampleSource};
 use train::run_dir::Checkpoint;
 use train::with_backend;
@@ -80,12 +80,12 @@ pub fn fit_and_write(
         // The network alone: a level already kept beside it must not score the candidates.
         let mut trained = train::run_dir::load_trained::<Inner<B>>(run, checkpoint, &device)?;
         trained.crater_level = None;
-        train::crater_level::fit_crater_level(&trained, source, options, &device)
+        train::crater_level_fit::fit_crater_level(&trained, source, options, &device)
     })?;
     dataset::files::write_json_atomic(&out, &fit.level)?;
     Ok(format!(
         "{}\nwrote {}\n",
-        train::crater_level::markdown(&fit),
+        train::crater_level_fit::markdown(&fit),
         out.display()
     ))
 }

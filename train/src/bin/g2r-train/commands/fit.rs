@@ -7,7 +7,7 @@ use anyhow::Result;
 use clap::Args;
 use dataset::science::brdf::BrdfModel;
 use train::backend::RankDevice;
-use train::crater_level::CraterLevelOptions;
+use train::crater_level_fit::CraterLevelOptions;
 use train::data::SampleSource;
 use train::fit_config::FitConfig;
 use train::with_backend;

@@ -21,12 +21,8 @@
 //!   `infer` the mean of its scale band. Crops in a band of weight 0, beyond the bands, or without a crater frame
 //!   are left as the network made them, and counted.
 //!
-//! This file holds the model (and the regression's fit, which needs no network); `choice.rs` the passes over a
-//! dataset that fit it and choose its weights with the run's network.
-
-mod choice;
-
-pub use choice::*;
+//! This module holds the model (and the regression's fit, which needs no network); [`crate::crater_level_fit`]
+//! the passes over a dataset that fit it and choose its weights with the run's network.
 
 use std::path::Path;
 
@@ -265,7 +261,7 @@ pub fn rendered_scale(rendered: &[f64], hapke: &[f64]) -> Option<f64> {
 /// The crop's best uniform H1 scale: least squares of the ground truth on its Moon-wide Hapke rendering over valid
 /// pixels (Σ h·t / Σ h²); `None` when Hapke is zero on every valid pixel or the scale is not positive.
 pub fn best_uniform_scale(hapke: &[f64], truth: &[f64], valid: &[bool]) -> Option<f64> {
-    let mut fit = crate::calibration::ScaleFit::default();
+    let mut fit = crate::uniform_fit::ScaleFit::default();
     fit.add(hapke, truth, valid);
     let s = fit.scale();
     (s > 0.0).then_some(s)

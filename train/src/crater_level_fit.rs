@@ -1,4 +1,5 @@
-//! `crater-level`'s passes over a dataset: each band's regression fitted on the train split (no network), then
+//! Fitting a run's [`crate::crater_level`] (`crater-level`, `fit --crater-level`), beside the run it scores: the
+//! passes over a dataset: each band's regression fitted on the train split (no network), then
 //! every band's weight chosen on the validation split with the run's network, from each crop's sufficient
 //! statistics.
 
@@ -9,11 +10,11 @@ use dataset::science::brdf::BrdfModel;
 use dataset::science::hapke::HapkeParams;
 use rayon::prelude::*;
 
-use super::{
+use crate::baseline::{hapke_render, truth_and_valid};
+use crate::crater_level::{
     best_uniform_scale, fit_band, rendered_scale, BandLevel, CandidateScore, CraterLevel,
     LevelRegression, TrainCrop, BANDS, CANDIDATE_WEIGHTS, CRATER_LEVEL_VERSION,
 };
-use crate::baseline::{hapke_render, truth_and_valid};
 use crate::data::{for_each_sample_group, mean_slope_deg, SampleSource};
 use crate::kernels::TrainOps;
 use crate::prediction::predict_ensemble;
