@@ -21,6 +21,7 @@ pub mod malloc;
 pub mod progress;
 pub mod provenance;
 pub mod storage;
+#[cfg(any(test, feature = "testing"))]
 pub mod testing;
 
 /// How every binary reports a failure: `error: ` and the whole cause chain on one line (a cause may carry line

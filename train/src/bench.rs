@@ -11,7 +11,7 @@ use dataset::science::brdf::BrdfModel;
 use crate::kernels::TrainBackend;
 use crate::model::UNetConfig;
 use crate::renderer_layer::{render_loss, SceneTerms};
-use crate::testing::synthetic_batch;
+use crate::synthetic::synthetic_batch;
 use crate::training::train_loss;
 
 #[derive(Debug, Clone, serde::Serialize)]

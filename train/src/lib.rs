@@ -10,7 +10,8 @@
 //!   [`baseline`], and the oracle; [`feature_matching`]) and [`inference`] (parameter GeoTIFFs from a DEM);
 //! - [`data_parallel`]: fits across MPI ranks (`mpirun`, `srun --mpi=pmix`) over the same loop;
 //! - [`report`] (speed against error, [`plot`]), [`views`] (the novel-view ray caster), [`mod@bench`];
-//! - [`testing`]: fixtures for tests and benches; [`backend`]: which Burn backend a job runs on.
+//! - [`synthetic`] crops with a known answer (for `bench`; test fixtures behind the `testing` feature);
+//!   [`backend`]: which Burn backend a job runs on.
 
 /// Names for enums chosen on command lines and in configs: `NAMES[i]` is `ALL[i]`'s, and `FromStr` accepts them.
 macro_rules! named_enum {
@@ -62,6 +63,8 @@ pub mod weight_average;
 
 pub mod report;
 pub mod run_dir;
+pub mod synthetic;
+#[cfg(any(test, feature = "testing"))]
 pub mod testing;
 pub mod training;
 pub mod views;
