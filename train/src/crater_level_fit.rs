@@ -81,6 +81,17 @@ pub fn fit_crater_level<B: TrainOps>(
         );
     }
     run.input.check_dataset(source)?;
+    match &source.manifest().crater_frame {
+        Some(frame) => tracing::info!(
+            catalogue = %frame.catalogue,
+            blake3 = %frame.catalogue_blake3,
+            min_diameter_m = frame.min_diameter_m,
+            "the dataset's crater frames (its manifest)"
+        ),
+        None => tracing::info!(
+            "the dataset's manifest names no crater catalogue (published before it did, or without one): the samples' own frames decide"
+        ),
+    }
     let params = HapkeParams::lunar_typical();
     let reach = BANDS.iter().map(|b| b.1).fold(0.0, f64::max);
     let (mut read, mut framed, mut train) = (0usize, 0usize, Vec::<TrainCrop>::new());

@@ -39,18 +39,6 @@ pub struct InferOptions {
     pub crater_level: Option<CraterLevel>,
 }
 
-/// The crater frames of `dem` from a crater catalogue CSV (craters at least `min_diameter_m` wide), as the project
-/// stage built them for the training crops; what was framed and skipped is logged.
-pub fn crater_frames_from_catalogue(
-    dem: &Raster,
-    catalogue: &Path,
-    min_diameter_m: f64,
-) -> Result<std::sync::Arc<CraterFrames>> {
-    let (frames, report) = CraterFrames::from_catalogue(dem, catalogue, min_diameter_m)?;
-    tracing::info!(?report, "crater frames");
-    Ok(std::sync::Arc::new(frames))
-}
-
 /// Start offsets of crops of `crop` pixels along an axis of `len` pixels (`len ≥ crop`), stride `crop − overlap`,
 /// the last one flush with the end so every pixel is covered.
 pub fn crop_origins(len: usize, crop: usize, overlap: usize) -> Vec<usize> {

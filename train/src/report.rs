@@ -16,6 +16,7 @@ use std::path::Path;
 use std::time::Instant;
 
 use anyhow::Result;
+use dataset::contract::crater_frame::CraterFrames;
 use dataset::contract::schema::{Sample, Split};
 use dataset::science::brdf::BrdfModel;
 use dataset::science::geometry::PixelGeometry;
@@ -24,9 +25,7 @@ use dataset::science::raster::Raster;
 
 use crate::baseline::hapke_from_geometry;
 use crate::data::{for_each_sample_group, SampleSource};
-use crate::inference::{
-    crater_frames_from_catalogue, infer_params, render_maps, seam_score, InferOptions,
-};
+use crate::inference::{infer_params, render_maps, seam_score, InferOptions};
 use crate::kernels::TrainOps;
 use crate::model::UNet;
 use crate::plot::{write_scatter, Axis, Point, Scatter};
@@ -535,7 +534,8 @@ pub fn run_job<B: TrainOps>(job: &ReportJob, device: &B::Device) -> Result<Repor
             let crater_frames = job
                 .crater_catalogue
                 .map(|(catalogue, min_diameter_m)| {
-                    crater_frames_from_catalogue(raster, catalogue, min_diameter_m)
+                    CraterFrames::from_catalogue(raster, catalogue, min_diameter_m)
+                        .map(std::sync::Arc::new)
                 })
                 .transpose()?;
             let options = InferOptions {

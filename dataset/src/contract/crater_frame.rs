@@ -160,6 +160,17 @@ pub struct CraterFrames {
     frames: Vec<Frame>,
 }
 
+/// What framed a published dataset's samples (their crater columns): the catalogue, by name and blake3, and the
+/// smallest diameter that frames. The dataset manifest records it, so that no reader is asked for it again.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct CraterFrameSource {
+    /// The catalogue's file name (`inputs.crater_catalogue`).
+    pub catalogue: String,
+    pub catalogue_blake3: String,
+    /// Catalogued craters at least this wide frame the samples (`project.crater_min_diameter_m`).
+    pub min_diameter_m: f64,
+}
+
 impl CraterFrames {
     /// One profile per catalogued crater at least `min_diameter_m` across with DEM around it (one pass over its
     /// square of the DEM each; the DEM is read on a stride of half a ring, which keeps the memory to a few MB).
@@ -191,19 +202,50 @@ impl CraterFrames {
         Ok((Self { frames }, report))
     }
 
-    /// The frames of a catalogue file's craters ([`read_catalogue`], then [`Self::new`]); errors name the file.
-    pub fn from_catalogue(
-        dem: &Raster,
-        catalogue: &Path,
-        min_diameter_m: f64,
-    ) -> Result<(Self, FramesReport)> {
+    /// What these frames were built from, as a dataset manifest records it.
+    pub fn source(catalogue: &Path, min_diameter_m: f64) -> Result<CraterFrameSource> {
+        Ok(CraterFrameSource {
+            catalogue: catalogue
+                .file_name()
+                .map(|name| name.to_string_lossy().into_owned())
+                .unwrap_or_default(),
+            catalogue_blake3: crate::files::hash_file(catalogue)
+                .with_context(|| format!("{}: cannot read the catalogue", catalogue.display()))?,
+            min_diameter_m,
+        })
+    }
+
+    /// The frames of a catalogue file's craters at least `min_diameter_m` wide over `dem` ([`read_catalogue`], then
+    /// [`Self::new`]): how the project stage frames its crops, and `infer` a new DEM's. What was framed and skipped
+    /// is logged. A catalogue that frames no crater of the DEM is an error, wherever it is given: it is the wrong
+    /// catalogue, its coordinates are off, or it has nothing to do here; errors name the file.
+    pub fn from_catalogue(dem: &Raster, catalogue: &Path, min_diameter_m: f64) -> Result<Self> {
         let craters = read_catalogue(catalogue)?;
-        Self::new(dem, &craters, min_diameter_m).with_context(|| {
+        let (frames, report) = Self::new(dem, &craters, min_diameter_m).with_context(|| {
             format!(
                 "{}: cannot place its craters on the DEM",
                 catalogue.display()
             )
-        })
+        })?;
+        tracing::info!(
+            catalogued = report.catalogued,
+            too_small = report.too_small,
+            off_the_dem = report.off_the_dem,
+            framed = report.framed,
+            "crater frames"
+        );
+        if frames.is_empty() {
+            bail!(
+                "{}: no crater frames the DEM ({} catalogued, {} under the minimum diameter of {min_diameter_m} m, {} \
+                 with no DEM within {PROFILE_RHO_MAX} radii): lower the minimum diameter (project.crater_min_diameter_m, \
+                 --crater-min-diameter-m) or leave the catalogue out",
+                catalogue.display(),
+                report.catalogued,
+                report.too_small,
+                report.off_the_dem,
+            );
+        }
+        Ok(frames)
     }
 
     pub fn is_empty(&self) -> bool {

@@ -53,6 +53,10 @@ pub struct DatasetManifest {
     /// Dataset-wide DEM height std (after per-crop mean removal), from the train split only.
     pub dem_std_m: f64,
     pub pipeline_lock_blake3: String,
+    /// The crater catalogue that framed the samples, when the pipeline was given one (absent otherwise, and in
+    /// manifests written before it was recorded).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub crater_frame: Option<crate::contract::crater_frame::CraterFrameSource>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -177,6 +181,7 @@ mod tests {
             }],
             dem_std_m: 1.0,
             pipeline_lock_blake3: String::new(),
+            crater_frame: None,
         };
         assert!(manifest.verify(dir.path()).is_empty());
         std::fs::write(dir.path().join("a.parquet"), b"hello shard!").unwrap();

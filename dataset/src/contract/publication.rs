@@ -150,6 +150,7 @@ mod tests {
             }],
             dem_std_m: 12.5,
             pipeline_lock_blake3: String::new(),
+            crater_frame: None,
         }
     }
 

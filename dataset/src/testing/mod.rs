@@ -94,6 +94,7 @@ pub fn write_dataset(
         shards,
         dem_std_m: 20.0,
         pipeline_lock_blake3: String::new(),
+        crater_frame: None,
     };
     let summary = serde_json::json!({ "split": split_summary, "rejections_by_ortho": {} });
     write_json_atomic(&dir.join("summary.json"), &summary)?;

@@ -15,6 +15,7 @@ pub mod table;
 use std::path::PathBuf;
 
 use anyhow::Context;
+use dataset::contract::crater_frame::CraterFrames;
 use dataset::contract::publication::{DOCUMENT_FILES, MANIFEST_FILE};
 use dataset::science::raster::Raster;
 
@@ -253,7 +254,7 @@ pub fn pipeline_scoped(
             dem_input.clone(),
         ]
         .into_iter()
-        .chain(catalogue)
+        .chain(catalogue.clone())
         .chain(images.iter().cloned())
         .chain(metadata.iter().cloned())
         .collect(),
@@ -274,7 +275,7 @@ pub fn pipeline_scoped(
             let dem = dem5.get()?;
             let crater_frames = catalogue5
                 .as_ref()
-                .map(|path| project::crater_frames(dem, path, pp.crater_min_diameter_m))
+                .map(|path| CraterFrames::from_catalogue(dem, path, pp.crater_min_diameter_m))
                 .transpose()?;
             project::run(
                 (dem, crater_frames.as_ref()),
@@ -293,6 +294,7 @@ pub fn pipeline_scoped(
         check: None,
     };
     let (l6, dem6, m6, lock6) = (layout.clone(), dem.clone(), m.clone(), lock_path.clone());
+    let (catalogue6, min_diameter6) = (catalogue.clone(), m.project.crater_min_diameter_m);
     let check_dir = layout.dataset.clone();
     let publish = Stage {
         name: "publish",
@@ -342,6 +344,10 @@ pub fn pipeline_scoped(
                 split_params: &m6.split,
                 dem_bounds: bounds,
                 lock_blake3,
+                crater_frame: catalogue6
+                    .as_deref()
+                    .map(|path| CraterFrames::source(path, min_diameter6))
+                    .transpose()?,
             };
             let p = &out.paths;
             let outputs = publish::PublishOutputs {

@@ -224,34 +224,6 @@ impl<'a> OrthoProjector<'a> {
     }
 }
 
-/// The frames of the catalogue's large craters on the DEM (`inputs.crater_catalogue`), with every crater counted
-/// in the log. A catalogue that frames none is refused: its columns would hold only NaN.
-pub fn crater_frames(
-    dem: &Raster,
-    catalogue: &std::path::Path,
-    min_diameter_m: f64,
-) -> anyhow::Result<CraterFrames> {
-    let (frames, report) = CraterFrames::from_catalogue(dem, catalogue, min_diameter_m)?;
-    tracing::info!(
-        catalogued = report.catalogued,
-        too_small = report.too_small,
-        off_the_dem = report.off_the_dem,
-        framed = report.framed,
-        "crater frames"
-    );
-    if frames.is_empty() {
-        anyhow::bail!(
-            "{}: no crater frames the DEM ({} catalogued, {} under project.crater_min_diameter_m = {min_diameter_m} m, {} with no DEM within {} radii): lower crater_min_diameter_m or leave out inputs.crater_catalogue",
-            catalogue.display(),
-            report.catalogued,
-            report.too_small,
-            report.off_the_dem,
-            dataset::contract::crater_frame::PROFILE_RHO_MAX
-        );
-    }
-    Ok(frames)
-}
-
 /// Where the project stage writes: one sample file per split (row groups of `row_group_rows`, in assignment
 /// order, so publish can copy them into shards without decoding), the rejection counts, and the train-split DEM
 /// statistic.

@@ -26,6 +26,8 @@ pub struct PublishContext<'a> {
     pub split_params: &'a SplitParams,
     pub dem_bounds: (f64, f64, f64, f64),
     pub lock_blake3: String,
+    /// What framed the samples, recorded in the manifest.
+    pub crater_frame: Option<dataset::contract::crater_frame::CraterFrameSource>,
 }
 
 pub struct PublishOutputs<'a> {
@@ -182,6 +184,7 @@ pub fn run(
         shards: shards.clone(),
         dem_std_m: train_dem.std_m(),
         pipeline_lock_blake3: ctx.lock_blake3.clone(),
+        crater_frame: ctx.crater_frame.clone(),
     };
     let rejections: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(projected.rejections)?)?;

@@ -48,7 +48,12 @@ pub fn run(args: InferArgs) -> Result<()> {
     let crater_frames = craters
         .catalogue
         .map(|path| {
-            train::inference::crater_frames_from_catalogue(&raster, &path, craters.min_diameter_m)
+            dataset::contract::crater_frame::CraterFrames::from_catalogue(
+                &raster,
+                &path,
+                craters.min_diameter_m,
+            )
+            .map(std::sync::Arc::new)
         })
         .transpose()?;
     let paths = runs.paths();
