@@ -7,7 +7,8 @@
 //!   planner that reads them back.
 //!
 //! Beside them: the HTTP [`client`] of a served dataset (the server itself is the `g2r-dataset-server` crate),
-//! published datasets in object [`storage`] (S3 and the like), atomic writes and hashes of [`files`], the
+//! published datasets in object [`storage`] (S3 and the like), atomic writes and hashes of [`files`], novel
+//! [`views`] of a DEM by ray casting (`g2r-train render`) and the PNG [`plot`]s and labels the commands draw, the
 //! binaries' allocator settings, logging and [`progress`], the provenance written next to measurements, and test
 //! fixtures.
 
@@ -18,11 +19,13 @@ pub mod contract;
 pub mod client;
 pub mod files;
 pub mod malloc;
+pub mod plot;
 pub mod progress;
 pub mod provenance;
 pub mod storage;
 #[cfg(any(test, feature = "testing"))]
 pub mod testing;
+pub mod views;
 
 /// How every binary reports a failure: `error: ` and the whole cause chain on one line (a cause may carry line
 /// breaks of its own, e.g. an object store's XML error body), so a log reader or a test sees one error line.

@@ -282,7 +282,7 @@ impl RemoteDir {
 const PART_BYTES: u64 = 32 << 20;
 
 impl RemoteDir {
-    /// Copy the local file `from` to object `name`, replacing any: one PUT up to [`PART_BYTES`], else a multipart
+    /// Copy the local file `from` to object `name`, replacing any: one PUT up to `PART_BYTES`, else a multipart
     /// upload streamed from disk (aborted on a read or write error, so no part is left billed). Returns its size.
     pub fn put_file(&self, name: &str, from: &std::path::Path) -> Result<u64> {
         use std::io::Read;
@@ -333,7 +333,7 @@ impl RemoteDir {
     }
 
     /// Copy object `name`, of `size` bytes, to the local file `to` (created or replaced), in ranged GETs of at most
-    /// [`PART_BYTES`]. Returns the blake3 of what was written, so the caller checks the copy without reading it
+    /// `PART_BYTES`. Returns the blake3 of what was written, so the caller checks the copy without reading it
     /// again.
     pub fn get_to_file(&self, name: &str, size: u64, to: &std::path::Path) -> Result<String> {
         use std::io::Write;

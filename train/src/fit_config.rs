@@ -37,9 +37,9 @@ pub struct FitConfig {
     pub max_val_samples: Option<usize>,
     /// Learning rate over the run.
     pub lr_schedule: LrSchedule,
-    /// Feed absolute elevation as a second input plane ([`InputNormalisation`]).
+    /// Feed absolute elevation as a second input plane ([`crate::data::InputNormalisation`]).
     pub elevation_input: bool,
-    /// Feed each sample's wide context window through a context encoder ([`InputNormalisation`]).
+    /// Feed each sample's wide context window through a context encoder ([`crate::data::InputNormalisation`]).
     pub context_input: bool,
     /// Feed the context window's absolute heights too ([`crate::data::ContextNormalisation::absolute`]); needs
     /// `context_input` and `elevation_input`.

@@ -13,7 +13,9 @@ use anyhow::{bail, Context, Result};
 use burn::prelude::*;
 use dataset::contract::crater_frame::CraterFrames;
 use dataset::contract::schema::{CONTEXT_PX, CROP_PX};
-use dataset::science::brdf::{inverse_leaky_relu, leaky_relu, BrdfModel, LEAKY_SLOPE};
+use dataset::science::brdf::{
+    inverse_leaky_relu, leaky_relu, BrdfModel, BRDF_MODEL_KEY, LEAKY_SLOPE,
+};
 use dataset::science::raster::{BandOut, BandValues, Raster, RasterLayout};
 
 use crate::crater_level::CraterLevel;
@@ -330,11 +332,6 @@ pub fn infer_params<B: TrainOps>(
     })
 }
 
-/// Write the maps as a GeoTIFF on the DEM's grid: same CRS and geotransform, NaN nodata, band descriptions naming
-/// each parameter's term and stating that the activation is applied.
-/// The metadata item of a parameter GeoTIFF naming its BRDF model (`BrdfModel::name`); `render` reads it back.
-pub const BRDF_MODEL_KEY: &str = "G2R_BRDF_MODEL";
-
 /// `g2r-train infer` as data.
 pub struct InferJob<'a> {
     /// The run, then the further members of an ensemble (one BRDF model: their maps are averaged).
@@ -386,6 +383,8 @@ pub fn run_job<B: TrainOps>(
     ParamMaps::mean(members)
 }
 
+/// Write the maps as a GeoTIFF on the DEM's grid: same CRS and geotransform, NaN nodata, band descriptions naming
+/// each parameter's term and stating that the activation is applied.
 pub fn write_params_geotiff(
     maps: &ParamMaps,
     dem: &Raster,

@@ -2,14 +2,14 @@
 //! - [`data`] (shards → host batches, epoch order, prefetch) with [`augment`];
 //! - [`model`] (U-Net, its hot operations in [`kernels`]) → [`renderer_layer`] (the differentiable renderer layer,
 //!   the batched twin of `dataset::science::brdf`) → [`metrics`];
-//! - [`training`] (the fit loop) writing a run directory ([`run_dir`]: history, checkpoints, loading; what defines
+//! - [`training`] (the fit loop; every model under one budget in [`model_comparison`]) writing a run directory ([`run_dir`]: history, checkpoints, loading; what defines
 //!   the run in [`fit_config`]), with
 //!   [`weight_average`] and [`uniform_fit`] (uniform least-squares fits of a model);
 //! - [`prediction`] (inference-mode renderings, symmetry means, ensembles), with [`crater_level`] (each crater
 //!   crop's brightness level, fitted beside an H1 run by [`crater_level_fit`]) → [`evaluation`] (against baselines,
 //!   [`baseline`], and the oracle; [`feature_matching`]) and [`inference`] (parameter GeoTIFFs from a DEM);
 //! - [`data_parallel`]: fits across MPI ranks (`mpirun`, `srun --mpi=pmix`) over the same loop;
-//! - [`report`] (speed against error, [`plot`]), [`views`] (the novel-view ray caster), [`mod@bench`];
+//! - [`report`] (speed against error), [`mod@bench`];
 //! - [`synthetic`] crops with a known answer (for `bench`; test fixtures behind the `testing` feature);
 //!   [`backend`]: which Burn backend a job runs on.
 
@@ -55,7 +55,7 @@ pub mod inference;
 pub mod kernels;
 pub mod metrics;
 pub mod model;
-pub mod plot;
+pub mod model_comparison;
 pub mod prediction;
 pub mod renderer_layer;
 pub mod uniform_fit;
@@ -67,4 +67,3 @@ pub mod synthetic;
 #[cfg(any(test, feature = "testing"))]
 pub mod testing;
 pub mod training;
-pub mod views;

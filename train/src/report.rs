@@ -1,7 +1,7 @@
 //! `g2r-train report`: time against error, all measured in one run on this machine ("model only what a scene
 //! needs": what each shortcut saves and what it costs).
 //!
-//! Each measured section is also drawn as a log–log PNG (see [`crate::plot`]).
+//! Each measured section is also drawn as a log–log PNG (see [`dataset::plot`]).
 //!
 //! - **BRDF model**: each of M1–M6, L2–L4, H1 and H3 with one least-squares coefficient set, uniform Hapke × one scale and
 //!   Lunar-Lambert with one albedo, all fitted on train crops, rendered on the evaluation crops: pixel MSE against
@@ -28,9 +28,9 @@ use crate::data::{for_each_sample_group, SampleSource};
 use crate::inference::{infer_params, render_maps, seam_score, InferOptions};
 use crate::kernels::TrainOps;
 use crate::model::UNet;
-use crate::plot::{write_scatter, Axis, Point, Scatter};
 use crate::run_dir::{load_trained, Checkpoint};
 use crate::uniform_fit::{calibrate, lunar_lambert_from_geometry, model_uniform_from_geometry};
+use dataset::plot::{write_scatter, Axis, Point, Scatter};
 
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct ModelRow {
@@ -218,14 +218,14 @@ pub fn overlap_rows<B: TrainOps>(
 /// Renderer rows: a nadir 128 × 128 view of the DEM centre (45° FOV covering half the DEM's width) under a sun
 /// 50° from zenith in the east, at several rays/pixel with and without shadows, against a 16-ray reference.
 pub fn renderer_rows(dem: &Raster) -> Result<Vec<RenderRow>> {
-    use crate::views::raycast::{render_view, Heightfield, Reflectance, ViewOptions};
+    use dataset::views::raycast::{render_view, Heightfield, Reflectance, ViewOptions};
     let mut dem = dem.clone();
-    crate::views::raycast::fill_holes(&mut dem);
+    dataset::views::raycast::fill_holes(&mut dem);
     let field = Heightfield::new(&dem)?;
     let f = &field.frame;
     let half_width_m = dem.width as f64 * dem.transform.gsd_m() / 4.0;
     let altitude = f.origin_height_m + half_width_m / 22.5f64.to_radians().tan();
-    let pose = crate::views::trajectory::pose_from_lonlat(
+    let pose = dataset::views::trajectory::pose_from_lonlat(
         f.origin_lon_deg,
         f.origin_lat_deg,
         altitude,
@@ -596,7 +596,7 @@ pub fn write(report: &Report, out: &Path) -> Result<()> {
     dataset::provenance::Provenance::capture().write(&out.join("provenance.json"))?;
     dataset::files::write_json_atomic(&out.join("report.json"), report)?;
     let mut text = markdown(report);
-    let font = crate::plot::system_font();
+    let font = dataset::plot::system_font();
     for (file, title, x_label, points) in plots(report) {
         let y_label = if file == "inference_overlap.png" {
             "seam score (log)"

@@ -231,7 +231,7 @@ fn eval_rows_equal_validation_and_direct_baselines() {
         "the GT tile does not start below the label strip"
     );
     // With a font (CI installs DejaVu), the strips hold ink: column names above, the scale below.
-    if train::plot::system_font().is_some() {
+    if dataset::plot::system_font().is_some() {
         let inked = |rows: std::ops::Range<u32>| {
             rows.flat_map(|y| (0..panel.width()).map(move |x| (x, y)))
                 .filter(|&(x, y)| panel.get_pixel(x, y).0[0] < 128)

@@ -31,6 +31,10 @@ use crate::science::least_squares::solve_small_system;
 /// Negative slope of the LeakyReLU applied to every raw parameter.
 pub const LEAKY_SLOPE: f64 = 0.01;
 
+/// The metadata item of a parameter GeoTIFF naming its BRDF model (`BrdfModel::name`): `infer` writes it, `render`
+/// reads it back.
+pub const BRDF_MODEL_KEY: &str = "G2R_BRDF_MODEL";
+
 #[inline]
 pub fn leaky_relu(x: f64) -> f64 {
     if x >= 0.0 {

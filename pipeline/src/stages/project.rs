@@ -303,7 +303,7 @@ impl TrainDemStatistic {
 
 /// Stage: project every assigned centre, ortho by ortho (sorted), crops in parallel in chunks of one row group,
 /// and stream accepted samples into their split's file; rejections are counted per ortho and reason. With
-/// `crater_frames` (from [`crater_frames`]), each sample is placed in its crater's frame.
+/// `crater_frames` (from [`CraterFrames::from_catalogue`]), each sample is placed in its crater's frame.
 pub fn run(
     (dem, crater_frames): (&Raster, Option<&CraterFrames>),
     orthos: &[super::ingest::OrthoRecord],

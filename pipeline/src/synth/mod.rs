@@ -1,7 +1,7 @@
 //! The seeded synthetic lunar world (docs/design.md, Synthetic world): writes exactly what a real user has — a GeoTIFF DEM, GeoTIFF
 //! ortho strips with nodata borders, per-ortho acquisition metadata — plus `truth/` that only evaluation may read.
 //!
-//! Data flow: [`units`] (mare/highland) → [`terrain`] (fBm + craters → true DEM, freshness, melt) → [`reflectance`] (true Hapke maps) →
+//! Data flow: [`geologic_units`] (mare/highland) → [`terrain`] (fBm + craters → true DEM, freshness, melt) → [`reflectance`] (true Hapke maps) →
 //! [`acquisition`] (strip plans + metadata) → [`orthos`] (orthos from the truth) → [`dem_product`] (degraded DEM).
 
 pub mod acquisition;

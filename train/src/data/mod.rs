@@ -1,7 +1,7 @@
 //! Streaming training data: a [`SampleSource`] (local shards, a dataset server over HTTP, or object storage),
 //! the epoch order from [`dataset::contract::planner`], dihedral augmentation, and a background thread that prefetches host
-//! batches while the device computes. In data-flow order: [`sources`] → [`normalisation`] (fitted once) →
-//! [`batch`] (samples to a host batch) → the epoch stream here.
+//! batches while the device computes. In data-flow order: `sources` → `normalisation` (fitted once) →
+//! `batch` (samples to a host batch) → the epoch stream here.
 
 mod batch;
 mod normalisation;

@@ -6,7 +6,7 @@
 //! BatchNorm running statistics, which each rank updates from its own batches, differ, and they are averaged
 //! before every validation and checkpoint. Rank 0 alone validates and writes.
 //!
-//! Every collective runs under a watchdog ([`watchdog`]): a rank that waits longer than `--collective-timeout`
+//! Every collective runs under a watchdog (`watchdog`): a rank that waits longer than `--collective-timeout`
 //! (a peer hung, or stopped) logs which collective at which step and exits non-zero, and the launcher ends the
 //! rest. A rank that dies is the launcher's to notice (`mpirun` aborts the job; `srun -K1`).
 

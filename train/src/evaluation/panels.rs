@@ -19,7 +19,7 @@ const INVALID: Rgb<u8> = Rgb([120, 0, 0]);
 
 /// A PNG panel: GT | each method | |learned − GT|, every tile stretched with the GT's 2–98 % range (the error tile
 /// from 0 over the same span, so its grey reads in the images' units), invalid pixels dark red. Column names above,
-/// the grey scale below; without a system font ([`crate::plot::system_font`]) the strips stay blank.
+/// the grey scale below; without a system font ([`dataset::plot::system_font`]) the strips stay blank.
 pub fn panel_png(
     sample: &Sample,
     renderings: &[(&'static str, Vec<f64>)],
@@ -67,15 +67,15 @@ pub fn panel_png(
             img.put_pixel(x, y, px);
         }
     }
-    if let Some(font) = crate::plot::system_font() {
+    if let Some(font) = dataset::plot::system_font() {
         for (t, (name, _)) in tiles.iter().enumerate() {
             let x = t as u32 * (edge + PANEL_GAP_PX);
-            crate::plot::draw_text_fitted(&mut img, &font, name, x as i32, 2, edge);
+            dataset::plot::draw_text_fitted(&mut img, &font, name, x as i32, 2, edge);
         }
         let scale = format!(
             "grey: I/F {lo:.4} (black) to {hi:.4} (white), 2-98 % of GT; error column: 0 to {span:.4}; dark red: invalid"
         );
-        crate::plot::draw_text_fitted(
+        dataset::plot::draw_text_fitted(
             &mut img,
             &font,
             &scale,

@@ -60,7 +60,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{ensure, Context, Result};
 use serde::Deserialize;
 
-use train::plot::{write_scatter, Axis, Point, Scatter};
+use dataset::plot::{write_scatter, Axis, Point, Scatter};
 
 /// The page's heading: fixed, as is the note under it (the records hold the sections, not the frame).
 const HEADING: &str = "# Results and measured figures";
@@ -389,7 +389,7 @@ fn relative_link(document: &Path, target: &Path) -> String {
 /// reader never sees half a page or half a plot).
 pub fn write_results_page(paths: &PagePaths) -> Result<()> {
     let (pages, plots) = results_page_of(paths.records, &paths.link_dir())?;
-    let font = train::plot::system_font();
+    let font = dataset::plot::system_font();
     for plot in &plots {
         let path = paths.records.join(&plot.file);
         let scatter = Scatter {

@@ -1,4 +1,4 @@
-//! [`TrainOps`] for the CubeCL backends (CUDA, wgpu): the convolutions' weight gradients as matrix products and
+//! [`crate::kernels::TrainOps`] for the CubeCL backends (CUDA, wgpu): the convolutions' weight gradients as matrix products and
 //! their input gradients as forward convolutions ([`conv`]); every other operation is the trait's default (stock
 //! Burn operations, timed with the device synced when profiling is on).
 //!

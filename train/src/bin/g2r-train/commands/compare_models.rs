@@ -33,7 +33,7 @@ pub fn run(args: CompareModelsArgs) -> Result<()> {
     let (source, config) = training_source(&data, &training)?;
     let backend = training.backend.name();
     let markdown = with_backend!(training.backend, B => {
-        train::training::compare_models::<B>(source, &config, backend, &out)
+        train::model_comparison::compare_models::<B>(source, &config, backend, &out)
     })?;
     dataset::out!("{markdown}");
     Ok(())

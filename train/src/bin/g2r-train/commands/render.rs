@@ -75,13 +75,13 @@ pub fn run(args: RenderArgs) -> Result<()> {
         psf_sigma,
         seed,
     } = args;
-    train::views::run(&train::views::RenderJob {
+    dataset::views::run(&dataset::views::RenderJob {
         dem: &dem,
         params: params.as_deref(),
         trajectory: &trajectory,
         sun_body: sun,
         out: &out,
-        options: train::views::raycast::ViewOptions {
+        options: dataset::views::raycast::ViewOptions {
             width,
             height,
             fov_deg: fov,

@@ -8,9 +8,9 @@ pub mod trajectory;
 use std::path::Path;
 use std::time::Instant;
 
+use crate::science::brdf::BrdfModel;
+use crate::science::hapke::HapkeParams;
 use anyhow::{bail, Context, Result};
-use dataset::science::brdf::BrdfModel;
-use dataset::science::hapke::HapkeParams;
 use glam::DVec3;
 
 use crate::views::raycast::{render_view, Heightfield, Reflectance, ViewOptions, ViewStats};
@@ -46,7 +46,7 @@ pub fn run(job: &RenderJob) -> Result<()> {
         bail!("--width/--height must be positive and --fov within (0.1, 179) degrees");
     }
     let poses = read_trajectory(job.trajectory)?;
-    let mut dem = dataset::science::raster::read_raster(job.dem)?;
+    let mut dem = crate::science::raster::read_raster(job.dem)?;
     let filled = crate::views::raycast::fill_holes(&mut dem);
     if filled > 0 {
         tracing::warn!(
@@ -58,7 +58,7 @@ pub fn run(job: &RenderJob) -> Result<()> {
     let field = Heightfield::new(&dem).with_context(|| format!("{}", job.dem.display()))?;
     let mut methods = vec![("hapke", Reflectance::Hapke(HapkeParams::lunar_typical()))];
     if let Some(path) = job.params {
-        let mut bands = dataset::science::raster::read_bands(path)?;
+        let mut bands = crate::science::raster::read_bands(path)?;
         if bands[0].width != dem.width
             || bands[0].height != dem.height
             || bands[0].transform != dem.transform
@@ -74,12 +74,12 @@ pub fn run(job: &RenderJob) -> Result<()> {
             crate::views::raycast::fill_holes(band);
         }
         let model =
-            dataset::science::raster::read_metadata_item(path, crate::inference::BRDF_MODEL_KEY)?
+            crate::science::raster::read_metadata_item(path, crate::science::brdf::BRDF_MODEL_KEY)?
                 .with_context(|| {
                     format!(
                         "{}: no {} metadata item: pass a GeoTIFF written by `g2r-train infer`",
                         path.display(),
-                        crate::inference::BRDF_MODEL_KEY
+                        crate::science::brdf::BRDF_MODEL_KEY
                     )
                 })?
                 .parse::<BrdfModel>()
@@ -90,7 +90,7 @@ pub fn run(job: &RenderJob) -> Result<()> {
     }
     std::fs::create_dir_all(job.out)?;
     let progress =
-        dataset::progress::Progress::start("render", "views", (poses.len() * methods.len()) as u64);
+        crate::progress::Progress::start("render", "views", (poses.len() * methods.len()) as u64);
     let mut images = Vec::new();
     let mut records = Vec::new();
     for (view, pose) in poses.iter().enumerate() {
@@ -139,19 +139,19 @@ pub fn run(job: &RenderJob) -> Result<()> {
             },
         );
         let path = job.out.join(&record.file);
-        let tmp = dataset::files::tmp_path(&path);
+        let tmp = crate::files::tmp_path(&path);
         png.save_with_format(&tmp, image::ImageFormat::Png)
             .with_context(|| format!("writing {}", path.display()))?;
         std::fs::rename(&tmp, &path)?;
     }
     let sheet = contact_sheet(&images, &records, methods.len(), &job.options, scale);
     let path = job.out.join(CONTACT_SHEET);
-    let tmp = dataset::files::tmp_path(&path);
+    let tmp = crate::files::tmp_path(&path);
     sheet
         .save_with_format(&tmp, image::ImageFormat::Png)
         .with_context(|| format!("writing {}", path.display()))?;
     std::fs::rename(&tmp, &path)?;
-    dataset::files::write_json_atomic(
+    crate::files::write_json_atomic(
         &job.out.join("views.json"),
         &serde_json::json!({
             "i_over_f_scale": scale,
@@ -162,7 +162,7 @@ pub fn run(job: &RenderJob) -> Result<()> {
             "views": records,
         }),
     )?;
-    dataset::outln!(
+    crate::outln!(
         "{}: {} views × {} methods, I/F scale {scale:.4} (views.json; {CONTACT_SHEET} to look at)",
         job.out.display(),
         poses.len(),

@@ -9,18 +9,18 @@
 //! - Shading: N jittered rays per pixel (keyed ChaCha), a shadow ray toward a sun direction jittered over the solar
 //!   disk, uniform Hapke or a parameter GeoTIFF from `infer`, and an optional Gaussian PSF.
 
+use crate::contract::rng::keyed_rng;
+use crate::science::brdf::{inverse_leaky_relu, BrdfModel};
+use crate::science::crs::{LocalFrame, MOON_RADIUS_M};
+use crate::science::geometry::{plane_normal, Cosines, HalfDiffCosines};
+use crate::science::hapke::{hapke_i_over_f, HFunction, HapkeParams};
+use crate::science::raster::Raster;
 use anyhow::{bail, Result};
-use dataset::contract::rng::keyed_rng;
-use dataset::science::brdf::{inverse_leaky_relu, BrdfModel};
-use dataset::science::crs::{LocalFrame, MOON_RADIUS_M};
-use dataset::science::geometry::{plane_normal, Cosines, HalfDiffCosines};
-use dataset::science::hapke::{hapke_i_over_f, HFunction, HapkeParams};
-use dataset::science::raster::Raster;
 use glam::{DVec2, DVec3};
 use rand::Rng;
 
+use crate::science::horizon::SUN_ANGULAR_RADIUS_RAD;
 use crate::views::trajectory::Pose;
-use dataset::science::horizon::SUN_ANGULAR_RADIUS_RAD;
 
 const MAX_STEPS: usize = 200_000;
 
@@ -410,7 +410,7 @@ pub fn render_view(
     if options.psf_sigma_px > 0.0 {
         // The PNGs are 16-bit: f32 precision is ample for the blur.
         let values: Vec<f32> = image.iter().map(|&v| v as f32).collect();
-        image = dataset::science::raster::gaussian_blur(
+        image = crate::science::raster::gaussian_blur(
             &values,
             options.width,
             options.height,
@@ -431,8 +431,8 @@ pub fn render_view(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use dataset::science::crs::LunarCrs;
-    use dataset::science::raster::GeoTransform;
+    use crate::science::crs::LunarCrs;
+    use crate::science::raster::GeoTransform;
 
     /// A DEM of `n × n` 5 m pixels centred on map (0, −1 309 000) with heights from `f(col, row)`.
     fn dem(n: usize, f: impl Fn(usize, usize) -> f32) -> Raster {
@@ -636,8 +636,8 @@ mod tests {
 #[cfg(test)]
 mod fill_tests {
     use super::*;
-    use dataset::science::crs::LunarCrs;
-    use dataset::science::raster::GeoTransform;
+    use crate::science::crs::LunarCrs;
+    use crate::science::raster::GeoTransform;
 
     #[test]
     fn holes_fill_from_valid_neighbours_and_are_counted() {

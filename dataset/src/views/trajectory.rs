@@ -12,8 +12,8 @@
 
 use std::path::Path;
 
+use crate::science::crs::{body_fixed_from_lonlat, enu_axes};
 use anyhow::{bail, Context, Result};
-use dataset::science::crs::{body_fixed_from_lonlat, enu_axes};
 use glam::{DMat3, DQuat, DVec3};
 
 /// One camera pose: position and camera→body-fixed rotation.
@@ -157,7 +157,7 @@ mod tests {
         assert!(close(q * DVec3::X, east), "image right = east");
         assert!(close(q * -DVec3::Y, north), "image top = north");
         assert!(
-            (p.position_body_m.length() - (dataset::science::crs::MOON_RADIUS_M + 50_000.0)).abs()
+            (p.position_body_m.length() - (crate::science::crs::MOON_RADIUS_M + 50_000.0)).abs()
                 < 1e-6
         );
         // Yaw 90°: east at the image top.
