@@ -7,6 +7,8 @@ import json
 import os
 import textwrap
 
+from record_rows import carried, numbered
+
 RECORD = 'docs/results/37-model-choice.json'
 VAL = 'out/evals/model-choice-val2k/model-choice.json'
 TEST = 'out/evals/model-choice-test2k/model-choice.json'
@@ -19,7 +21,6 @@ MEASURED = ('session of 2026-11-27 (eighth), AMD EPYC 2-core build machine; both
             '2) of the tree committed as af8390e (provenance.json records the checkout at run time: b4fd858-dirty '
             'for val, af8390e-dirty for test)')
 # Fields a record's row keeps by hand: placed after its cells, in this order.
-HAND_KEPT = ('brief', 'detail', 'archived')
 
 
 def prose(text):
@@ -61,33 +62,6 @@ def build_rows(val, test):
             'figures': figures,
         })
     return rows
-
-
-def carried(row, old):
-    """`row` with what the record's row `old` (None: none) keeps by hand: its brief while the cells read the same,
-    its detail and archived."""
-    if old is None:
-        return row
-    row = dict(row)
-    if 'brief' in old and old.get('cells') == row['cells']:
-        row['brief'] = old['brief']
-    for key in ('detail', 'archived'):
-        if key in old:
-            row[key] = old[key]
-    return row
-
-
-def numbered(rows, number):
-    """The rows with `"id": "NN.K"` first (K: the place in `rows`, from 1), then cells and the hand-kept fields."""
-    out = []
-    for k, row in enumerate(rows, 1):
-        head = {'id': f'{number}.{k}'}
-        for key in ('cells',) + HAND_KEPT:
-            if key in row:
-                head[key] = row[key]
-        head.update((key, value) for key, value in row.items() if key not in head)
-        out.append(head)
-    return out
 
 
 def main():

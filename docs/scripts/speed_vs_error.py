@@ -14,6 +14,8 @@ import os
 import re
 import sys
 
+from record_rows import carried, numbered
+
 RECORD = 'docs/results/36-speed-vs-error.json'
 AMD = 'session of 2026-11-26 (seventh), AMD EPYC 2-core build machine, release build'
 INTEL = ('session of 2026-11-28 (seventeenth), Intel Xeon (AVX-512) 2-core build machine, release build; CPU-hours '
@@ -50,7 +52,6 @@ ROWS = [
      ' --panels 0 --out out/evals/w16-4k-test', INTEL),
 ]
 # Fields a record's row keeps by hand: placed after its cells, in this order.
-HAND_KEPT = ('brief', 'detail', 'archived')
 
 
 def amd_step_times(record):
@@ -94,33 +95,6 @@ def fresh_row(spec, m, s):
                     'test_learned_over_paper_hapke_sse': round(m['learned_over_hapke_paper_sse'], 4)},
         'point': point,
     }
-
-
-def carried(row, old):
-    """`row` with what the record's row `old` (None: none) keeps by hand: its brief while the cells read the same,
-    its detail and archived."""
-    if old is None:
-        return row
-    row = dict(row)
-    if 'brief' in old and old.get('cells') == row['cells']:
-        row['brief'] = old['brief']
-    for key in ('detail', 'archived'):
-        if key in old:
-            row[key] = old[key]
-    return row
-
-
-def numbered(rows, number):
-    """The rows with `"id": "NN.K"` first (K: the place in `rows`, from 1), then cells and the hand-kept fields."""
-    out = []
-    for k, row in enumerate(rows, 1):
-        head = {'id': f'{number}.{k}'}
-        for key in ('cells',) + HAND_KEPT:
-            if key in row:
-                head[key] = row[key]
-        head.update((key, value) for key, value in row.items() if key not in head)
-        out.append(head)
-    return out
 
 
 def main():
