@@ -220,10 +220,10 @@ pub fn draw_scatter(plot: &Scatter, font: Option<&FontVec>) -> (RgbImage, bool) 
 /// Render and write a scatter PNG atomically (temp name, then rename). Returns whether labels were drawn.
 pub fn write_scatter(plot: &Scatter, font: Option<&FontVec>, path: &Path) -> Result<bool> {
     let (img, labelled) = draw_scatter(plot, font);
-    let tmp = path.with_extension("png.partial");
-    img.save_with_format(&tmp, image::ImageFormat::Png)
-        .with_context(|| format!("writing {}", tmp.display()))?;
-    std::fs::rename(&tmp, path).with_context(|| format!("renaming to {}", path.display()))?;
+    crate::files::write_atomic(path, |tmp| {
+        img.save_with_format(tmp, image::ImageFormat::Png)
+            .with_context(|| format!("writing {}", path.display()))
+    })?;
     Ok(labelled)
 }
 

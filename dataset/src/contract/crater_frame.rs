@@ -495,6 +495,46 @@ mod tests {
     }
 
     #[test]
+    fn a_catalogue_file_that_frames_nothing_is_refused_naming_it_and_its_source_is_recorded() {
+        let (dem, crater) = crater_dem(2000.0, 800.0, 0.0);
+        let dir = tempfile::tempdir().unwrap();
+        let write = |name: &str, lon_deg: f64| {
+            let path = dir.path().join(name);
+            let row = format!(
+                "lon_deg,lat_deg,diameter_m\n{lon_deg},{},4000\n",
+                crater.lat_deg
+            );
+            std::fs::write(&path, row).unwrap();
+            path
+        };
+        let on_the_dem = write("here.csv", crater.lon_deg);
+        assert!(!CraterFrames::from_catalogue(&dem, &on_the_dem, 1000.0)
+            .unwrap()
+            .is_empty());
+        for (path, min_diameter_m) in [
+            (write("elsewhere.csv", crater.lon_deg + 5.0), 1000.0),
+            (on_the_dem.clone(), 5000.0),
+        ] {
+            let err = format!(
+                "{:#}",
+                CraterFrames::from_catalogue(&dem, &path, min_diameter_m).unwrap_err()
+            );
+            let name = path.file_name().unwrap().to_str().unwrap();
+            assert!(
+                err.contains(name) && err.contains("no crater frames the DEM"),
+                "{err}"
+            );
+        }
+        let source = CraterFrames::source(&on_the_dem, 1000.0).unwrap();
+        assert_eq!(source.catalogue, "here.csv");
+        assert_eq!(
+            source.catalogue_blake3,
+            crate::files::hash_file(&on_the_dem).unwrap()
+        );
+        assert_eq!(source.min_diameter_m, 1000.0);
+    }
+
+    #[test]
     fn a_catalogue_reads_in_either_column_set_and_a_bad_row_names_its_line() {
         let dir = tempfile::tempdir().unwrap();
         let ours = dir.path().join("ours.csv");

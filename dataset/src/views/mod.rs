@@ -139,18 +139,18 @@ pub fn run(job: &RenderJob) -> Result<()> {
             },
         );
         let path = job.out.join(&record.file);
-        let tmp = crate::files::tmp_path(&path);
-        png.save_with_format(&tmp, image::ImageFormat::Png)
-            .with_context(|| format!("writing {}", path.display()))?;
-        std::fs::rename(&tmp, &path)?;
+        crate::files::write_atomic(&path, |tmp| {
+            png.save_with_format(tmp, image::ImageFormat::Png)
+                .with_context(|| format!("writing {}", path.display()))
+        })?;
     }
     let sheet = contact_sheet(&images, &records, methods.len(), &job.options, scale);
     let path = job.out.join(CONTACT_SHEET);
-    let tmp = crate::files::tmp_path(&path);
-    sheet
-        .save_with_format(&tmp, image::ImageFormat::Png)
-        .with_context(|| format!("writing {}", path.display()))?;
-    std::fs::rename(&tmp, &path)?;
+    crate::files::write_atomic(&path, |tmp| {
+        sheet
+            .save_with_format(tmp, image::ImageFormat::Png)
+            .with_context(|| format!("writing {}", path.display()))
+    })?;
     crate::files::write_json_atomic(
         &job.out.join("views.json"),
         &serde_json::json!({

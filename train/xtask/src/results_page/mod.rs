@@ -660,6 +660,8 @@ fn section_table(record: &Record, rows: &[&Row], link_dir: &str, archived: bool)
     let mut lines = vec![table_line(&header)?, "|---".repeat(header.len()) + "|"];
     for row in rows {
         let context = || format!("row {}", row.id);
+        // Both cells and brief are filled, so a broken one fails even where the page shows the other.
+        let mut filled = Vec::new();
         for (what, cells) in [("cells", Some(&row.cells)), ("brief", row.brief.as_ref())] {
             let Some(cells) = cells else { continue };
             ensure!(
@@ -669,16 +671,15 @@ fn section_table(record: &Record, rows: &[&Row], link_dir: &str, archived: bool)
                 cells.len(),
                 section.columns.len()
             );
-            for cell in cells {
-                fill_figures(cell, &row.figures).with_context(context)?;
-            }
+            let text = cells
+                .iter()
+                .map(|cell| fill_figures(cell, &row.figures))
+                .collect::<Result<Vec<_>>>()
+                .with_context(context)?;
+            filled.push(text);
         }
-        let shown = row.brief.as_ref().unwrap_or(&row.cells);
-        let mut cells = shown
-            .iter()
-            .map(|cell| fill_figures(cell, &row.figures))
-            .collect::<Result<Vec<_>>>()
-            .with_context(context)?;
+        // The brief when there is one, else the cells.
+        let mut cells = filled.pop().expect("every row has cells");
         if archived {
             let reason = row.archived.as_ref().or(section.archived.as_ref());
             cells.push(reason.map_or("", |reason| reason.trim()).to_string());
