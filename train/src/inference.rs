@@ -11,7 +11,7 @@ use std::path::Path;
 
 use anyhow::{bail, Context, Result};
 use burn::prelude::*;
-use dataset::contract::crater_frame::CraterFrames;
+use dataset::contract::crater_frame::{CraterFrameSource, CraterFrames};
 use dataset::contract::schema::{CONTEXT_PX, CROP_PX};
 use dataset::science::brdf::{
     inverse_leaky_relu, leaky_relu, BrdfModel, BRDF_MODEL_KEY, LEAKY_SLOPE,
@@ -330,6 +330,66 @@ pub fn infer_params<B: TrainOps>(
         crops: origins.len(),
         crater_level_crops: level.map(|_| crater_level_crops),
     })
+}
+
+/// The crater frames of a new DEM for `runs`, from a catalogue, checked against what the runs were trained with
+/// (each run's `normalisation.json` records its dataset's crater frame):
+/// - the minimum diameter defaults to the runs' own; another one is refused, since the network learned the frames
+///   of craters at least that wide (runs recorded with different ones are refused as an ensemble too);
+/// - the catalogue may differ from the training one (a new site has its own), and the log says which it is.
+///
+/// Runs with no record (unframed data, or trained before it was recorded) take `min_diameter_m` or the pipeline's
+/// default.
+pub fn crater_frames_for_runs(
+    runs: &[&Path],
+    dem: &Raster,
+    catalogue: &Path,
+    min_diameter_m: Option<f64>,
+) -> Result<CraterFrames> {
+    let mut trained_with: Option<(&Path, CraterFrameSource)> = None;
+    for &run in runs {
+        let Some(source) = crate::run_dir::load_normalisation(run)?.crater_frame else {
+            continue;
+        };
+        if let Some((first, known)) = &trained_with {
+            if known.min_diameter_m != source.min_diameter_m {
+                bail!(
+                    "{}: trained on crater frames of craters at least {} m wide, but {} on {} m: ensemble runs framed alike",
+                    run.display(),
+                    source.min_diameter_m,
+                    first.display(),
+                    known.min_diameter_m
+                );
+            }
+        } else {
+            trained_with = Some((run, source));
+        }
+    }
+    let min_diameter_m = match (&trained_with, min_diameter_m) {
+        (Some((run, known)), Some(given)) if given != known.min_diameter_m => bail!(
+            "{}: the run learned the frames of craters at least {} m wide (its dataset's manifest), and              --crater-min-diameter-m {given} frames others: drop the flag, or pass {}",
+            run.display(),
+            known.min_diameter_m,
+            known.min_diameter_m
+        ),
+        (Some((_, known)), _) => known.min_diameter_m,
+        (None, given) => given.unwrap_or(dataset::contract::crater_frame::DEFAULT_MIN_DIAMETER_M),
+    };
+    if let Some((_, known)) = &trained_with {
+        let blake3 = dataset::files::hash_file(catalogue)
+            .with_context(|| format!("{}: cannot read the catalogue", catalogue.display()))?;
+        if blake3 == known.catalogue_blake3 {
+            tracing::info!(catalogue = %catalogue.display(), "the catalogue the run was trained with");
+        } else {
+            tracing::info!(
+                catalogue = %catalogue.display(),
+                trained_with = %known.catalogue,
+                trained_with_blake3 = %known.catalogue_blake3,
+                "a catalogue other than the training one (a new site's)"
+            );
+        }
+    }
+    CraterFrames::from_catalogue(dem, catalogue, min_diameter_m)
 }
 
 /// `g2r-train infer` as data.

@@ -16,7 +16,6 @@ use std::path::Path;
 use std::time::Instant;
 
 use anyhow::Result;
-use dataset::contract::crater_frame::CraterFrames;
 use dataset::contract::schema::{Sample, Split};
 use dataset::science::brdf::BrdfModel;
 use dataset::science::geometry::PixelGeometry;
@@ -503,9 +502,9 @@ pub struct ReportJob<'a> {
     /// Enables the renderer section, and with `run` or `ortho` theirs.
     pub dem: Option<&'a Path>,
     pub overlaps: &'a [usize],
-    /// With `run`: the crater catalogue (and the least diameter that frames a crop) `infer` would be given, so
-    /// a run with a crater input or a crater level is timed as `infer` runs it.
-    pub crater_catalogue: Option<(&'a Path, f64)>,
+    /// With `run`: the crater catalogue (and the least diameter that frames a crop, by default the run's) `infer`
+    /// would be given, so a run with a crater input or a crater level is timed as `infer` runs it.
+    pub crater_catalogue: Option<(&'a Path, Option<f64>)>,
     /// With `dem`: an ortho on the DEM's grid whose resampling kernels are compared.
     pub ortho: Option<&'a Path>,
     pub resampling_crops: usize,
@@ -534,8 +533,13 @@ pub fn run_job<B: TrainOps>(job: &ReportJob, device: &B::Device) -> Result<Repor
             let crater_frames = job
                 .crater_catalogue
                 .map(|(catalogue, min_diameter_m)| {
-                    CraterFrames::from_catalogue(raster, catalogue, min_diameter_m)
-                        .map(std::sync::Arc::new)
+                    crate::inference::crater_frames_for_runs(
+                        &[run],
+                        raster,
+                        catalogue,
+                        min_diameter_m,
+                    )
+                    .map(std::sync::Arc::new)
                 })
                 .transpose()?;
             let options = InferOptions {

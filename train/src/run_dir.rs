@@ -189,6 +189,11 @@ pub struct RunNormalisation {
     #[serde(flatten)]
     pub input: InputNormalisation,
     pub dataset: String,
+    /// What framed the training crops (the dataset manifest's `crater_frame`): `infer` and `report` default the
+    /// minimum diameter to it and check a catalogue against it. Absent for runs on unframed data (and runs
+    /// trained before it was recorded).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub crater_frame: Option<dataset::contract::crater_frame::CraterFrameSource>,
 }
 
 /// A run's `normalisation.json`.

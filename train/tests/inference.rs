@@ -678,3 +678,64 @@ fn report_overlap_rows_apply_the_crater_level_as_infer_does() {
     .unwrap();
     assert!(without.iter().all(|r| r.crater_level_crops.is_none()));
 }
+
+/// `infer` frames a new DEM's craters as the run's training crops were framed: the minimum diameter defaults to
+/// the one its `normalisation.json` records (its dataset manifest's crater frame), another one is refused naming
+/// the flag, and a run with no record takes the pipeline's default (15 km), which refuses the catalogue's 520 m
+/// crater, while the flag's 100 m frames it.
+#[test]
+fn infer_frames_craters_with_the_minimum_diameter_the_run_was_trained_with() {
+    use dataset::contract::crater_frame::CraterFrameSource;
+    use train::inference::crater_frames_for_runs;
+    use train::run_dir::RunNormalisation;
+    let dem = dem(320, 240, 0);
+    let dir = tempfile::tempdir().unwrap();
+    let catalogue = dir.path().join("craters.csv");
+    let (lon_deg, lat_deg) = dem.crs.to_lonlat_deg(-800.0 + 900.0, -1_309_700.0).unwrap();
+    std::fs::write(
+        &catalogue,
+        format!("lon_deg,lat_deg,diameter_m\n{lon_deg},{lat_deg},520\n"),
+    )
+    .unwrap();
+    let run_with = |name: &str, min_diameter_m: Option<f64>| {
+        let run = dir.path().join(name);
+        std::fs::create_dir_all(&run).unwrap();
+        let record = RunNormalisation {
+            input: context_input(Some(20.0)),
+            dataset: "test".into(),
+            crater_frame: min_diameter_m.map(|min_diameter_m| CraterFrameSource {
+                catalogue: "craters.csv".into(),
+                catalogue_blake3: dataset::files::hash_file(&catalogue).unwrap(),
+                min_diameter_m,
+            }),
+        };
+        dataset::files::write_json_atomic(&run.join("normalisation.json"), &record).unwrap();
+        run
+    };
+    let framed = run_with("framed", Some(300.0));
+    let frames = crater_frames_for_runs(&[&framed], &dem, &catalogue, None).unwrap();
+    assert!(!frames.is_empty());
+    crater_frames_for_runs(&[&framed], &dem, &catalogue, Some(300.0)).unwrap();
+    let Err(err) = crater_frames_for_runs(&[&framed], &dem, &catalogue, Some(100.0)) else {
+        panic!("another minimum diameter is refused");
+    };
+    let err = err.to_string();
+    assert!(
+        err.contains("--crater-min-diameter-m 100") && err.contains("300"),
+        "{err}"
+    );
+    let other = run_with("other", Some(100.0));
+    let Err(err) = crater_frames_for_runs(&[&framed, &other], &dem, &catalogue, None) else {
+        panic!("an ensemble framed two ways is refused");
+    };
+    let err = err.to_string();
+    assert!(err.contains("ensemble"), "{err}");
+    let unrecorded = run_with("unrecorded", None);
+    let Err(err) = crater_frames_for_runs(&[&unrecorded], &dem, &catalogue, None) else {
+        panic!("the 15 km default frames no 520 m crater");
+    };
+    let err = err.to_string();
+    assert!(err.contains("15000"), "{err}");
+    let frames = crater_frames_for_runs(&[&unrecorded], &dem, &catalogue, Some(100.0)).unwrap();
+    assert!(!frames.is_empty());
+}

@@ -45,18 +45,14 @@ pub fn run(args: InferArgs) -> Result<()> {
     } = args;
     let progress = dataset::progress::Progress::start("infer", "batches", 0);
     let raster = dataset::science::raster::read_raster(&dem)?;
+    let paths = runs.paths();
     let crater_frames = craters
         .catalogue
         .map(|path| {
-            dataset::contract::crater_frame::CraterFrames::from_catalogue(
-                &raster,
-                &path,
-                craters.min_diameter_m,
-            )
-            .map(std::sync::Arc::new)
+            train::inference::crater_frames_for_runs(&paths, &raster, &path, craters.min_diameter_m)
+                .map(std::sync::Arc::new)
         })
         .transpose()?;
-    let paths = runs.paths();
     let job = train::inference::InferJob {
         runs: &paths,
         checkpoint: runs.checkpoint,

@@ -27,9 +27,14 @@ pub struct CraterCatalogueArgs {
     /// trained with --crater-input, and what sets the level of crater crops for a run that keeps a crater level.
     #[arg(long = "crater-catalogue", value_name = "CRATER_CATALOGUE")]
     pub catalogue: Option<PathBuf>,
-    /// Craters at least this wide frame the crops (the pipeline's project.crater_min_diameter_m).
-    #[arg(long = "crater-min-diameter-m", value_name = "CRATER_MIN_DIAMETER_M", default_value_t = dataset::contract::crater_frame::DEFAULT_MIN_DIAMETER_M, requires = "catalogue")]
-    pub min_diameter_m: f64,
+    /// Craters at least this wide frame the crops. Default: what the run was trained with (its dataset's
+    /// manifest; another value is refused), else the pipeline's project.crater_min_diameter_m default (15000).
+    #[arg(
+        long = "crater-min-diameter-m",
+        value_name = "CRATER_MIN_DIAMETER_M",
+        requires = "catalogue"
+    )]
+    pub min_diameter_m: Option<f64>,
 }
 
 /// The trained network(s) a command loads: one run, or a seed ensemble.
