@@ -330,7 +330,10 @@ fn a_crater_catalogue_frames_every_sample_and_a_missing_one_is_named() {
                 "ortho_dir = \"world/ortho\"",
                 &format!("ortho_dir = \"world/ortho\"\ncrater_catalogue = \"{catalogue}\""),
             )
-            .replace("[project]", "[project]\ncrater_min_diameter_m = 100.0")
+            .replace(
+                "[project]",
+                "[project]\ncrater_frame_min_diameter_m = 100.0",
+            )
     };
     let path = tmp.path().join("tiny.toml");
     std::fs::write(&path, with_catalogue("craters.csv")).unwrap();

@@ -173,10 +173,10 @@ impl PipelineManifest {
                 );
             }
         }
-        let min_diameter_m = manifest.project.crater_min_diameter_m;
+        let min_diameter_m = manifest.project.crater_frame_min_diameter_m;
         if !(min_diameter_m.is_finite() && min_diameter_m > 0.0) {
             anyhow::bail!(
-                "{}: project.crater_min_diameter_m = {min_diameter_m}: use a positive diameter in metres (default {})",
+                "{}: project.crater_frame_min_diameter_m = {min_diameter_m}: use a positive diameter in metres (default {})",
                 path.display(),
                 dataset::contract::crater_frame::DEFAULT_MIN_DIAMETER_M
             );
@@ -228,11 +228,15 @@ pub struct ProjectParams {
     pub context_gsd_m: f64,
     /// Catalogued craters at least this wide frame the samples (`inputs.crater_catalogue`): the complex ones,
     /// whose walls hide a unit's level (`dataset::contract::crater_frame`).
-    #[serde(default = "default_crater_min_diameter_m")]
-    pub crater_min_diameter_m: f64,
+    /// (Named `crater_min_diameter_m` before 2026-12: still read, it is not the synthetic world's smallest crater.)
+    #[serde(
+        default = "default_crater_frame_min_diameter_m",
+        alias = "crater_min_diameter_m"
+    )]
+    pub crater_frame_min_diameter_m: f64,
 }
 
-fn default_crater_min_diameter_m() -> f64 {
+fn default_crater_frame_min_diameter_m() -> f64 {
     dataset::contract::crater_frame::DEFAULT_MIN_DIAMETER_M
 }
 
@@ -253,4 +257,25 @@ pub struct SplitParams {
     pub test_fraction: f64,
     /// Extra margin around each footprint that must also lie in the sample's split, metres.
     pub guard_band_m: f64,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Manifests written before the rename still give the framing threshold, under its old name, and the two
+    /// names are one setting (both at once are refused as a duplicate).
+    #[test]
+    fn the_old_name_of_the_crater_frame_threshold_is_still_read() {
+        let with = |line: &str| {
+            toml::from_str::<PipelineManifest>(
+                &tiny_manifest_toml(1, 1.0).replace("[project]", &format!("[project]\n{line}")),
+            )
+        };
+        let old = with("crater_min_diameter_m = 3000.0").unwrap();
+        let new = with("crater_frame_min_diameter_m = 3000.0").unwrap();
+        assert_eq!(old.project.crater_frame_min_diameter_m, 3000.0);
+        assert_eq!(new.project.crater_frame_min_diameter_m, 3000.0);
+        assert!(with("crater_min_diameter_m = 1.0\ncrater_frame_min_diameter_m = 2.0").is_err());
+    }
 }

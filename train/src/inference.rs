@@ -367,7 +367,8 @@ pub fn crater_frames_for_runs(
     }
     let min_diameter_m = match (&trained_with, min_diameter_m) {
         (Some((run, known)), Some(given)) if given != known.min_diameter_m => bail!(
-            "{}: the run learned the frames of craters at least {} m wide (its dataset's manifest), and              --crater-min-diameter-m {given} frames others: drop the flag, or pass {}",
+            "{}: the run learned the frames of craters at least {} m wide (its dataset's manifest), and \
+             --crater-frame-min-diameter-m {given} frames others: drop the flag, or pass {}",
             run.display(),
             known.min_diameter_m,
             known.min_diameter_m

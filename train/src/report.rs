@@ -217,10 +217,10 @@ pub fn overlap_rows<B: TrainOps>(
 /// Renderer rows: a nadir 128 × 128 view of the DEM centre (45° FOV covering half the DEM's width) under a sun
 /// 50° from zenith in the east, at several rays/pixel with and without shadows, against a 16-ray reference.
 pub fn renderer_rows(dem: &Raster) -> Result<Vec<RenderRow>> {
-    use dataset::views::raycast::{render_view, Heightfield, Reflectance, ViewOptions};
+    use dataset::views::raycast::{render_view, RayCaster, Reflectance, ViewOptions};
     let mut dem = dem.clone();
     dataset::views::raycast::fill_holes(&mut dem);
-    let field = Heightfield::new(&dem)?;
+    let field = RayCaster::new(&dem)?;
     let f = &field.frame;
     let half_width_m = dem.width as f64 * dem.transform.gsd_m() / 4.0;
     let altitude = f.origin_height_m + half_width_m / 22.5f64.to_radians().tan();

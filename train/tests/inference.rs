@@ -721,7 +721,7 @@ fn infer_frames_craters_with_the_minimum_diameter_the_run_was_trained_with() {
     };
     let err = err.to_string();
     assert!(
-        err.contains("--crater-min-diameter-m 100") && err.contains("300"),
+        err.contains("--crater-frame-min-diameter-m 100") && err.contains("300"),
         "{err}"
     );
     let other = run_with("other", Some(100.0));

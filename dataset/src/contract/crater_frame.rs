@@ -167,7 +167,7 @@ pub struct CraterFrameSource {
     /// The catalogue's file name (`inputs.crater_catalogue`).
     pub catalogue: String,
     pub catalogue_blake3: String,
-    /// Catalogued craters at least this wide frame the samples (`project.crater_min_diameter_m`).
+    /// Catalogued craters at least this wide frame the samples (`project.crater_frame_min_diameter_m`).
     pub min_diameter_m: f64,
 }
 
@@ -237,8 +237,8 @@ impl CraterFrames {
         if frames.is_empty() {
             bail!(
                 "{}: no crater frames the DEM ({} catalogued, {} under the minimum diameter of {min_diameter_m} m, {} \
-                 with no DEM within {PROFILE_RHO_MAX} radii): lower the minimum diameter (project.crater_min_diameter_m, \
-                 --crater-min-diameter-m) or leave the catalogue out",
+                 with no DEM within {PROFILE_RHO_MAX} radii): lower the minimum diameter (project.crater_frame_min_diameter_m, \
+                 --crater-frame-min-diameter-m) or leave the catalogue out",
                 catalogue.display(),
                 report.catalogued,
                 report.too_small,

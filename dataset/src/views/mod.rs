@@ -13,7 +13,7 @@ use crate::science::hapke::HapkeParams;
 use anyhow::{bail, Context, Result};
 use glam::DVec3;
 
-use crate::views::raycast::{render_view, Heightfield, Reflectance, ViewOptions, ViewStats};
+use crate::views::raycast::{render_view, RayCaster, Reflectance, ViewOptions, ViewStats};
 use crate::views::trajectory::read_trajectory;
 
 pub struct RenderJob<'a> {
@@ -55,7 +55,7 @@ pub fn run(job: &RenderJob) -> Result<()> {
             job.dem.display()
         );
     }
-    let field = Heightfield::new(&dem).with_context(|| format!("{}", job.dem.display()))?;
+    let field = RayCaster::new(&dem).with_context(|| format!("{}", job.dem.display()))?;
     let mut methods = vec![("hapke", Reflectance::Hapke(HapkeParams::lunar_typical()))];
     if let Some(path) = job.params {
         let mut bands = crate::science::raster::read_bands(path)?;

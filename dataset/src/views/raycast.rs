@@ -71,8 +71,10 @@ pub fn fill_holes(dem: &mut Raster) -> usize {
     }
 }
 
-/// The DEM as a marchable heightfield.
-pub struct Heightfield<'a> {
+/// The DEM as a surface that rays from anywhere can be intersected with (a camera's, or a shadow ray toward the
+/// sun): a max-mipmap over the bilinear surface. The stages' shadows march a cell's horizon instead
+/// ([`crate::science::horizon`]); a test holds the two to each other.
+pub struct RayCaster<'a> {
     dem: &'a Raster,
     pub frame: LocalFrame,
     /// levels[L] is (width, height, max heights).
@@ -81,7 +83,7 @@ pub struct Heightfield<'a> {
     min_height: f64,
 }
 
-impl<'a> Heightfield<'a> {
+impl<'a> RayCaster<'a> {
     pub fn new(dem: &'a Raster) -> Result<Self> {
         let (w, h) = (dem.width, dem.height);
         if w < 2 || h < 2 {
@@ -346,7 +348,7 @@ pub struct ViewStats {
 
 /// Render one view: I/F per pixel (row-major, top row first); rays that miss the DEM give 0.
 pub fn render_view(
-    field: &Heightfield,
+    field: &RayCaster,
     reflectance: &Reflectance,
     pose: &Pose,
     sun_body: DVec3,
@@ -452,7 +454,7 @@ mod tests {
         r
     }
 
-    fn nadir_pose(field: &Heightfield, altitude: f64, pitch_deg: f64) -> Pose {
+    fn nadir_pose(field: &RayCaster, altitude: f64, pitch_deg: f64) -> Pose {
         let f = &field.frame;
         crate::views::trajectory::pose_from_lonlat(
             f.origin_lon_deg,
@@ -479,7 +481,7 @@ mod tests {
     #[test]
     fn nadir_view_of_a_flat_dem_equals_hapke_at_the_known_geometry() {
         let raster = dem(64, |_, _| -1200.0);
-        let field = Heightfield::new(&raster).unwrap();
+        let field = RayCaster::new(&raster).unwrap();
         let pose = nadir_pose(&field, 2_000.0, 0.0);
         // Sun 40° from zenith toward the east, far away.
         let f = &field.frame;
@@ -510,7 +512,7 @@ mod tests {
     fn an_oblique_boresight_hits_where_the_sphere_geometry_says() {
         // Flat DEM at h = −1200 m: the surface is the sphere of radius R − 1200.
         let raster = dem(800, |_, _| -1200.0);
-        let field = Heightfield::new(&raster).unwrap();
+        let field = RayCaster::new(&raster).unwrap();
         let pose = nadir_pose(&field, 3_000.0, 20.0);
         let f = &field.frame;
         let origin = f.body_point_to_enu(pose.position_body_m);
@@ -536,7 +538,7 @@ mod tests {
     fn ground_position_of_a_high_point_far_from_the_centre_is_exact() {
         // 4 km × 4 km; a point 1.9 km east and north of the centre, 2 km above the frame origin.
         let raster = dem(800, |_, _| -1200.0);
-        let field = Heightfield::new(&raster).unwrap();
+        let field = RayCaster::new(&raster).unwrap();
         let f = &field.frame;
         let (x, y) = (f.origin_map.x + 1_900.0, f.origin_map.y + 1_900.0);
         for h in [-1200.0, 800.0, 3000.0] {
@@ -557,7 +559,7 @@ mod tests {
                 + 30.0 * ((c as f32 / 7.0).sin() * (r as f32 / 5.0).cos())
                 + if (40..44).contains(&c) { 80.0 } else { 0.0 }
         });
-        let field = Heightfield::new(&raster).unwrap();
+        let field = RayCaster::new(&raster).unwrap();
         let mut rng = keyed_rng(3, "raycast-test", 0);
         let mut compared = 0;
         for _ in 0..200 {
@@ -601,6 +603,85 @@ mod tests {
         assert!(compared > 80, "{compared}");
     }
 
+    /// The view renderer's shadow ray and the stages' horizon march ([`crate::science::horizon`]) are two
+    /// marchers of one surface: 3D rays from any point through a max-mipmap, and a cell's horizon toward a distant
+    /// source. On rolling terrain under a 12° sun from the north-east, every cell the march sees fully lit (or
+    /// fully hidden) with a 0.3° margin on either side of the sun's centre (a disk of that radius wholly above, or
+    /// wholly below, its horizon) is lit (shadowed) by the ray toward the sun's centre. Left out: cells within the
+    /// margin of their horizon (the two samplings' to differ on), and cells whose own pixel rises toward the sun to
+    /// within the margin of it (their own slope is their horizon).
+    #[test]
+    fn shadow_rays_agree_with_the_horizon_march_away_from_the_shadow_edge() {
+        use crate::science::horizon::{HorizonGrid, SourceDirection};
+        let n = 128;
+        let raster = dem(n, |c, r| {
+            let (x, y) = (c as f64 * 5.0, r as f64 * 5.0);
+            (-1200.0
+                + 40.0 * (x / 90.0).sin() * (y / 70.0).cos()
+                + 12.0 * (x / 23.0 + y / 31.0).sin()) as f32
+        });
+        let field = RayCaster::new(&raster).unwrap();
+        let frame = &field.frame;
+        let (elevation, azimuth) = (12f64.to_radians(), 45f64.to_radians());
+        let sun = DVec3::new(
+            elevation.cos() * azimuth.sin(),
+            elevation.cos() * azimuth.cos(),
+            elevation.sin(),
+        );
+        let grid = HorizonGrid::new(&raster.data, n, n, 5.0);
+        let margin = SourceDirection::from_enu(sun, frame, 0.3f64.to_radians());
+        let toward = DVec2::new(margin.toward_col, margin.toward_row).normalize();
+        let (mut lit, mut dark, mut disagree) = (0, 0, Vec::new());
+        for row in 8..n - 8 {
+            for col in 8..n - 8 {
+                let seen = grid.march_visible_fraction(col, row, &margin);
+                if seen != 0.0 && seen != 1.0 {
+                    continue;
+                }
+                let (x, y) = raster.transform.pixel_center(col as f64, row as f64);
+                let px = DVec2::new(col as f64, row as f64);
+                // The steepest rise toward the sun within the cell's first pixel (on 0.01 px steps): where it comes
+                // within the margin of the sun, the cell's own slope is its horizon, which a ray lifted off the
+                // surface and a march sampled every half pixel each see their own way (the renderer darkens such
+                // cells by their cosine). Blockers a pixel or more away are what the two must agree on.
+                let h0 = raster.get(col, row) as f64;
+                let own_rise = (1..=100)
+                    .map(|k| {
+                        let d = k as f64 * 0.01;
+                        let ahead =
+                            raster.bilinear(col as f64 + d * toward.x, row as f64 + d * toward.y);
+                        ((ahead as f64 - h0) / (5.0 * d)).atan()
+                    })
+                    .fold(f64::NEG_INFINITY, f64::max);
+                if own_rise >= margin.elevation_rad - margin.angular_radius_rad {
+                    continue;
+                }
+                let ground = frame.map_to_enu(x, y, h0);
+                // Lifted 1 mm off the surface, not the renderer's 5 cm: a 5 cm lift is 0.5° at 6 m, more than the
+                // margin, and near blockers are what the two must agree on.
+                let shadowed = field
+                    .intersect(ground + 1e-3 * field.normal(px), sun)
+                    .is_some();
+                if shadowed != (seen == 0.0) {
+                    disagree.push((col, row, seen));
+                }
+                if shadowed {
+                    dark += 1;
+                } else {
+                    lit += 1;
+                }
+            }
+        }
+        // Both kinds of cell are compared (the terrain casts shadows; most of it is lit).
+        assert!(dark > 500 && lit > 5_000, "dark {dark}, lit {lit}");
+        assert!(
+            disagree.is_empty(),
+            "{} cells disagree: {:?}",
+            disagree.len(),
+            &disagree[..disagree.len().min(10)]
+        );
+    }
+
     #[test]
     fn a_ridge_casts_a_shadow_toward_the_west_under_an_eastern_sun() {
         // A 200 m north–south ridge at columns 60..64 of a flat plain.
@@ -611,7 +692,7 @@ mod tests {
                 -1200.0
             }
         });
-        let field = Heightfield::new(&raster).unwrap();
+        let field = RayCaster::new(&raster).unwrap();
         let f = &field.frame;
         let sun_enu = DVec3::new(80f64.to_radians().sin(), 0.0, 80f64.to_radians().cos()); // 10° elevation, east
         let sun_body = f.enu_to_body_point(sun_enu * 1.5e11);

@@ -275,7 +275,7 @@ pub fn pipeline_scoped(
             let dem = dem5.get()?;
             let crater_frames = catalogue5
                 .as_ref()
-                .map(|path| CraterFrames::from_catalogue(dem, path, pp.crater_min_diameter_m))
+                .map(|path| CraterFrames::from_catalogue(dem, path, pp.crater_frame_min_diameter_m))
                 .transpose()?;
             project::run(
                 (dem, crater_frames.as_ref()),
@@ -294,7 +294,7 @@ pub fn pipeline_scoped(
         check: None,
     };
     let (l6, dem6, m6, lock6) = (layout.clone(), dem.clone(), m.clone(), lock_path.clone());
-    let (catalogue6, min_diameter6) = (catalogue.clone(), m.project.crater_min_diameter_m);
+    let (catalogue6, min_diameter6) = (catalogue.clone(), m.project.crater_frame_min_diameter_m);
     let check_dir = layout.dataset.clone();
     let publish = Stage {
         name: "publish",

@@ -554,7 +554,7 @@ mod tests {
             max_occluded_fraction: 0.01,
             sun_disk_samples: 4,
             context_gsd_m: crate::manifest::DEFAULT_CONTEXT_GSD_M,
-            crater_min_diameter_m: dataset::contract::crater_frame::DEFAULT_MIN_DIAMETER_M,
+            crater_frame_min_diameter_m: dataset::contract::crater_frame::DEFAULT_MIN_DIAMETER_M,
         }
     }
 

@@ -28,10 +28,11 @@ pub struct CraterCatalogueArgs {
     #[arg(long = "crater-catalogue", value_name = "CRATER_CATALOGUE")]
     pub catalogue: Option<PathBuf>,
     /// Craters at least this wide frame the crops. Default: what the run was trained with (its dataset's
-    /// manifest; another value is refused), else the pipeline's project.crater_min_diameter_m default (15000).
+    /// manifest; another value is refused), else the pipeline's project.crater_frame_min_diameter_m default (15000).
     #[arg(
-        long = "crater-min-diameter-m",
-        value_name = "CRATER_MIN_DIAMETER_M",
+        long = "crater-frame-min-diameter-m",
+        alias = "crater-min-diameter-m",
+        value_name = "CRATER_FRAME_MIN_DIAMETER_M",
         requires = "catalogue"
     )]
     pub min_diameter_m: Option<f64>,
