@@ -276,7 +276,7 @@ pub fn world_config(preset: &str, config_path: Option<&Path>) -> Result<WorldCon
         None => (
             config::preset(preset)
                 .with_context(|| {
-                    format!("unknown preset '{preset}': use demo or tycho-full, or --config FILE")
+                    format!("unknown preset '{preset}': use demo, tycho-full or many-craters, or --config FILE")
                 })?
                 .to_string(),
             format!("preset {preset}"),
@@ -316,7 +316,10 @@ mod tests {
             bad.contains("world.toml") && bad.contains("invalid world config"),
             "{bad}"
         );
-        assert!(world_config("demo", None).is_ok() && world_config("tycho-full", None).is_ok());
+        for preset in ["demo", "tycho-full", "many-craters"] {
+            let world = world_config(preset, None).unwrap();
+            world.validate().unwrap();
+        }
     }
 
     #[test]

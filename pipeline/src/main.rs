@@ -43,7 +43,8 @@ enum Command {
     /// with blake3). Built under OUT.partial and renamed when complete. Same preset/config + seed => same bytes.
     Synth {
         /// Built-in world: `demo` (12 x 12 km, about a minute) or `tycho-full` (40 x 40 km, for the 83,614-pair
-        /// publication). These are manifests/world-demo.toml and manifests/world-tycho-full.toml.
+        /// publication), or `many-craters` (tycho-full's size, with 3-4 complex craters of 8-14 km drawn per seed).
+        /// These are manifests/world-demo.toml, world-tycho-full.toml and world-many-craters.toml.
         #[arg(long, default_value = "demo", conflicts_with = "config")]
         preset: String,
         /// A world TOML file instead of a preset (see manifests/world-demo.toml for every field).

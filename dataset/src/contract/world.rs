@@ -18,6 +18,10 @@ pub const TRUE_HAPKE: &str = "truth/hapke_params.tif";
 pub const TRUE_W_MORPHOLOGY: &str = "truth/w_morphology.tif";
 /// The crater catalogue (evaluation only).
 pub const TRUE_CRATERS: &str = "truth/craters.json";
+/// The complex craters a world drew (`[complex_craters]` worlds only): a crater catalogue CSV (`lon_deg`, `lat_deg`,
+/// `diameter_m`, plus `degradation` and `terraces`) the pipeline reads as `inputs.crater_catalogue`. Exact: a real
+/// catalogue's errors are the user's to add.
+pub const TRUE_COMPLEX_CRATERS: &str = "truth/complex_craters.csv";
 /// Terrain class per delivered-DEM cell (evaluation only): band 1 the [`TerrainClass`] code, band 2 the highland
 /// fraction (0 mare, 1 highland). Lets evaluation report its errors by kind of ground.
 pub const TRUE_TERRAIN_CLASS: &str = "truth/terrain_class.tif";
@@ -29,8 +33,9 @@ pub const MANIFEST: &str = "world.json";
 /// v3: ejecta freshness fades to 0 at its cutoff instead of stopping in a step; `truth/terrain_class.tif`.
 pub const WORLD_VERSION: u32 = 3;
 
-/// Kinds of ground by position relative to the world's complex crater (normalised radius ρ = r / R), as
-/// `truth/terrain_class.tif` codes them. Worlds without a complex crater are plains throughout.
+/// Kinds of ground by position relative to the world's nearest complex crater (normalised radius ρ = r / R, the
+/// crater with the least), as `truth/terrain_class.tif` codes them. Worlds without a complex crater are plains
+/// throughout.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
 pub enum TerrainClass {
     /// ρ below the floor radius: flat melt floor, hummocks and the central peak.

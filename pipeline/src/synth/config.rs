@@ -8,6 +8,10 @@ pub struct WorldConfig {
     pub world: WorldExtent,
     pub terrain: TerrainConfig,
     pub complex_crater: Option<ComplexCraterConfig>,
+    /// Several complex craters drawn per world (sizes, places, terraces, degradation) instead of the one pinned
+    /// by `[complex_crater]`: a model fitted on them sees more than one crater's wall and rim.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub complex_craters: Option<ComplexCraterPopulation>,
     pub reflectance: ReflectanceConfig,
     pub acquisitions: AcquisitionConfig,
     pub dem_product: DemProductConfig,
@@ -67,6 +71,35 @@ pub struct ComplexCraterConfig {
     pub offset_north_m: f64,
     pub depth_to_diameter: f64,
     pub terraces: u32,
+    /// 0 fresh .. 1 most degraded: shallower (−60 % depth), a lower rim (−70 %), softer terraces, and ejecta and
+    /// wall no longer fresh. Absent in a `[complex_crater]` section: fresh.
+    #[serde(default, skip_serializing_if = "is_fresh")]
+    pub degradation: f64,
+}
+
+fn is_fresh(degradation: &f64) -> bool {
+    *degradation == 0.0
+}
+
+/// The complex craters of one world, drawn from its seed ([`super::terrain::draw_complex_craters`]).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ComplexCraterPopulation {
+    /// How many, drawn uniformly in `count_min..=count_max`.
+    pub count_min: u32,
+    pub count_max: u32,
+    /// Rim diameters, drawn log-uniformly (more small craters than large), metres.
+    pub diameter_min_m: f64,
+    pub diameter_max_m: f64,
+    /// Depth over diameter of a fresh one.
+    pub depth_to_diameter: f64,
+    /// Terrace count, drawn uniformly.
+    pub terraces_min: u32,
+    pub terraces_max: u32,
+    /// Degradation, drawn uniformly in `0..degradation_max` ([`ComplexCraterConfig::degradation`]).
+    pub degradation_max: f64,
+    /// Centres at least this many summed radii apart (1: rims may touch).
+    pub min_separation_radii: f64,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -137,6 +170,7 @@ pub fn preset(name: &str) -> Option<&'static str> {
     match name {
         "demo" => Some(include_str!("../../../manifests/world-demo.toml")),
         "tycho-full" => Some(include_str!("../../../manifests/world-tycho-full.toml")),
+        "many-craters" => Some(include_str!("../../../manifests/world-many-craters.toml")),
         _ => None,
     }
 }
@@ -151,6 +185,7 @@ pub fn tiny() -> WorldConfig {
     cfg.terrain.crater_max_diameter_m = 300.0;
     cfg.terrain.fbm_largest_wavelength_m = 2000.0;
     cfg.complex_crater = None;
+    cfg.complex_craters = None;
     cfg.acquisitions.count = 3;
     cfg.acquisitions.strip_width_m = 2000.0;
     cfg
@@ -180,6 +215,22 @@ impl WorldConfig {
             return Err(
                 "terrain.mare_relief_factor and terrain.mare_flood_age must lie in [0, 1]".into(),
             );
+        }
+        if let Some(p) = &self.complex_craters {
+            if self.complex_crater.is_some() {
+                return Err("[complex_crater] pins one crater and [complex_craters] draws several: keep one of the two sections".into());
+            }
+            if p.count_min > p.count_max
+                || !(p.diameter_min_m > 0.0 && p.diameter_min_m <= p.diameter_max_m)
+                || p.terraces_min > p.terraces_max
+                || !(0.0..=1.0).contains(&p.degradation_max)
+                || !(p.depth_to_diameter > 0.0 && p.min_separation_radii >= 0.0)
+            {
+                return Err("complex_craters: need count_min ≤ count_max, 0 < diameter_min_m ≤ diameter_max_m, terraces_min ≤ terraces_max, degradation_max in [0, 1], a positive depth_to_diameter and min_separation_radii ≥ 0".into());
+            }
+            if p.diameter_max_m > w.width_m.min(w.height_m) {
+                return Err("complex_craters.diameter_max_m must be at most the world's width and height: a crater must fit".into());
+            }
         }
         let a = &self.acquisitions;
         if !(0.0..90.0).contains(&a.incidence_min_deg)

@@ -189,23 +189,33 @@ pub fn generate(
         stamping.inc(chunk.len() as u64);
     }
     stamping.finish();
-    let complex_crater = config.complex_crater.as_ref().map(|cc| {
-        (
-            (cx + cc.offset_east_m, cy + cc.offset_north_m),
-            cc.diameter_m / 2.0,
-        )
-    });
-    if let (Some(cc), Some((centre, _))) = (&config.complex_crater, complex_crater) {
+    let complex_craters = match (&config.complex_crater, &config.complex_craters) {
+        (Some(cc), _) => vec![terrain::PlacedComplexCrater {
+            center: (cx + cc.offset_east_m, cy + cc.offset_north_m),
+            shape: cc.clone(),
+        }],
+        (None, Some(population)) => {
+            terrain::draw_complex_craters(population, (cx, cy), (w.width_m, w.height_m), seed)
+                .map_err(|e| anyhow::anyhow!("world config: {e}"))?
+        }
+        (None, None) => Vec::new(),
+    };
+    for (index, crater) in complex_craters.iter().enumerate() {
         terrain::stamp_complex_crater(
-            cc,
+            &crater.shape,
+            index as u64,
             &fine,
-            centre,
+            crater.center,
             &mut heights,
             &mut freshness,
             &mut melt,
             seed,
         );
     }
+    let complex_rings: Vec<((f64, f64), f64)> = complex_craters
+        .iter()
+        .map(|c| (c.center, c.shape.diameter_m / 2.0))
+        .collect();
     info!(craters = craters.len(), "terrain done");
 
     // True reflectance.
@@ -364,7 +374,7 @@ pub fn generate(
     truth_phase.inc(1);
     truth_phase.set_message("terrain classes");
     // On the delivered DEM's grid: evaluation classifies crops, which live on that grid.
-    let (class, highland) = terrain::terrain_classes(&dem_grid, &units, complex_crater);
+    let (class, highland) = terrain::terrain_classes(&dem_grid, &units, &complex_rings);
     truth_phase.inc(1);
     truth_phase.set_message(layout::TRUE_TERRAIN_CLASS);
     write_geotiff(
@@ -388,6 +398,18 @@ pub fn generate(
     truth_phase.finish();
 
     let mut files = Vec::new();
+    if config.complex_craters.is_some() {
+        // The drawn craters as a catalogue the pipeline reads (`inputs.crater_catalogue`): exact, as a truth file.
+        let mut csv = String::from("lon_deg,lat_deg,diameter_m,degradation,terraces\n");
+        for c in &complex_craters {
+            let (lon, lat) = crs.to_lonlat_deg(c.center.0, c.center.1)?;
+            csv += &format!(
+                "{lon:.9},{lat:.9},{:.3},{:.4},{}\n",
+                c.shape.diameter_m, c.shape.degradation, c.shape.terraces
+            );
+        }
+        dataset::files::write_text_atomic(&partial.join(layout::TRUE_COMPLEX_CRATERS), &csv)?;
+    }
     let mut relative: Vec<String> = vec![
         layout::DEM.into(),
         layout::TRUE_DEM.into(),
@@ -400,6 +422,9 @@ pub fn generate(
     std::fs::write(partial.join(layout::INDEX_LABEL), label)?;
     std::fs::write(partial.join(layout::INDEX_TABLE), table)?;
     relative.extend([layout::INDEX_LABEL.into(), layout::INDEX_TABLE.into()]);
+    if config.complex_craters.is_some() {
+        relative.push(layout::TRUE_COMPLEX_CRATERS.into());
+    }
     for s in &strips {
         relative.push(format!("{}/{}", layout::ORTHO_DIR, s.meta.image_file));
         relative.push(format!("{}/{}.json", layout::ORTHO_DIR, s.meta.ortho_id));

@@ -6,7 +6,7 @@ use rand::Rng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::config::{ComplexCraterConfig, TerrainConfig};
+use super::config::{ComplexCraterConfig, ComplexCraterPopulation, TerrainConfig};
 use super::geologic_units::Units;
 use super::noise::{smoothstep, Fbm};
 use super::Grid;
@@ -207,12 +207,86 @@ pub fn stamp_craters(
 /// Normalised radius of the complex crater's flat melt floor.
 pub const COMPLEX_FLOOR_RHO: f64 = 0.45;
 
-/// Per cell of `grid`: the terrain class code ([`TerrainClass`], by radius from the complex crater at `complex`
-/// = (centre, radius), if any) and the highland fraction. Written as `truth/terrain_class.tif` for evaluation.
+/// A complex crater placed in a world: its centre (map metres) and its shape.
+#[derive(Debug, Clone)]
+pub struct PlacedComplexCrater {
+    pub center: (f64, f64),
+    pub shape: ComplexCraterConfig,
+}
+
+/// Draw a world's complex craters (keyed by the seed, so the same config and seed place the same ones): count,
+/// log-uniform diameters, terraces and degradation, and centres uniform over the area where the whole crater
+/// (rim included) lies on the world, at least `min_separation_radii` summed radii from every crater placed before
+/// (the largest are placed first).
+/// Refuses a population it cannot place in 1,000 tries a crater, naming the fields to change.
+pub fn draw_complex_craters(
+    population: &ComplexCraterPopulation,
+    world_center: (f64, f64),
+    world_size_m: (f64, f64),
+    seed: u64,
+) -> Result<Vec<PlacedComplexCrater>, String> {
+    let p = population;
+    let mut rng = keyed_rng(seed, "complex-craters", 0);
+    let count = rng.random_range(p.count_min..=p.count_max);
+    let mut shapes: Vec<(f64, u32, f64)> = (0..count)
+        .map(|_| {
+            let diameter_m = (p.diameter_min_m.ln()
+                + rng.random::<f64>() * (p.diameter_max_m / p.diameter_min_m).ln())
+            .exp();
+            let terraces = rng.random_range(p.terraces_min..=p.terraces_max);
+            (
+                diameter_m,
+                terraces,
+                rng.random::<f64>() * p.degradation_max,
+            )
+        })
+        .collect();
+    // The largest first: they need the most room, which the smaller ones then fit around.
+    shapes.sort_by(|a, b| b.0.total_cmp(&a.0));
+    let mut placed: Vec<PlacedComplexCrater> = Vec::new();
+    for (diameter_m, terraces, degradation) in shapes {
+        let radius = diameter_m / 2.0;
+        let (half_w, half_h) = (world_size_m.0 / 2.0 - radius, world_size_m.1 / 2.0 - radius);
+        let center = (0..1000).find_map(|_| {
+            let offset = (
+                (2.0 * rng.random::<f64>() - 1.0) * half_w.max(0.0),
+                (2.0 * rng.random::<f64>() - 1.0) * half_h.max(0.0),
+            );
+            let clear = placed.iter().all(|other| {
+                let apart = (offset.0 + world_center.0 - other.center.0)
+                    .hypot(offset.1 + world_center.1 - other.center.1);
+                apart >= p.min_separation_radii * (radius + other.shape.diameter_m / 2.0)
+            });
+            clear.then_some(offset)
+        });
+        let Some((east, north)) = center else {
+            return Err(format!(
+                "complex_craters: no room for crater {} of {count} ({diameter_m:.0} m) in 1000 tries: lower count_max, diameter_max_m or min_separation_radii",
+                placed.len() + 1
+            ));
+        };
+        placed.push(PlacedComplexCrater {
+            center: (world_center.0 + east, world_center.1 + north),
+            shape: ComplexCraterConfig {
+                diameter_m,
+                offset_east_m: east,
+                offset_north_m: north,
+                depth_to_diameter: p.depth_to_diameter,
+                terraces,
+                degradation,
+            },
+        });
+    }
+    Ok(placed)
+}
+
+/// Per cell of `grid`: the terrain class code ([`TerrainClass`], by normalised radius from the nearest complex
+/// crater in `complex` = (centre, radius) pairs, nearest in radii; plains where there is none) and the highland
+/// fraction. Written as `truth/terrain_class.tif` for evaluation.
 pub fn terrain_classes(
     grid: &Grid,
     units: &Units,
-    complex: Option<((f64, f64), f64)>,
+    complex: &[((f64, f64), f64)],
 ) -> (Vec<f32>, Vec<f32>) {
     let mut class = vec![0f32; grid.width * grid.height];
     let mut highland = vec![0f32; grid.width * grid.height];
@@ -223,7 +297,10 @@ pub fn terrain_classes(
         .for_each(|(row, (class_row, highland_row))| {
             for col in 0..grid.width {
                 let (x, y) = grid.center(col, row);
-                let rho = complex.map(|((cx, cy), radius)| (x - cx).hypot(y - cy) / radius);
+                let rho = complex
+                    .iter()
+                    .map(|&((cx, cy), radius)| (x - cx).hypot(y - cy) / radius)
+                    .reduce(f64::min);
                 class_row[col] = TerrainClass::at_radius(rho, COMPLEX_FLOOR_RHO).code() as f32;
                 highland_row[col] = units.highland(x, y) as f32;
             }
@@ -231,10 +308,13 @@ pub fn terrain_classes(
     (class, highland)
 }
 
-/// Stamp the complex crater: terraced wall, flat melt floor with hummocks, central peak, raised rim and ejecta.
-/// Marks its melt floor in `melt` and its (young) ejecta as fresh.
+/// Stamp a complex crater: terraced wall, flat melt floor with hummocks, central peak, raised rim and ejecta.
+/// Marks its melt floor in `melt` and its ejecta as fresh as its degradation leaves them. `index` keys its
+/// hummocks (0 for a world's first).
+#[allow(clippy::too_many_arguments)]
 pub fn stamp_complex_crater(
     cc: &ComplexCraterConfig,
+    index: u64,
     grid: &Grid,
     center: (f64, f64),
     heights: &mut [f32],
@@ -243,11 +323,16 @@ pub fn stamp_complex_crater(
     seed: u64,
 ) {
     let radius = cc.diameter_m / 2.0;
-    let depth = cc.depth_to_diameter * cc.diameter_m;
-    let rim = 0.02 * cc.diameter_m;
+    // Degradation fills the floor, wears the rim down and rounds the terraces (exact no-ops at 0: a fresh crater
+    // is what world v3 stamped).
+    let worn = cc.degradation;
+    let depth = cc.depth_to_diameter * cc.diameter_m * (1.0 - 0.6 * worn);
+    let rim = 0.02 * cc.diameter_m * (1.0 - 0.7 * worn);
+    let terrace_edge = 0.55 * (1.0 - worn);
+    let fresh = 1.0 - worn;
     let floor_rho = COMPLEX_FLOOR_RHO;
     let hummocks = Fbm {
-        key: keyed_u64(seed, "melt-hummocks", 0),
+        key: keyed_u64(seed, "melt-hummocks", index),
         hurst: 0.7,
         amplitude: 0.01 * depth,
         largest_wavelength_m: 0.05 * cc.diameter_m,
@@ -277,8 +362,8 @@ pub fn stamp_complex_crater(
                 } else if rho <= 1.0 {
                     // Wall from the floor edge up to the rim, broken into flat-ish terraces (a soft staircase).
                     let t = (rho - floor_rho) / (1.0 - floor_rho);
-                    let stairs =
-                        (t * terraces).floor() + smoothstep(0.55, 1.0, (t * terraces).fract());
+                    let stairs = (t * terraces).floor()
+                        + smoothstep(terrace_edge, 1.0, (t * terraces).fract());
                     let profile = (stairs / terraces).powf(1.3);
                     -depth + (depth + rim) * profile
                 } else {
@@ -288,7 +373,8 @@ pub fn stamp_complex_crater(
                 if rho < floor_rho {
                     m_row[col] = smoothstep(floor_rho, floor_rho - 0.05, rho) as f32;
                 }
-                f_row[col] = f_row[col].max(complex_crater_freshness(rho, floor_rho) as f32);
+                f_row[col] =
+                    f_row[col].max((fresh * complex_crater_freshness(rho, floor_rho)) as f32);
             }
         });
 }
@@ -353,5 +439,66 @@ mod tests {
         );
         assert_eq!(complex_crater_freshness(2.0, 0.45), 0.25);
         assert_eq!(complex_crater_freshness(0.2, 0.45), 0.3);
+    }
+
+    fn population(
+        count: (u32, u32),
+        diameters: (f64, f64),
+        separation: f64,
+    ) -> ComplexCraterPopulation {
+        ComplexCraterPopulation {
+            count_min: count.0,
+            count_max: count.1,
+            diameter_min_m: diameters.0,
+            diameter_max_m: diameters.1,
+            depth_to_diameter: 0.07,
+            terraces_min: 2,
+            terraces_max: 5,
+            degradation_max: 0.8,
+            min_separation_radii: separation,
+        }
+    }
+
+    /// Over many seeds, a drawn population (the many-craters preset's) keeps every bound it states: the count, the diameters, terraces and
+    /// degradation in range, each crater wholly on the world and at least the separation from every other; the
+    /// same seed draws the same craters, and the seeds between them draw every count.
+    #[test]
+    fn drawn_complex_craters_keep_their_bounds_and_follow_the_seed() {
+        let p = population((3, 4), (8_000.0, 14_000.0), 1.1);
+        let (centre, size) = ((1000.0, -5000.0), (40_000.0, 40_000.0));
+        let mut counts = std::collections::BTreeSet::new();
+        for seed in 0..40 {
+            let craters = draw_complex_craters(&p, centre, size, seed).unwrap();
+            counts.insert(craters.len());
+            assert!((3..=4).contains(&craters.len()));
+            for (k, c) in craters.iter().enumerate() {
+                let s = &c.shape;
+                let radius = s.diameter_m / 2.0;
+                assert!((8_000.0..=14_000.0).contains(&s.diameter_m), "{s:?}");
+                assert!((2..=5).contains(&s.terraces) && (0.0..0.8).contains(&s.degradation));
+                assert!((c.center.0 - centre.0).abs() + radius <= size.0 / 2.0 + 1e-6);
+                assert!((c.center.1 - centre.1).abs() + radius <= size.1 / 2.0 + 1e-6);
+                assert!((c.center.0 - centre.0 - s.offset_east_m).abs() < 1e-6);
+                assert!((c.center.1 - centre.1 - s.offset_north_m).abs() < 1e-6);
+                for other in &craters[..k] {
+                    let apart = (c.center.0 - other.center.0).hypot(c.center.1 - other.center.1);
+                    assert!(apart >= 1.1 * (radius + other.shape.diameter_m / 2.0));
+                }
+            }
+            let again = draw_complex_craters(&p, centre, size, seed).unwrap();
+            assert_eq!(format!("{craters:?}"), format!("{again:?}"));
+        }
+        assert_eq!(counts.into_iter().collect::<Vec<_>>(), vec![3, 4]);
+    }
+
+    /// A population that cannot fit is refused, naming the fields to change.
+    #[test]
+    fn a_population_with_no_room_is_refused() {
+        let p = population((6, 6), (18_000.0, 18_000.0), 1.0);
+        let err = draw_complex_craters(&p, (0.0, 0.0), (40_000.0, 40_000.0), 1).unwrap_err();
+        assert!(
+            err.contains("count_max") && err.contains("min_separation_radii"),
+            "{err}"
+        );
     }
 }
