@@ -278,4 +278,24 @@ mod tests {
         assert_eq!(new.project.crater_frame_min_diameter_m, 3000.0);
         assert!(with("crater_min_diameter_m = 1.0\ncrater_frame_min_diameter_m = 2.0").is_err());
     }
+
+    /// Every pipeline manifest shipped in `manifests/` parses (worlds are `world-*.toml`, checked by `synth`).
+    #[test]
+    fn every_shipped_pipeline_manifest_parses() {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../manifests");
+        let mut parsed = 0;
+        for entry in std::fs::read_dir(&dir).unwrap() {
+            let path = entry.unwrap().path();
+            let name = path.file_name().unwrap().to_string_lossy().into_owned();
+            if !name.ends_with(".toml") || name.starts_with("world-") {
+                continue;
+            }
+            let text = std::fs::read_to_string(&path).unwrap();
+            if let Err(e) = toml::from_str::<PipelineManifest>(&text) {
+                panic!("{name}: {}", toml_error_line(&text, &e));
+            }
+            parsed += 1;
+        }
+        assert!(parsed >= 2, "{parsed}");
+    }
 }
