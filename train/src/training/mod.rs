@@ -6,8 +6,8 @@
 //! (seed, step), so no RNG state needs saving; (3) the last checkpoint holds the model (with BatchNorm running
 //! stats and parameter ids), the optimiser's state keyed by those ids, and the cursor (epoch, next batch, step).
 //!
-//! Files: [`start`] (a new run or a resumed one), [`epochs`] (a replica's steps, validation and checkpoints; one
-//! replica alone, or one of [`crate::data_parallel`]'s ranks), [`loss`] (what a step minimises, and validation).
+//! Files: `start` (a new run or a resumed one), `epochs` (a replica's steps, validation and checkpoints; one
+//! replica alone, or one of [`crate::data_parallel`]'s ranks), `loss` (what a step minimises, and validation).
 
 mod epochs;
 mod loss;

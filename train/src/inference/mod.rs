@@ -6,6 +6,19 @@
 //! - **Georeferencing**: output pixel (c, r) *is* DEM pixel (c, r): the output GeoTIFF carries the DEM's own
 //!   geotransform and CRS, crops are placed by integer pixel offsets (no half-crop shift), and borders are
 //!   reflect-padded so the first and last rows and columns get full crops.
+//!
+//! Files: this one runs the network over the crops (and frames a new DEM's craters as the run was trained);
+//! `tiling` places and blends the crops, `geotiff` writes the maps, `seams` measures what is left of the
+//! crop edges.
+
+mod geotiff;
+mod seams;
+mod tiling;
+
+pub use geotiff::write_params_geotiff;
+pub use seams::{render_maps, seam_score, SEAM_BORDER_PX};
+use tiling::reflect;
+pub use tiling::{crop_origins, crop_starts, taper, DEFAULT_OVERLAP};
 
 use std::path::Path;
 
@@ -13,19 +26,14 @@ use anyhow::{bail, Context, Result};
 use burn::prelude::*;
 use dataset::contract::crater_frame::{CraterFrameSource, CraterFrames};
 use dataset::contract::schema::{CONTEXT_PX, CROP_PX};
-use dataset::science::brdf::{
-    inverse_leaky_relu, leaky_relu, BrdfModel, BRDF_MODEL_KEY, LEAKY_SLOPE,
-};
-use dataset::science::raster::{BandOut, BandValues, Raster, RasterLayout};
+use dataset::science::brdf::{leaky_relu, BrdfModel};
+use dataset::science::raster::Raster;
 
 use crate::crater_level::CraterLevel;
 use crate::data::{grid_mean_slope_deg, InputNormalisation};
 use crate::kernels::TrainOps;
 use crate::model::UNet;
 use crate::run_dir::{load_ensemble, Checkpoint};
-
-/// Default overlap between neighbouring crops, pixels (a quarter crop).
-pub const DEFAULT_OVERLAP: usize = 32;
 
 #[derive(Debug, Clone)]
 pub struct InferOptions {
@@ -39,60 +47,6 @@ pub struct InferOptions {
     /// The run's crater level ([`crate::crater_level`]): it sets the level of the crops in its band of a crater's
     /// frame (needs `crater_frames`; without them the maps are the network's alone, and [`ParamMaps`] says so).
     pub crater_level: Option<CraterLevel>,
-}
-
-/// Start offsets of crops of `crop` pixels along an axis of `len` pixels (`len ≥ crop`), stride `crop − overlap`,
-/// the last one flush with the end so every pixel is covered.
-pub fn crop_origins(len: usize, crop: usize, overlap: usize) -> Vec<usize> {
-    assert!(len >= crop && overlap < crop);
-    let stride = crop - overlap;
-    let mut origins: Vec<usize> = (0..)
-        .map(|k| k * stride)
-        .take_while(|&o| o + crop < len)
-        .collect();
-    origins.push(len - crop);
-    origins
-}
-
-/// Where crops start along a DEM axis of `dem_len` pixels, in DEM pixels (negative = in the reflect padding):
-/// the axis is padded by `overlap` on both sides (so border pixels get full weight) and at least to one crop.
-pub fn crop_starts(dem_len: usize, overlap: usize) -> Vec<isize> {
-    let padded = (dem_len + 2 * overlap).max(CROP_PX);
-    crop_origins(padded, CROP_PX, overlap)
-        .into_iter()
-        .map(|o| o as isize - overlap as isize)
-        .collect()
-}
-
-/// Blend weight of pixel `i` of a crop of `n` along one axis. With d = distance to the nearest crop edge and
-/// m = overlap / 4: 0 for d < m (U-Net outputs next to a crop edge see zero padding, not terrain), a sin² ramp over
-/// the next overlap − 2m pixels, 1 inside. Two crops overlapping by `overlap` then sum to exactly 1 (sin² + cos²),
-/// and no crop's edge pixels ever reach the output.
-pub fn taper(i: usize, n: usize, overlap: usize) -> f64 {
-    let d = i.min(n - 1 - i);
-    let margin = overlap / 4;
-    let ramp = overlap - 2 * margin;
-    if d < margin {
-        0.0
-    } else if d >= overlap - margin {
-        1.0
-    } else {
-        let u = (d - margin) as f64 + 0.5;
-        (std::f64::consts::FRAC_PI_2 * u / ramp as f64)
-            .sin()
-            .powi(2)
-    }
-}
-
-/// numpy-style 'reflect' index (edge not repeated): −1 → 1, n → n − 2.
-fn reflect(i: isize, n: usize) -> usize {
-    let n = n as isize;
-    if n == 1 {
-        return 0;
-    }
-    let period = 2 * (n - 1);
-    let m = i.rem_euclid(period);
-    (if m < n { m } else { period - m }) as usize
 }
 
 /// Parameter maps on the DEM grid: one band per BRDF parameter, LeakyReLU applied, NaN where the DEM has no data.
@@ -442,224 +396,4 @@ pub fn run_job<B: TrainOps>(
         );
     }
     ParamMaps::mean(members)
-}
-
-/// Write the maps as a GeoTIFF on the DEM's grid: same CRS and geotransform, NaN nodata, band descriptions naming
-/// each parameter's term and stating that the activation is applied.
-pub fn write_params_geotiff(
-    maps: &ParamMaps,
-    dem: &Raster,
-    overlap: usize,
-    path: &std::path::Path,
-) -> Result<()> {
-    let descriptions: Vec<String> = maps
-        .model
-        .term_names()
-        .iter()
-        .enumerate()
-        .map(|(j, term)| format!("p{j}: coefficient of {term} (LeakyReLU({LEAKY_SLOPE}) applied)"))
-        .collect();
-    let bands: Vec<BandOut> = maps
-        .bands
-        .iter()
-        .zip(&descriptions)
-        .map(|(values, description)| BandOut {
-            values: BandValues::Grid(values),
-            description,
-        })
-        .collect();
-    let layout = RasterLayout {
-        width: dem.width,
-        height: dem.height,
-        transform: dem.transform,
-        crs: &dem.crs,
-        nodata: f32::NAN,
-    };
-    dataset::science::raster::write_geotiff(
-        path,
-        &layout,
-        &bands,
-        &[
-            (BRDF_MODEL_KEY, maps.model.name().to_string()),
-            (
-                "G2R_ACTIVATION",
-                format!("LeakyReLU({LEAKY_SLOPE}) applied; I/F = lit * sum_k p_k * term_k"),
-            ),
-            ("G2R_OVERLAP_PX", overlap.to_string()),
-        ],
-    )?;
-    Ok(())
-}
-
-/// Render the maps over the DEM with one sun direction and a nadir camera (normals by central differences, cast
-/// shadows ignored): enough to see seams, which live in the parameters, not in the geometry.
-pub fn render_maps(maps: &ParamMaps, dem: &Raster, sun_dir_enu: [f64; 3]) -> Vec<f64> {
-    use dataset::science::geometry::{plane_normal, Cosines, HalfDiffCosines};
-    let (w, h) = (maps.width, maps.height);
-    let gsd = dem.transform.gsd_m();
-    let sun = glam::DVec3::from(sun_dir_enu).normalize();
-    let view = glam::DVec3::Z;
-    let z = |c: usize, r: usize| dem.data[r * w + c] as f64;
-    (0..w * h)
-        .map(|k| {
-            let (c, r) = (k % w, k / w);
-            let (cl, cr, ru, rd) = (
-                c.saturating_sub(1),
-                (c + 1).min(w - 1),
-                r.saturating_sub(1),
-                (r + 1).min(h - 1),
-            );
-            let dzdx = (z(cr, r) - z(cl, r)) / ((cr - cl).max(1) as f64 * gsd);
-            let dzdy = (z(c, ru) - z(c, rd)) / ((rd - ru).max(1) as f64 * gsd);
-            let n = plane_normal(dzdx, dzdy);
-            let cosines = Cosines::new(n, sun, view);
-            let half_diff = HalfDiffCosines::new(n, sun, view);
-            let raw: Vec<f64> = maps
-                .bands
-                .iter()
-                // The maps hold activated values; evaluate() expects raw ones.
-                .map(|b| inverse_leaky_relu(b[k] as f64))
-                .collect();
-            if raw.iter().any(|v| !v.is_finite()) {
-                return f64::NAN;
-            }
-            maps.model.evaluate(&raw, &cosines, &half_diff)
-        })
-        .collect()
-}
-
-/// Pixels this close to the image border are left out of [`seam_score`]: one-sided normals and reflected network
-/// context make the outermost rows differ, which says nothing about seams.
-pub const SEAM_BORDER_PX: usize = 4;
-
-/// Seam score of a rendered image: the mean squared pixel-to-pixel difference across the lines where a crop of
-/// the tiling (for this `overlap`) starts or ends, over the mean squared difference across all other lines, both
-/// away from the image border. ≈ 1: seams invisible; hard-edged tiles score above 1.
-pub fn seam_score(image: &[f64], width: usize, height: usize, overlap: usize) -> f64 {
-    let edges = |len: usize| -> Vec<usize> {
-        let mut e: Vec<usize> = crop_starts(len, overlap)
-            .into_iter()
-            .flat_map(|o| [o, o + CROP_PX as isize])
-            .filter(|&x| x > 0 && x < len as isize)
-            .map(|x| x as usize)
-            .collect();
-        e.sort_unstable();
-        e.dedup();
-        e
-    };
-    let (xs, ys) = (edges(width), edges(height));
-    let m = SEAM_BORDER_PX;
-    let inside = |c: usize, r: usize| c >= m && r >= m && c + m < width && r + m < height;
-    let (mut seam, mut seam_n, mut rest, mut rest_n) = (0.0, 0usize, 0.0, 0usize);
-    let mut add = |g: f64, on_seam: bool| {
-        if !g.is_finite() {
-            return;
-        }
-        if on_seam {
-            seam += g * g;
-            seam_n += 1;
-        } else {
-            rest += g * g;
-            rest_n += 1;
-        }
-    };
-    for r in 0..height {
-        for c in 1..width {
-            if inside(c, r) && inside(c - 1, r) {
-                add(
-                    image[r * width + c] - image[r * width + c - 1],
-                    xs.binary_search(&c).is_ok(),
-                );
-            }
-        }
-    }
-    for r in 1..height {
-        for c in 0..width {
-            if inside(c, r) && inside(c, r - 1) {
-                add(
-                    image[r * width + c] - image[(r - 1) * width + c],
-                    ys.binary_search(&r).is_ok(),
-                );
-            }
-        }
-    }
-    (seam / seam_n.max(1) as f64) / (rest / rest_n.max(1) as f64)
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn crops_cover_every_dem_pixel_and_regular_overlaps_sum_to_one() {
-        for (dem_len, overlap) in [
-            (1, 32),
-            (128, 0),
-            (128, 32),
-            (129, 32),
-            (300, 32),
-            (1000, 0),
-            (1000, 48),
-        ] {
-            let len = (dem_len + 2 * overlap).max(128);
-            let origins = crop_origins(len, 128, overlap);
-            assert_eq!(origins[0], 0);
-            assert_eq!(*origins.last().unwrap() + 128, len);
-            let mut covered = vec![0.0; len];
-            for o in &origins {
-                for i in 0..128 {
-                    covered[o + i] += taper(i, 128, overlap);
-                }
-            }
-            let dem = &covered[overlap..overlap + dem_len];
-            assert!(dem.iter().all(|&w| w > 0.0), "{dem_len} {overlap}");
-            for pair in origins.windows(2) {
-                assert!(
-                    pair[1] - pair[0] <= 128 - overlap,
-                    "stride {dem_len} {overlap}"
-                );
-            }
-        }
-        // 416 = 128 + 3 strides of 96: every DEM pixel's weights sum to exactly one (sin² + cos²).
-        let origins = crop_origins(416, 128, 32);
-        let mut covered = vec![0.0; 416];
-        for o in &origins {
-            for i in 0..128 {
-                covered[o + i] += taper(i, 128, 32);
-            }
-        }
-        assert!(covered[32..384].iter().all(|w| (w - 1.0).abs() < 1e-12));
-        assert_eq!(taper(0, 128, 0), 1.0);
-        assert_eq!(
-            (taper(0, 128, 32), taper(7, 128, 32), taper(120, 128, 32)),
-            (0.0, 0.0, 0.0)
-        );
-        let first = (std::f64::consts::FRAC_PI_2 * 0.5 / 16.0).sin().powi(2);
-        assert!((taper(8, 128, 32) - first).abs() < 1e-15);
-        assert_eq!((taper(24, 128, 32), taper(64, 128, 32)), (1.0, 1.0));
-    }
-
-    #[test]
-    fn reflect_matches_numpy() {
-        // numpy.pad([0,1,2,3], 2, 'reflect') = [2,1,0,1,2,3,2,1]
-        let got: Vec<usize> = (-2..6).map(|i| reflect(i, 4)).collect();
-        assert_eq!(got, vec![2, 1, 0, 1, 2, 3, 2, 1]);
-        assert_eq!(reflect(-3, 1), 0);
-    }
-
-    #[test]
-    fn seam_score_sees_a_step_on_a_crop_edge_and_not_a_smooth_ramp() {
-        let (w, h) = (300, 300);
-        let ramp: Vec<f64> = (0..w * h)
-            .map(|k| (k % w) as f64 * 0.01 + (k / w) as f64 * 0.02)
-            .collect();
-        assert!((seam_score(&ramp, w, h, 0) - 1.0).abs() < 1e-9);
-        let edge = crop_starts(w, 0)[1] as usize;
-        let stepped: Vec<f64> = ramp
-            .iter()
-            .enumerate()
-            .map(|(k, v)| v + if k % w >= edge { 0.5 } else { 0.0 })
-            .collect();
-        assert!(seam_score(&stepped, w, h, 0) > 10.0);
-    }
 }
