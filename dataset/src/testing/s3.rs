@@ -1,12 +1,13 @@
 //! An S3 server on 127.0.0.1 for tests (moto), and a TCP proxy in front of it that drops connections mid-transfer,
 //! as a failing network link does. Both are owned by the test that starts them and stopped when dropped.
 
+use std::collections::BTreeSet;
 use std::io::{Read, Write};
 use std::net::{Shutdown, TcpListener, TcpStream};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 /// The interpreter with moto: $G2R_PYTHON, else the project's .venv (which `.ci/setup` fills), else python3.
@@ -22,11 +23,33 @@ pub fn python() -> PathBuf {
     }
 }
 
+/// A loopback port free now and not handed out before in this process: tests start servers in parallel, and two
+/// of them asking the OS at once can be told the same port before either server binds it; the second server
+/// then fails to start, and its test talks to the first one's, which goes away when that test ends.
 fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .expect("a free loopback port")
-        .port()
+    static HANDED_OUT: Mutex<BTreeSet<u16>> = Mutex::new(BTreeSet::new());
+    let mut handed_out = HANDED_OUT.lock().unwrap_or_else(|e| e.into_inner());
+    loop {
+        let port = TcpListener::bind("127.0.0.1:0")
+            .and_then(|l| l.local_addr())
+            .expect("a free loopback port")
+            .port();
+        if handed_out.insert(port) {
+            return port;
+        }
+    }
+}
+
+/// One bare HTTP/1.1 request to `127.0.0.1:port`; the whole answer.
+fn http(port: u16, method: &str, path: &str) -> std::io::Result<String> {
+    let mut stream = TcpStream::connect(("127.0.0.1", port))?;
+    write!(
+        stream,
+        "{method} {path} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nContent-Length: 0\r\nConnection: close\r\n\r\n"
+    )?;
+    let mut answer = String::new();
+    stream.read_to_string(&mut answer)?;
+    Ok(answer)
 }
 
 /// moto's S3 server on a free loopback port, stopped (by its PID) when dropped.
@@ -36,7 +59,8 @@ pub struct Moto {
 }
 
 impl Moto {
-    /// Start it and wait until it listens (at most a minute).
+    /// Start it and wait until it answers HTTP (at most a minute). A listening socket is not enough: a request
+    /// sent while moto still sets itself up has been reset (CI, 2026-12-03), so readiness is a whole answer.
     pub fn start() -> Self {
         let port = free_port();
         let child = Command::new(python())
@@ -57,32 +81,28 @@ impl Moto {
                     python().display()
                 )
             });
-        let moto = Moto { child, port };
+        let mut moto = Moto { child, port };
         let started = Instant::now();
-        while TcpStream::connect(("127.0.0.1", port)).is_err() {
+        loop {
+            if let Ok(Some(status)) = moto.child.try_wait() {
+                panic!("moto exited ({status}) before answering on 127.0.0.1:{port}");
+            }
+            if http(port, "GET", "/").is_ok_and(|answer| answer.starts_with("HTTP/")) {
+                return moto;
+            }
             assert!(
                 started.elapsed() < Duration::from_secs(60),
-                "moto did not listen on 127.0.0.1:{port}; is moto[server] installed in {}? (.ci/setup)",
+                "moto did not answer on 127.0.0.1:{port}; is moto[server] installed in {}? (.ci/setup)",
                 python().display()
             );
             std::thread::sleep(Duration::from_millis(200));
         }
-        moto
     }
 
     /// One bare HTTP request (e.g. `PUT /bucket` creates a bucket); the status code.
     pub fn request(&self, method: &str, path: &str) -> u16 {
-        let mut stream = TcpStream::connect(("127.0.0.1", self.port)).expect("connecting to moto");
-        write!(
-            stream,
-            "{method} {path} HTTP/1.1\r\nHost: 127.0.0.1:{}\r\nContent-Length: 0\r\nConnection: close\r\n\r\n",
-            self.port
-        )
-        .expect("writing to moto");
-        let mut answer = String::new();
-        stream
-            .read_to_string(&mut answer)
-            .expect("reading moto's answer");
+        let answer = http(self.port, method, path)
+            .unwrap_or_else(|e| panic!("{method} {path} to moto on 127.0.0.1:{}: {e}", self.port));
         answer
             .split_whitespace()
             .nth(1)
