@@ -338,20 +338,23 @@ fn a_crater_catalogue_frames_every_sample_and_a_missing_one_is_named() {
     let path = tmp.path().join("tiny.toml");
     std::fs::write(&path, with_catalogue("craters.csv")).unwrap();
     run(&path, None);
-    let mut samples = Vec::new();
-    for entry in std::fs::read_dir(tmp.path().join("out/dataset"))
-        .unwrap()
-        .flatten()
-    {
-        if entry.path().extension().is_some_and(|e| e == "parquet") {
-            let file = dataset::contract::shard::ShardFile::open(&entry.path()).unwrap();
-            for group in 0..file.row_group_sizes().len() {
-                for batch in file.read_batches(group, None, true).unwrap() {
-                    samples.extend(dataset::contract::schema::batch_to_samples(&batch).unwrap());
+    let read_samples = |dataset: &Path| {
+        let mut samples = Vec::new();
+        for entry in std::fs::read_dir(dataset).unwrap().flatten() {
+            if entry.path().extension().is_some_and(|e| e == "parquet") {
+                let file = dataset::contract::shard::ShardFile::open(&entry.path()).unwrap();
+                for group in 0..file.row_group_sizes().len() {
+                    for batch in file.read_batches(group, None, true).unwrap() {
+                        samples
+                            .extend(dataset::contract::schema::batch_to_samples(&batch).unwrap());
+                    }
                 }
             }
         }
-    }
+        samples.sort_by(|a, b| a.sample_id.cmp(&b.sample_id));
+        samples
+    };
+    let samples = read_samples(&tmp.path().join("out/dataset"));
     assert!(samples.len() > 10, "{} samples", samples.len());
     for s in &samples {
         let crater = s
@@ -370,6 +373,46 @@ fn a_crater_catalogue_frames_every_sample_and_a_missing_one_is_named() {
             s.sample_id
         );
     }
+    // Framed by draws of the catalogue with a real one's errors: the same samples, placed in moved frames, and
+    // the manifest says so.
+    let with_errors = tmp.path().join("tiny-error.toml");
+    std::fs::write(
+        &with_errors,
+        with_catalogue("craters.csv")
+            .replace("dir = \"out\"", "dir = \"out-error\"")
+            .replace(
+                "[project]",
+                "[project]\ncrater_catalogue_error = { centre_sd_m = 100.0, diameter_log_sd = 0.05, \
+                 missed_fraction = 0.0, false_craters = 0.0, draws = 4 }",
+            ),
+    )
+    .unwrap();
+    run(&with_errors, None);
+    let drawn = read_samples(&tmp.path().join("out-error/dataset"));
+    let ids = |s: &[dataset::contract::schema::Sample]| {
+        s.iter().map(|s| s.sample_id.clone()).collect::<Vec<_>>()
+    };
+    assert_eq!(ids(&drawn), ids(&samples));
+    let moved = samples
+        .iter()
+        .zip(&drawn)
+        .filter(|(a, b)| (a.crater.unwrap().rho - b.crater.unwrap().rho).abs() > 1e-6)
+        .count();
+    assert!(
+        moved * 10 >= samples.len() * 9,
+        "{moved} of {} moved",
+        samples.len()
+    );
+    let manifest: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(tmp.path().join("out-error/dataset/manifest.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(manifest["crater_frame"]["catalogue_error"]["draws"], 4);
+    let exact: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(tmp.path().join("out/dataset/manifest.json")).unwrap(),
+    )
+    .unwrap();
+    assert!(exact["crater_frame"].get("catalogue_error").is_none());
     // A catalogue that is not there is named, with the manifest key to fix.
     std::fs::write(&path, with_catalogue("missing.csv")).unwrap();
     let m = PipelineManifest::load(&path).unwrap();

@@ -181,6 +181,20 @@ impl PipelineManifest {
                 dataset::contract::crater_frame::DEFAULT_MIN_DIAMETER_M
             );
         }
+        if let Some(error) = &manifest.project.crater_catalogue_error {
+            if manifest.inputs.crater_catalogue.is_none() {
+                anyhow::bail!(
+                    "{}: project.crater_catalogue_error simulates a catalogue's errors, but inputs.crater_catalogue names none: add the catalogue or drop the table",
+                    path.display()
+                );
+            }
+            if let Err(reason) = error.validate() {
+                anyhow::bail!(
+                    "{}: project.crater_catalogue_error: {reason}",
+                    path.display()
+                );
+            }
+        }
         let context_gsd_m = manifest.project.context_gsd_m;
         if !(context_gsd_m.is_finite() && context_gsd_m > 0.0) {
             anyhow::bail!(
@@ -234,6 +248,11 @@ pub struct ProjectParams {
         alias = "crater_min_diameter_m"
     )]
     pub crater_frame_min_diameter_m: f64,
+    /// Frame the samples with draws of the catalogue carrying a real catalogue's errors, so that a network
+    /// learning from the frame learns to expect them (`dataset::contract::catalogue_error`); the catalogue as it
+    /// is without. Drawn from `dataset.seed`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub crater_catalogue_error: Option<dataset::contract::catalogue_error::CatalogueError>,
 }
 
 fn default_crater_frame_min_diameter_m() -> f64 {
@@ -277,6 +296,47 @@ mod tests {
         assert_eq!(old.project.crater_frame_min_diameter_m, 3000.0);
         assert_eq!(new.project.crater_frame_min_diameter_m, 3000.0);
         assert!(with("crater_min_diameter_m = 1.0\ncrater_frame_min_diameter_m = 2.0").is_err());
+    }
+
+    /// A catalogue's simulated errors need a catalogue and fields in range; each refusal names the key.
+    #[test]
+    fn catalogue_errors_need_a_catalogue_and_fields_in_range() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(
+            dir.path().join("craters.csv"),
+            "lon_deg,lat_deg,diameter_m\n",
+        )
+        .unwrap();
+        let load = |catalogue: &str, error: &str| {
+            let path = dir.path().join("m.toml");
+            let text = tiny_manifest_toml(1, 1.0)
+                .replace("[inputs]", &format!("[inputs]\n{catalogue}"))
+                .replace(
+                    "[project]",
+                    &format!(
+                        "[project]\ncrater_catalogue_error = {{ centre_sd_m = 300.0, diameter_log_sd = 0.05, {error} }}"
+                    ),
+                );
+            std::fs::write(&path, text).unwrap();
+            PipelineManifest::load(&path).map_err(|e| e.to_string())
+        };
+        let fields = "missed_fraction = 0.05, false_craters = 0.5, draws = 8";
+        let catalogue = "crater_catalogue = \"craters.csv\"";
+        let loaded = load(catalogue, fields).unwrap();
+        assert_eq!(loaded.project.crater_catalogue_error.unwrap().draws, 8);
+        let err = load("", fields).unwrap_err();
+        assert!(err.contains("inputs.crater_catalogue"), "{err}");
+        for bad in [
+            "missed_fraction = 1.0, false_craters = 0.5, draws = 8",
+            "missed_fraction = 0.05, false_craters = -1.0, draws = 8",
+            "missed_fraction = 0.05, false_craters = 0.5, draws = 0",
+        ] {
+            let err = load(catalogue, bad).unwrap_err();
+            assert!(
+                err.contains("project.crater_catalogue_error"),
+                "{bad}: {err}"
+            );
+        }
     }
 
     /// Every pipeline manifest shipped in `manifests/` parses (worlds are `world-*.toml`, checked by `synth`).

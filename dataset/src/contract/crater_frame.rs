@@ -169,6 +169,10 @@ pub struct CraterFrameSource {
     pub catalogue_blake3: String,
     /// Catalogued craters at least this wide frame the samples (`project.crater_frame_min_diameter_m`).
     pub min_diameter_m: f64,
+    /// The simulated errors the samples were framed with, when they were (`project.crater_catalogue_error`,
+    /// drawn from the dataset's seed; [`crate::contract::catalogue_error`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub catalogue_error: Option<crate::contract::catalogue_error::CatalogueError>,
 }
 
 impl CraterFrames {
@@ -203,7 +207,11 @@ impl CraterFrames {
     }
 
     /// What these frames were built from, as a dataset manifest records it.
-    pub fn source(catalogue: &Path, min_diameter_m: f64) -> Result<CraterFrameSource> {
+    pub fn source(
+        catalogue: &Path,
+        min_diameter_m: f64,
+        catalogue_error: Option<crate::contract::catalogue_error::CatalogueError>,
+    ) -> Result<CraterFrameSource> {
         Ok(CraterFrameSource {
             catalogue: catalogue
                 .file_name()
@@ -212,6 +220,7 @@ impl CraterFrames {
             catalogue_blake3: crate::files::hash_file(catalogue)
                 .with_context(|| format!("{}: cannot read the catalogue", catalogue.display()))?,
             min_diameter_m,
+            catalogue_error,
         })
     }
 
@@ -525,7 +534,7 @@ mod tests {
                 "{err}"
             );
         }
-        let source = CraterFrames::source(&on_the_dem, 1000.0).unwrap();
+        let source = CraterFrames::source(&on_the_dem, 1000.0, None).unwrap();
         assert_eq!(source.catalogue, "here.csv");
         assert_eq!(
             source.catalogue_blake3,

@@ -15,6 +15,7 @@ pub mod table;
 use std::path::PathBuf;
 
 use anyhow::Context;
+use dataset::contract::catalogue_error::FramedCatalogue;
 use dataset::contract::crater_frame::CraterFrames;
 use dataset::contract::publication::{DOCUMENT_FILES, MANIFEST_FILE};
 use dataset::science::raster::Raster;
@@ -259,10 +260,20 @@ pub fn pipeline_scoped(
         .chain(metadata.iter().cloned())
         .collect(),
         // The row-group size is the shards' (publish copies whole groups), so it is a projection parameter too.
-        params: serde_json::json!({
-            "project": serde_json::to_value(&m.project)?,
-            "row_group_rows": group_rows,
-        }),
+        // The seed draws the catalogue's simulated errors; without them it does not enter, and the lock of a
+        // dataset framed by the catalogue as it is stays as it was.
+        params: if m.project.crater_catalogue_error.is_some() {
+            serde_json::json!({
+                "project": serde_json::to_value(&m.project)?,
+                "row_group_rows": group_rows,
+                "seed": seed,
+            })
+        } else {
+            serde_json::json!({
+                "project": serde_json::to_value(&m.project)?,
+                "row_group_rows": group_rows,
+            })
+        },
         outputs: layout
             .split_samples
             .iter()
@@ -275,7 +286,15 @@ pub fn pipeline_scoped(
             let dem = dem5.get()?;
             let crater_frames = catalogue5
                 .as_ref()
-                .map(|path| CraterFrames::from_catalogue(dem, path, pp.crater_frame_min_diameter_m))
+                .map(|path| {
+                    FramedCatalogue::new(
+                        dem,
+                        path,
+                        pp.crater_frame_min_diameter_m,
+                        pp.crater_catalogue_error.as_ref(),
+                        seed,
+                    )
+                })
                 .transpose()?;
             project::run(
                 (dem, crater_frames.as_ref()),
@@ -294,7 +313,11 @@ pub fn pipeline_scoped(
         check: None,
     };
     let (l6, dem6, m6, lock6) = (layout.clone(), dem.clone(), m.clone(), lock_path.clone());
-    let (catalogue6, min_diameter6) = (catalogue.clone(), m.project.crater_frame_min_diameter_m);
+    let (catalogue6, min_diameter6, error6) = (
+        catalogue.clone(),
+        m.project.crater_frame_min_diameter_m,
+        m.project.crater_catalogue_error,
+    );
     let check_dir = layout.dataset.clone();
     let publish = Stage {
         name: "publish",
@@ -346,7 +369,7 @@ pub fn pipeline_scoped(
                 lock_blake3,
                 crater_frame: catalogue6
                     .as_deref()
-                    .map(|path| CraterFrames::source(path, min_diameter6))
+                    .map(|path| CraterFrames::source(path, min_diameter6, error6))
                     .transpose()?,
             };
             let p = &out.paths;

@@ -7,8 +7,8 @@
 //! corner shared by the four middle cells, i.e. the geotransform at (c, r) in pixel-edge coordinates.
 
 use dataset::contract::acquisition::AcquisitionMetadata;
+use dataset::contract::catalogue_error::FramedCatalogue;
 use dataset::contract::context::ContextSampler;
-use dataset::contract::crater_frame::CraterFrames;
 use dataset::contract::schema::{crop_interior, ContextWindow, Sample, CROP_PX, DEM_PX};
 use dataset::science::crs::{CrsError, LocalFrame};
 use dataset::science::horizon::{
@@ -303,9 +303,10 @@ impl TrainDemStatistic {
 
 /// Stage: project every assigned centre, ortho by ortho (sorted), crops in parallel in chunks of one row group,
 /// and stream accepted samples into their split's file; rejections are counted per ortho and reason. With
-/// `crater_frames` (from [`CraterFrames::from_catalogue`]), each sample is placed in its crater's frame.
+/// `crater_frames` (the catalogue's, or draws of its simulated errors), each sample is placed in its crater's
+/// frame.
 pub fn run(
-    (dem, crater_frames): (&Raster, Option<&CraterFrames>),
+    (dem, crater_frames): (&Raster, Option<&FramedCatalogue>),
     orthos: &[super::ingest::OrthoRecord],
     assignment_path: &std::path::Path,
     params: &ProjectParams,
@@ -439,7 +440,12 @@ pub fn run(
                             sample.crater = crater_frames.and_then(|frames| {
                                 let crop_mean_m = crop_interior(&sample.dem_m).sum::<f64>()
                                     / (CROP_PX * CROP_PX) as f64;
-                                frames.position(sample.center_x_m, sample.center_y_m, crop_mean_m)
+                                frames.position(
+                                    &sample.sample_id,
+                                    sample.center_x_m,
+                                    sample.center_y_m,
+                                    crop_mean_m,
+                                )
                             });
                             sample.split = Split::ALL[split_of[i]];
                             sample.tile_id = tiles[i].clone();
@@ -555,6 +561,7 @@ mod tests {
             sun_disk_samples: 4,
             context_gsd_m: crate::manifest::DEFAULT_CONTEXT_GSD_M,
             crater_frame_min_diameter_m: dataset::contract::crater_frame::DEFAULT_MIN_DIAMETER_M,
+            crater_catalogue_error: None,
         }
     }
 
