@@ -14,7 +14,27 @@ pub struct WorldConfig {
     pub complex_craters: Option<ComplexCraterPopulation>,
     pub reflectance: ReflectanceConfig,
     pub acquisitions: AcquisitionConfig,
+    /// The acquisition count and the sun's incidence range drawn per world instead of fixed by `[acquisitions]`:
+    /// worlds of one preset then differ in their lighting as they do in their craters.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub acquisition_draws: Option<AcquisitionDraws>,
     pub dem_product: DemProductConfig,
+}
+
+/// Bounds of a world's drawn acquisitions ([`WorldConfig::with_drawn_acquisitions`]); each draw is uniform.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AcquisitionDraws {
+    /// Acquisitions, in `count_min..=count_max`: replaces `acquisitions.count`.
+    pub count_min: usize,
+    pub count_max: usize,
+    /// The incidence range's low end, in `incidence_low_min_deg..=incidence_low_max_deg`, and its width, in
+    /// `incidence_span_min_deg..=incidence_span_max_deg`: replace `acquisitions.incidence_min_deg` and
+    /// `incidence_max_deg`.
+    pub incidence_low_min_deg: f64,
+    pub incidence_low_max_deg: f64,
+    pub incidence_span_min_deg: f64,
+    pub incidence_span_max_deg: f64,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -186,6 +206,7 @@ pub fn tiny() -> WorldConfig {
     cfg.terrain.fbm_largest_wavelength_m = 2000.0;
     cfg.complex_crater = None;
     cfg.complex_craters = None;
+    cfg.acquisition_draws = None;
     cfg.acquisitions.count = 3;
     cfg.acquisitions.strip_width_m = 2000.0;
     cfg
@@ -194,6 +215,24 @@ pub fn tiny() -> WorldConfig {
 impl WorldConfig {
     pub fn from_toml(text: &str) -> Result<Self, toml::de::Error> {
         toml::from_str(text)
+    }
+
+    /// This config with `[acquisition_draws]` drawn for `seed` into `[acquisitions]` (count and incidence range),
+    /// from its own keyed stream, so the draw moves nothing else of the world; without the section, itself.
+    /// `world.json` echoes the drawn config, so a world's lighting is read off its manifest.
+    pub fn with_drawn_acquisitions(&self, seed: u64) -> Self {
+        use rand::Rng;
+        let mut drawn = self.clone();
+        if let Some(d) = &self.acquisition_draws {
+            let mut rng = dataset::contract::rng::keyed_rng(seed, "world acquisition draws", 0);
+            let a = &mut drawn.acquisitions;
+            a.count = rng.random_range(d.count_min..=d.count_max);
+            a.incidence_min_deg =
+                rng.random_range(d.incidence_low_min_deg..=d.incidence_low_max_deg);
+            a.incidence_max_deg = a.incidence_min_deg
+                + rng.random_range(d.incidence_span_min_deg..=d.incidence_span_max_deg);
+        }
+        drawn
     }
 
     /// Reject configurations the generator can't honour, with the field to fix.
@@ -232,6 +271,19 @@ impl WorldConfig {
                 return Err("complex_craters.diameter_max_m must be at most the world's width and height: a crater must fit".into());
             }
         }
+        if let Some(d) = &self.acquisition_draws {
+            let ordered = |lo: f64, hi: f64| lo.is_finite() && hi.is_finite() && lo <= hi;
+            let in_bounds = 1 <= d.count_min
+                && d.count_min <= d.count_max
+                && ordered(d.incidence_low_min_deg, d.incidence_low_max_deg)
+                && ordered(d.incidence_span_min_deg, d.incidence_span_max_deg)
+                && d.incidence_low_min_deg >= 0.0
+                && d.incidence_span_min_deg >= 0.0
+                && d.incidence_low_max_deg + d.incidence_span_max_deg < 90.0;
+            if !in_bounds {
+                return Err("acquisition_draws: need 1 ≤ count_min ≤ count_max, 0 ≤ incidence_low_min_deg ≤ incidence_low_max_deg, 0 ≤ incidence_span_min_deg ≤ incidence_span_max_deg, and incidence_low_max_deg + incidence_span_max_deg < 90 (sun above the horizon)".into());
+            }
+        }
         let a = &self.acquisitions;
         if !(0.0..90.0).contains(&a.incidence_min_deg)
             || a.incidence_max_deg >= 90.0
@@ -240,5 +292,105 @@ impl WorldConfig {
             return Err("acquisitions.incidence_min_deg..incidence_max_deg must lie in [0, 90) (sun above the horizon)".into());
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn with_draws() -> WorldConfig {
+        let mut cfg = tiny();
+        cfg.acquisition_draws = Some(AcquisitionDraws {
+            count_min: 2,
+            count_max: 5,
+            incidence_low_min_deg: 15.0,
+            incidence_low_max_deg: 35.0,
+            incidence_span_min_deg: 30.0,
+            incidence_span_max_deg: 50.0,
+        });
+        cfg
+    }
+
+    #[test]
+    fn a_world_without_acquisition_draws_keeps_its_acquisitions() {
+        let cfg = tiny();
+        let json = |c: &WorldConfig| serde_json::to_string(c).unwrap();
+        assert_eq!(json(&cfg.with_drawn_acquisitions(7)), json(&cfg));
+    }
+
+    #[test]
+    fn drawn_acquisitions_lie_in_their_bounds_reach_both_ends_and_follow_the_seed() {
+        let cfg = with_draws();
+        assert_eq!(cfg.validate(), Ok(()));
+        let mut counts = std::collections::BTreeSet::new();
+        let (mut lows, mut spans) = (Vec::new(), Vec::new());
+        for seed in 0..200 {
+            let a = cfg.with_drawn_acquisitions(seed).acquisitions;
+            counts.insert(a.count);
+            assert!(
+                (15.0..=35.0).contains(&a.incidence_min_deg),
+                "{}",
+                a.incidence_min_deg
+            );
+            let span = a.incidence_max_deg - a.incidence_min_deg;
+            assert!((30.0..=50.0).contains(&span), "{span}");
+            lows.push(a.incidence_min_deg);
+            spans.push(span);
+        }
+        // 200 uniform draws of 4 counts: each is missed with probability (3/4)^200 ≈ 1e-25.
+        assert_eq!(counts.into_iter().collect::<Vec<_>>(), [2, 3, 4, 5]);
+        // 200 uniform draws over 20° each: the smallest within 1° of the low end misses with probability
+        // (19/20)^200 ≈ 3.5e-5, and likewise the largest of the high end.
+        for (values, lo, hi) in [(&lows, 15.0, 35.0), (&spans, 30.0, 50.0)] {
+            let smallest = values.iter().cloned().fold(f64::INFINITY, f64::min);
+            let largest = values.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+            assert!(
+                smallest < lo + 1.0 && largest > hi - 1.0,
+                "{smallest} … {largest}"
+            );
+        }
+        let a = |seed| {
+            cfg.with_drawn_acquisitions(seed)
+                .acquisitions
+                .incidence_min_deg
+        };
+        assert_eq!(a(3), a(3));
+        assert_ne!(a(3), a(4));
+    }
+
+    #[test]
+    fn every_preset_parses_and_validates_and_many_craters_draws_its_lighting() {
+        for name in ["demo", "tycho-full", "many-craters"] {
+            let cfg = WorldConfig::from_toml(preset(name).unwrap()).unwrap();
+            assert_eq!(cfg.validate(), Ok(()), "{name}");
+            assert_eq!(
+                cfg.acquisition_draws.is_some(),
+                name == "many-craters",
+                "{name}"
+            );
+        }
+        let cfg = WorldConfig::from_toml(preset("many-craters").unwrap()).unwrap();
+        let d = cfg.acquisition_draws.clone().unwrap();
+        let a = cfg.with_drawn_acquisitions(42).acquisitions;
+        assert!((d.count_min..=d.count_max).contains(&a.count));
+        assert!((d.incidence_low_min_deg..=d.incidence_low_max_deg).contains(&a.incidence_min_deg));
+    }
+
+    #[test]
+    fn acquisition_draws_out_of_bounds_are_refused_naming_the_section() {
+        let bad = |edit: fn(&mut AcquisitionDraws)| {
+            let mut cfg = with_draws();
+            edit(cfg.acquisition_draws.as_mut().unwrap());
+            cfg.validate().unwrap_err()
+        };
+        for err in [
+            bad(|d| d.count_min = 0),
+            bad(|d| d.count_max = 1),
+            bad(|d| d.incidence_low_max_deg = 10.0),
+            bad(|d| d.incidence_span_max_deg = 60.0),
+        ] {
+            assert!(err.contains("acquisition_draws"), "{err}");
+        }
     }
 }

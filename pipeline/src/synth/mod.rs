@@ -125,6 +125,16 @@ pub fn generate(
     config
         .validate()
         .map_err(|e| anyhow::anyhow!("world config: {e}"))?;
+    let config = &config.with_drawn_acquisitions(seed);
+    if config.acquisition_draws.is_some() {
+        let a = &config.acquisitions;
+        info!(
+            count = a.count,
+            incidence_min_deg = a.incidence_min_deg,
+            incidence_max_deg = a.incidence_max_deg,
+            "acquisitions drawn for this world"
+        );
+    }
     if out.exists() {
         if !force {
             bail!(
