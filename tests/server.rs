@@ -468,6 +468,7 @@ fn trainer_over_http_gets_the_same_first_epoch_batches_as_from_local_files() {
             std_m: 150.0,
             absolute: false,
             crater_rms_m: None,
+            crater_frame: false,
         }),
     };
     let from_local: Vec<_> = EpochStream::start(

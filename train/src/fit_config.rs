@@ -7,7 +7,9 @@ use dataset::science::brdf::BrdfModel;
 use crate::data::{StreamConfig, CONTEXT_CHANNELS};
 use crate::model::UNetConfig;
 
-/// The `config.json` format this build writes: version 11 since 2026-11-29 (version 10 lacks `crater_input`,
+/// The `config.json` format this build writes: version 12 since 2026-12-03 (version 11 lacks
+/// `crater_frame_input`, which loads as false: the crater input is the height alone, and `also_validate_on`, which
+/// loads as empty: validation on `--data`'s held-out tiles alone; version 10 also lacks `crater_input`,
 /// which loads as false; version 9 also lacks `also_train_on`,
 /// which loads as empty: one dataset; version 8 also lacks `weight_decay`, which loads as `None`: plain Adam; version 7 also lacks `nonnegative_start`,
 /// which loads as false: the head started at the unconstrained fit; version 6 also lacks `film`, which loads
@@ -16,7 +18,7 @@ use crate::model::UNetConfig;
 /// every run had before the field existed (constant learning rate, relief input only, no context window). From
 /// version 2 on every field is written and required, and a new field means a new version with its conversion
 /// in `StoredFitConfig`.
-pub const FIT_CONFIG_VERSION: u32 = 11;
+pub const FIT_CONFIG_VERSION: u32 = 12;
 
 /// Everything that defines a run (saved as `config.json`; a resume must match it). The network's head starts
 /// at the model's uniform least-squares fit ([`crate::model::UNet::with_uniform_head`]), unconstrained or
@@ -47,6 +49,9 @@ pub struct FitConfig {
     /// Feed the crop's height relative to its crater's median profile as a context plane
     /// ([`crate::data::ContextNormalisation::crater_rms_m`]); needs `context_input`.
     pub crater_input: bool,
+    /// Feed the crater input as a frame: the height, the normalised radius and whether the crop is framed at all
+    /// ([`crate::data::ContextNormalisation::crater_frame`]); needs `crater_input`.
+    pub crater_frame_input: bool,
     /// Keep an exponential moving average of the weights with this decay ([`crate::weight_average`]), validated and
     /// checkpointed beside the raw network; `None`: no average.
     pub ema_decay: Option<f64>,
@@ -69,6 +74,9 @@ pub struct FitConfig {
     /// ([`crate::data::PooledSource`]), in order; empty: `--data`'s alone. Names, not paths, so a run resumes
     /// from wherever the datasets now lie.
     pub also_train_on: Vec<String>,
+    /// The dataset names of the publications whose validation splits were pooled with `--data`'s
+    /// ([`crate::data::PooledSource::also_validating_on`]: held-out worlds), in order; empty: `--data`'s alone.
+    pub also_validate_on: Vec<String>,
 }
 
 /// `config.json` as any version wrote it: the fields version 1 always had, and the later ones as options
@@ -99,6 +107,8 @@ struct StoredFitConfig {
     weight_decay: Option<Option<f64>>,
     also_train_on: Option<Vec<String>>,
     crater_input: Option<bool>,
+    crater_frame_input: Option<bool>,
+    also_validate_on: Option<Vec<String>>,
 }
 
 /// A key that is in the file, whatever its value (`null` included): serde alone reads a missing `Option` field
@@ -210,6 +220,18 @@ impl TryFrom<StoredFitConfig> for FitConfig {
                 .crater_input
                 .ok_or_else(|| required("crater_input"))?
         };
+        let (crater_frame_input, also_validate_on) = if version < 12 {
+            (false, Vec::new())
+        } else {
+            (
+                stored
+                    .crater_frame_input
+                    .ok_or_else(|| required("crater_frame_input"))?,
+                stored
+                    .also_validate_on
+                    .ok_or_else(|| required("also_validate_on"))?,
+            )
+        };
         Ok(Self {
             version: FIT_CONFIG_VERSION,
             model: stored.model,
@@ -224,6 +246,7 @@ impl TryFrom<StoredFitConfig> for FitConfig {
             context_input,
             context_absolute,
             crater_input,
+            crater_frame_input,
             ema_decay,
             steep_weight,
             head_hidden,
@@ -232,6 +255,7 @@ impl TryFrom<StoredFitConfig> for FitConfig {
             nonnegative_start,
             weight_decay,
             also_train_on,
+            also_validate_on,
         })
     }
 }
@@ -245,6 +269,7 @@ impl FitConfig {
                 CONTEXT_CHANNELS
                     + usize::from(self.context_absolute)
                     + usize::from(self.crater_input)
+                    + 2 * usize::from(self.crater_frame_input)
             } else {
                 0
             })
@@ -395,6 +420,7 @@ mod tests {
             context_input: true,
             context_absolute: true,
             crater_input: true,
+            crater_frame_input: true,
             ema_decay: Some(0.995),
             steep_weight: 3.0,
             head_hidden: 32,
@@ -403,19 +429,34 @@ mod tests {
             nonnegative_start: true,
             weight_decay: Some(0.01),
             also_train_on: vec!["g2r-tycho-full-seed44".into()],
+            also_validate_on: vec!["g2r-many-craters-seed7".into()],
         };
         let json = serde_json::to_string(&config).unwrap();
-        assert!(json.contains(r#""version":11"#), "{json}");
+        assert!(json.contains(r#""version":12"#), "{json}");
         assert_eq!(serde_json::from_str::<FitConfig>(&json).unwrap(), config);
-        assert_eq!(config.net_config().context_channels, CONTEXT_CHANNELS + 2);
+        assert_eq!(config.net_config().context_channels, CONTEXT_CHANNELS + 4);
         let cut = json.replace(r#","context_input":true"#, "");
         let err = serde_json::from_str::<FitConfig>(&cut)
             .unwrap_err()
             .to_string();
         assert!(
-            err.contains("version 11") && err.contains("`context_input`"),
+            err.contains("version 12") && err.contains("`context_input`"),
             "{err}"
         );
+        let cut = json.replace(r#","crater_frame_input":true"#, "");
+        let err = serde_json::from_str::<FitConfig>(&cut)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("`crater_frame_input`"), "{err}");
+        let cut = cut.replace(r#","also_validate_on":["g2r-many-craters-seed7"]"#, "");
+        // Version 11 wrote everything but `crater_frame_input` and `also_validate_on`: its crater input was the
+        // height alone, and it validated on one dataset.
+        let v11 = cut.replace(r#""version":12"#, r#""version":11"#);
+        let loaded = serde_json::from_str::<FitConfig>(&v11).unwrap();
+        assert!(loaded.crater_input && !loaded.crater_frame_input);
+        assert!(loaded.also_validate_on.is_empty());
+        assert_eq!(loaded.net_config().context_channels, CONTEXT_CHANNELS + 2);
+        let json = v11;
         let cut = json.replace(r#","crater_input":true"#, "");
         let err = serde_json::from_str::<FitConfig>(&cut)
             .unwrap_err()

@@ -48,8 +48,10 @@ fn m2_config() -> FitConfig {
         nonnegative_start: false,
         weight_decay: None,
         also_train_on: Vec::new(),
+        also_validate_on: Vec::new(),
         context_absolute: false,
         crater_input: false,
+        crater_frame_input: false,
     }
 }
 
@@ -73,6 +75,7 @@ fn eval_rows_equal_validation_and_direct_baselines() {
         calibration_samples: 6,
         panels: 2,
         symmetry_mean: false,
+        without_crater_frames: false,
     };
     let input = InputNormalisation::relief(source.manifest().dem_std_m);
     let calibration = calibrate(&source, 6, BrdfModel::M2).unwrap();
@@ -275,6 +278,7 @@ fn ensemble_learned_is_the_mean_of_its_members_renderings() {
         calibration_samples: 6,
         panels: 0,
         symmetry_mean: false,
+        without_crater_frames: false,
     };
     let members: Vec<Vec<f64>> = runs
         .iter()
@@ -512,6 +516,7 @@ fn a_crater_level_sets_learned_in_its_band_and_keeps_the_network_beside_it() {
         calibration_samples: 6,
         panels: 0,
         symmetry_mean: false,
+        without_crater_frames: false,
     };
     let calibration = calibrate(&source, 6, BrdfModel::H1).unwrap();
     let mut seen = Vec::new();

@@ -290,6 +290,7 @@ fn context_input(crater_rms_m: Option<f64>) -> InputNormalisation {
             std_m: 25.0,
             absolute: false,
             crater_rms_m,
+            crater_frame: false,
         }),
     }
 }
@@ -362,6 +363,7 @@ fn symmetry_mean_is_an_equivariant_ensemble_of_the_eight_views() {
             std_m: 150.0,
             absolute: false,
             crater_rms_m: None,
+            crater_frame: false,
         }),
     };
     let net = random_net_with(1, CONTEXT_CHANNELS);
@@ -509,6 +511,78 @@ fn a_crater_input_needs_the_catalogue_and_follows_where_it_puts_the_crater() {
     assert!(
         change > 1e-3 && change.is_finite(),
         "the crater plane did not reach the network: max change {change:e}"
+    );
+}
+
+/// A run that feeds the crater input as a frame runs without a catalogue, every crop unframed, and a catalogue
+/// whose crater lies past the frame's reach (3 radii) from every crop gives exactly those maps; one in reach gives
+/// others.
+#[test]
+fn a_crater_frame_input_runs_without_a_catalogue_as_with_craters_out_of_reach() {
+    use dataset::contract::crater_frame::{CatalogueCrater, CraterFrames};
+    let dem = dem(320, 240, 0);
+    let mut input = context_input(Some(20.0));
+    input.context.as_mut().unwrap().crater_frame = true;
+    assert_eq!(input.context_channels(), CONTEXT_CHANNELS + 3);
+    let net = random_net_with(1, CONTEXT_CHANNELS + 3);
+    let run = |frames: Option<CraterFrames>| {
+        let options = InferOptions {
+            overlap: 32,
+            batch_size: 4,
+            input,
+            crater_frames: frames.map(std::sync::Arc::new),
+            crater_level: None,
+        };
+        infer_params(
+            &net,
+            BrdfModel::M2,
+            &dem,
+            &options,
+            &Default::default(),
+            |_, _| {},
+        )
+        .unwrap()
+    };
+    // A crater `diameter_m` across centred `(east_m, south_m)` from the grid's corner (the DEM spans 1.6 × 1.2 km
+    // at 5 m).
+    let frames = |east_m: f64, south_m: f64, diameter_m: f64| {
+        let (lon_deg, lat_deg) = dem
+            .crs
+            .to_lonlat_deg(-800.0 + east_m, -1_309_000.0 - south_m)
+            .unwrap();
+        let crater = CatalogueCrater {
+            lon_deg,
+            lat_deg,
+            diameter_m,
+        };
+        let (frames, report) = CraterFrames::new(&dem, &[crater], 10.0).unwrap();
+        assert_eq!(report.framed, 1);
+        frames
+    };
+    let without = run(None);
+    // A 60 m crater midway between four crop centres: each centre lies 113 m, 3.8 radii, from it.
+    let small = frames(880.0, 560.0, 60.0);
+    let starts = |len: usize| train::inference::crop_starts(len, 32);
+    for r0 in starts(dem.height) {
+        for c0 in starts(dem.width) {
+            let (x, y) = dem.transform.pixel_edge(c0 as f64 + 32.0, r0 as f64 + 32.0);
+            let at = small.position(x, y, 0.0).unwrap();
+            assert!(
+                at.rho > 3.0,
+                "a crop centre {} radii from the crater",
+                at.rho
+            );
+        }
+    }
+    assert_eq!(
+        max_abs_diff_where(&without, &run(Some(small)), |_| true),
+        0.0
+    );
+    let in_reach = run(Some(frames(900.0, 700.0, 520.0)));
+    let change = max_abs_diff_where(&without, &in_reach, |_| true);
+    assert!(
+        change > 1e-3 && change.is_finite(),
+        "the frame planes did not reach the network: max change {change:e}"
     );
 }
 
@@ -707,6 +781,7 @@ fn infer_frames_craters_with_the_minimum_diameter_the_run_was_trained_with() {
                 catalogue: "craters.csv".into(),
                 catalogue_blake3: dataset::files::hash_file(&catalogue).unwrap(),
                 min_diameter_m,
+                catalogue_error: None,
             }),
         };
         dataset::files::write_json_atomic(&run.join("normalisation.json"), &record).unwrap();

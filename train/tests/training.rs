@@ -58,8 +58,10 @@ fn config(
         nonnegative_start: false,
         weight_decay: None,
         also_train_on: Vec::new(),
+        also_validate_on: Vec::new(),
         context_absolute: false,
         crater_input: false,
+        crater_frame_input: false,
     }
 }
 
@@ -307,6 +309,7 @@ fn stopping_and_resuming_gives_the_same_network_as_an_uninterrupted_run() {
         nonnegative_start: false,
         context_absolute: false,
         crater_input: false,
+        crater_frame_input: false,
         ..config(BrdfModel::M2, 2, 1e-3, 12, true)
     };
     let device = Default::default();
@@ -638,7 +641,8 @@ fn steep_weighted_epochs_draw_steep_crops_in_proportion_to_their_weight() {
 /// `fit --also-train-on`: a pool of two publications trains exactly as one publication holding both train
 /// splits, shard after shard (the same row groups in the same order give the same epoch plan, batches and
 /// steps), while its validation split is the first publication's alone. Its train rows read back as each member
-/// holds them, and a dataset pooled twice is refused.
+/// holds them, and a dataset pooled twice is refused. A member pooled for validation only (`--also-validate-on`)
+/// adds its validation split and nothing to train on.
 #[test]
 fn a_pool_of_publications_trains_as_one_holding_both_train_splits() {
     use dataset::contract::schema::{Sample, Split};
@@ -671,7 +675,10 @@ fn a_pool_of_publications_trains_as_one_holding_both_train_splits() {
     );
     let more = publish(
         "more",
-        &[("train", vec![more_train.clone()]), ("val", vec![more_val])],
+        &[
+            ("train", vec![more_train.clone()]),
+            ("val", vec![more_val.clone()]),
+        ],
     );
     let both = publish(
         "both",
@@ -714,6 +721,22 @@ fn a_pool_of_publications_trains_as_one_holding_both_train_splits() {
     };
     assert_eq!(sizes(&*pool), sizes(&*both));
 
+    // `--also-validate-on`: a member pooled for validation only adds its validation split, nothing to train.
+    let validating = PooledSource::new(first.clone(), Vec::new())
+        .unwrap()
+        .also_validating_on(vec![more.clone()])
+        .unwrap();
+    let dems = |samples: &[Sample]| samples.iter().map(|s| s.dem_m.clone()).collect::<Vec<_>>();
+    assert_eq!(rows(&validating, Split::Train), dems(&first_train));
+    assert_eq!(
+        rows(&validating, Split::Val),
+        dems(&[first_val.clone(), more_val].concat())
+    );
+    assert_eq!(
+        (validating.further_names(), validating.validation_names()),
+        (Vec::<String>::new(), vec!["more".to_string()])
+    );
+
     let err = PooledSource::new(first.clone(), vec![more.clone(), more.clone()])
         .err()
         .unwrap()
@@ -722,6 +745,10 @@ fn a_pool_of_publications_trains_as_one_holding_both_train_splits() {
         err.contains("\"more\"") && err.contains("--also-train-on"),
         "{err}"
     );
+    assert!(PooledSource::new(first.clone(), vec![more.clone()])
+        .unwrap()
+        .also_validating_on(vec![more.clone()])
+        .is_err());
 
     let device = Default::default();
     let cfg = config(BrdfModel::M2, 2, 1e-3, 16, false);

@@ -2,7 +2,7 @@
 //! split and saved with a run so evaluation and inference feed the network what training did.
 
 use anyhow::{bail, Result};
-use dataset::contract::crater_frame::CraterPosition;
+use dataset::contract::crater_frame::{CraterPosition, PROFILE_RHO_MAX};
 use dataset::contract::schema::{Sample, CONTEXT_PX};
 
 use super::{crop_interior_m, SampleSource};
@@ -44,6 +44,19 @@ pub struct ContextNormalisation {
     /// have none.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub crater_rms_m: Option<f64>,
+    /// Feed the crater input as a frame (`--crater-frame-input`): the height against the profile as above, the
+    /// crop's normalised radius ρ over the profile's reach, and a plane that is 1 where the crop is framed
+    /// ([`framed`]). An unframed crop (no catalogue, its crater missed by the catalogue, or past the reach) is fed
+    /// 0, 1 and 0: the network learns to do without a frame, and one model runs on a site with a catalogue or
+    /// without. Runs written before it existed have none.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub crater_frame: bool,
+}
+
+/// A crop's crater frame when it has one within the profile's reach ([`PROFILE_RHO_MAX`] radii): past it the
+/// crater is not the crop's terrain, and the frame input treats the crop as it treats one with no catalogue.
+pub fn framed(crater: Option<&CraterPosition>) -> Option<&CraterPosition> {
+    crater.filter(|c| c.rho < PROFILE_RHO_MAX)
 }
 
 /// Planes of the relative context input: relative height, then a mask (1 where the cell has DEM). An absolute
@@ -88,18 +101,29 @@ impl ContextNormalisation {
             std_m,
             absolute: false,
             crater_rms_m: None,
+            crater_frame: false,
         })
     }
 
-    /// The RMS of train samples' crater-relative heights, for `--crater-input`.
-    pub fn crater_rms_of_samples<'a>(samples: impl IntoIterator<Item = &'a Sample>) -> Result<f64> {
+    /// The RMS of train samples' crater-relative heights, for `--crater-input`: over every sample, each of
+    /// which must have a frame; with `frame_input`, over the [`framed`] ones (a catalogue's simulated errors
+    /// leave some samples with no frame in reach, or none at all).
+    pub fn crater_rms_of_samples<'a>(
+        samples: impl IntoIterator<Item = &'a Sample>,
+        frame_input: bool,
+    ) -> Result<f64> {
         let (mut n, mut sum_sq) = (0usize, 0f64);
         for s in samples {
-            let Some(crater) = &s.crater else {
-                bail!(
+            let crater = match (&s.crater, frame_input) {
+                (Some(crater), false) => crater,
+                (crater, true) => match framed(crater.as_ref()) {
+                    Some(crater) => crater,
+                    None => continue,
+                },
+                (None, false) => bail!(
                     "sample {} has no crater frame: publish the dataset with inputs.crater_catalogue in the pipeline manifest (schema 1.3), or train without --crater-input",
                     s.sample_id
-                );
+                ),
             };
             n += 1;
             sum_sq += crater.relative_height_m.powi(2);
@@ -191,13 +215,23 @@ impl InputNormalisation {
     /// Context planes per sample (0 without a context input).
     pub fn context_channels(&self) -> usize {
         self.context.map_or(0, |c| {
-            CONTEXT_CHANNELS + usize::from(c.absolute) + usize::from(c.crater_rms_m.is_some())
+            CONTEXT_CHANNELS
+                + usize::from(c.absolute)
+                + usize::from(c.crater_rms_m.is_some())
+                + 2 * usize::from(c.crater_rms_m.is_some() && c.crater_frame)
         })
     }
 
     /// The crater input's scale, when the run feeds one.
     pub fn crater_rms_m(&self) -> Option<f64> {
         self.context.and_then(|c| c.crater_rms_m)
+    }
+
+    /// Whether the run feeds its crater input as a frame, which a crop without one can be fed too
+    /// ([`ContextNormalisation::crater_frame`]).
+    pub fn crater_frame_input(&self) -> bool {
+        self.context
+            .is_some_and(|c| c.crater_rms_m.is_some() && c.crater_frame)
     }
 
     /// Append one crop's planes (`CROP_PX²` heights, row-major, metres) channel after channel. A non-finite height
@@ -219,8 +253,9 @@ impl InputNormalisation {
     /// Append one crop's context planes (`CONTEXT_PX²` each): the window's heights minus the crop's mean height
     /// (`heights_m`, as in [`Self::push_planes`]) over the context std, 0 where a cell has no DEM; with an
     /// absolute context, the window's heights normalised as the elevation plane, 0 where no DEM; with a crater
-    /// input, the crop's crater-relative height over its train RMS in every cell; then the mask. Panics when the
-    /// run has no context input, or feeds a crater input and `crater` is `None` (checked when a run starts).
+    /// input, the crop's crater-relative height over its train RMS in every cell (as a frame, then ρ over the
+    /// reach and the framed plane, 0, 1 and 0 when not [`framed`]); then the mask. Panics when the run has no
+    /// context input, or feeds the crater height alone and `crater` is `None` (checked when a run starts).
     pub fn push_context(
         &self,
         heights_m: &[f64],
@@ -256,14 +291,26 @@ impl InputNormalisation {
                 }
             }));
         }
-        if let Some(rms) = c.crater_rms_m {
-            let crater = crater.expect(
-                "a crater input needs every sample's crater frame (checked when a run starts)",
-            );
-            out.extend(std::iter::repeat_n(
-                crater.relative_height_m / rms,
-                context_m.len(),
-            ));
+        match (c.crater_rms_m, c.crater_frame) {
+            (None, _) => {}
+            (Some(rms), false) => {
+                let crater = crater.expect(
+                    "a crater input needs every sample's crater frame (checked when a run starts)",
+                );
+                out.extend(std::iter::repeat_n(
+                    crater.relative_height_m / rms,
+                    context_m.len(),
+                ));
+            }
+            (Some(rms), true) => {
+                let (height, rho, framed) = match framed(crater) {
+                    Some(at) => (at.relative_height_m / rms, at.rho / PROFILE_RHO_MAX, 1.0),
+                    None => (0.0, 1.0, 0.0),
+                };
+                for value in [height, rho, framed] {
+                    out.extend(std::iter::repeat_n(value, context_m.len()));
+                }
+            }
         }
         out.extend(context_m.iter().map(|z| f64::from(u8::from(z.is_finite()))));
     }
@@ -354,6 +401,7 @@ mod tests {
                 std_m: 4.0,
                 absolute: false,
                 crater_rms_m: Some(50.0),
+                crater_frame: false,
             }),
             ..InputNormalisation::relief(2.0)
         };
@@ -386,16 +434,72 @@ mod tests {
     fn the_crater_rms_is_over_train_samples_and_a_sample_without_a_frame_is_refused() {
         // dataset::testing's sample i stands 10 i − 40 m off its crater's profile: −30, −20 and −10 m.
         let mut samples: Vec<Sample> = (1..=3).map(dataset::testing::synthetic_sample).collect();
-        let rms = ContextNormalisation::crater_rms_of_samples(&samples).unwrap();
+        let rms = ContextNormalisation::crater_rms_of_samples(&samples, false).unwrap();
         assert!((rms - (1400.0f64 / 3.0).sqrt()).abs() < 1e-12, "{rms}");
         samples[1].crater = None;
-        let err = ContextNormalisation::crater_rms_of_samples(&samples)
+        let err = ContextNormalisation::crater_rms_of_samples(&samples, false)
             .unwrap_err()
             .to_string();
         assert!(
             err.contains(&samples[1].sample_id) && err.contains("inputs.crater_catalogue"),
             "{err}"
         );
+    }
+
+    #[test]
+    fn a_crater_frame_input_feeds_height_radius_and_framed_and_an_unframed_crop_as_none() {
+        let input = InputNormalisation {
+            context: Some(ContextNormalisation {
+                gsd_m: 512.0,
+                std_m: 4.0,
+                absolute: false,
+                crater_rms_m: Some(50.0),
+                crater_frame: true,
+            }),
+            ..InputNormalisation::relief(2.0)
+        };
+        assert!(input.crater_frame_input());
+        let n = CONTEXT_PX * CONTEXT_PX;
+        assert_eq!(input.context_channels(), 5);
+        let planes = |crater: Option<CraterPosition>| {
+            let mut out = Vec::new();
+            input.push_context(
+                &[-1200.0, f64::NAN, -1204.0],
+                &context_window(),
+                crater.as_ref(),
+                &mut out,
+            );
+            assert_eq!(out.len(), 5 * n);
+            // Each crater plane is one value in every cell.
+            (1..4)
+                .map(|k| {
+                    assert!(out[k * n..(k + 1) * n].iter().all(|&v| v == out[k * n]));
+                    out[k * n]
+                })
+                .collect::<Vec<f64>>()
+        };
+        let at = |rho: f64| CraterPosition {
+            rho,
+            relative_height_m: -125.0,
+        };
+        // Height over its RMS, ρ over the reach of 3 radii, framed.
+        assert_eq!(planes(Some(at(0.75))), [-2.5, 0.25, 1.0]);
+        // Past the reach, and with no frame at all: the same unframed input.
+        assert_eq!(planes(Some(at(PROFILE_RHO_MAX))), [0.0, 1.0, 0.0]);
+        assert_eq!(planes(None), [0.0, 1.0, 0.0]);
+        // The RMS of a frame input is over the framed samples alone; the height alone needs every one framed.
+        let mut samples: Vec<Sample> = (1..=3).map(dataset::testing::synthetic_sample).collect();
+        samples[0].crater = None;
+        samples[1].crater.as_mut().unwrap().rho = 4.0;
+        let rms = ContextNormalisation::crater_rms_of_samples(&samples, true).unwrap();
+        assert_eq!(rms, samples[2].crater.unwrap().relative_height_m.abs());
+        assert!(ContextNormalisation::crater_rms_of_samples(&samples, false).is_err());
+        let json = serde_json::to_string(&input.context).unwrap();
+        assert!(json.contains(r#""crater_frame":true"#), "{json}");
+        // Runs written before the frame input read as feeding the height alone.
+        let old: Option<ContextNormalisation> =
+            serde_json::from_str(r#"{"gsd_m":512.0,"std_m":4.0,"crater_rms_m":50.0}"#).unwrap();
+        assert!(!old.unwrap().crater_frame);
     }
 
     #[test]
@@ -406,6 +510,7 @@ mod tests {
                 std_m: 4.0,
                 absolute: false,
                 crater_rms_m: None,
+                crater_frame: false,
             }),
             ..InputNormalisation::relief(2.0)
         };
@@ -439,6 +544,7 @@ mod tests {
                 std_m: 4.0,
                 absolute: true,
                 crater_rms_m: None,
+                crater_frame: false,
             }),
             ..InputNormalisation::relief(2.0)
         };

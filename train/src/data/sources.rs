@@ -226,24 +226,46 @@ pub fn open_source(data: &str) -> Result<Arc<dyn SampleSource>> {
     }
 }
 
-/// Several publications trained on as one (`fit --also-train-on`): the train split is every member's row groups,
-/// the first member's then each further one's in turn; validation and test are the first member's alone, so a
-/// run is still chosen on, and scored against, the held-out tiles of the dataset it names first. Shard names
-/// carry their member's place in the pool (`1:train-00003.parquet`), so the row-group list is one fixed order and
-/// the same (seed, epoch) gives the same batches.
+/// Several publications trained on as one (`fit --also-train-on`): the train split is every training member's
+/// row groups, the first member's then each further one's in turn; validation is the first member's, then that of
+/// each member pooled for validation only (`fit --also-validate-on`: held-out worlds), and test is the first
+/// member's alone, so a run is scored against the held-out tiles of the dataset it names first. Shard names carry
+/// their member's place in the pool (`1:train-00003.parquet`), so the row-group list is one fixed order and the
+/// same (seed, epoch) gives the same batches.
 pub struct PooledSource {
+    /// The training members (the first, then `--also-train-on`'s), then the validation-only ones.
     members: Vec<Arc<dyn SampleSource>>,
+    train_members: usize,
 }
 
 impl PooledSource {
     /// `first` pooled with `more`. Every member must be published under the first's schema, with its own
     /// dataset name (the run's config records the names).
     pub fn new(first: Arc<dyn SampleSource>, more: Vec<Arc<dyn SampleSource>>) -> Result<Self> {
+        let train_members = 1 + more.len();
+        let members: Vec<_> = std::iter::once(first).chain(more).collect();
+        Self::check_members(&members)?;
+        Ok(Self {
+            members,
+            train_members,
+        })
+    }
+
+    /// This pool, its validation split also holding `more`'s (held-out worlds: none of their rows is trained on).
+    pub fn also_validating_on(mut self, more: Vec<Arc<dyn SampleSource>>) -> Result<Self> {
+        self.members.extend(more);
+        Self::check_members(&self.members)?;
+        Ok(self)
+    }
+
+    /// Every member under the first's schema, each with its own dataset name.
+    fn check_members(members: &[Arc<dyn SampleSource>]) -> Result<()> {
+        let first = &members[0];
         let (schema, mut names) = (
             first.manifest().schema_version.clone(),
             vec![first.manifest().name.clone()],
         );
-        for member in &more {
+        for member in &members[1..] {
             let manifest = member.manifest();
             if manifest.schema_version != schema {
                 bail!(
@@ -257,20 +279,28 @@ impl PooledSource {
             if names.contains(&manifest.name) {
                 bail!(
                     "{}: a dataset named {:?} is already in the pool: give each publication its own \
-                     [dataset] name, or drop the repeated --also-train-on",
+                     [dataset] name, or drop the repeated --also-train-on or --also-validate-on",
                     member.describe(),
                     manifest.name
                 );
             }
             names.push(manifest.name.clone());
         }
-        let members = std::iter::once(first).chain(more).collect();
-        Ok(Self { members })
+        Ok(())
     }
 
-    /// The dataset names of the members after the first, in pool order.
+    /// The dataset names of the training members after the first, in pool order.
     pub fn further_names(&self) -> Vec<String> {
-        self.members[1..]
+        self.names(1..self.train_members)
+    }
+
+    /// The dataset names of the validation-only members, in pool order.
+    pub fn validation_names(&self) -> Vec<String> {
+        self.names(self.train_members..self.members.len())
+    }
+
+    fn names(&self, members: std::ops::Range<usize>) -> Vec<String> {
+        self.members[members]
             .iter()
             .map(|m| m.manifest().name.clone())
             .collect()
@@ -304,14 +334,17 @@ impl SampleSource for PooledSource {
     }
 
     fn row_groups(&self, split: Split) -> Result<Vec<RowGroupRef>> {
-        // Validation and test: the first member's held-out tiles only.
-        let pooled = if split == Split::Train {
-            self.members.len()
-        } else {
-            1
+        let places: Vec<usize> = match split {
+            Split::Train => (0..self.train_members).collect(),
+            // The first member's held-out tiles, then the validation-only members'.
+            Split::Val => std::iter::once(0)
+                .chain(self.train_members..self.members.len())
+                .collect(),
+            Split::Test => vec![0],
         };
         let mut groups = Vec::new();
-        for (place, member) in self.members.iter().enumerate().take(pooled) {
+        for place in places {
+            let member = &self.members[place];
             groups.extend(
                 member
                     .row_groups(split)?

@@ -60,6 +60,9 @@ pub struct EvalOptions {
     /// Render "learned" (in every ensemble member) as the mean of the network's 8 dihedral views
     /// ([`crate::prediction::predict_images_symmetry_mean`]): 8× the network and renderer time.
     pub symmetry_mean: bool,
+    /// Feed every crop as if the dataset had no crater catalogue: a crater frame input unframed, no crater
+    /// level. Scores what a frame-input run does on a site with no catalogue, against what the catalogue adds.
+    pub without_crater_frames: bool,
 }
 
 /// Evaluate trained `runs` on a split; writes nothing (see [`write_report`]). One run is the usual case; with
@@ -80,6 +83,16 @@ pub fn evaluate<B: TrainOps>(
         .config;
     for run in runs {
         run.input.check_dataset(source)?;
+        if options.without_crater_frames
+            && run.input.crater_rms_m().is_some()
+            && !run.input.crater_frame_input()
+        {
+            bail!(
+                "{}: the run feeds each crop's height against its crater's profile, which needs a frame: evaluate it \
+                 without --without-crater-frames, or train with --crater-frame-input",
+                run.checkpoint
+            );
+        }
     }
     let mut accumulators: BTreeMap<String, MetricsAccumulator> = BTreeMap::new();
     let matcher = FeatureMatcher::default();
@@ -87,6 +100,7 @@ pub fn evaluate<B: TrainOps>(
     let mut per_image = Vec::new();
     let mut failure: Option<anyhow::Error> = None;
     let crater_level = match runs {
+        _ if options.without_crater_frames => None,
         [run] => run.crater_level.as_ref(),
         _ if runs.iter().any(|r| r.crater_level.is_some()) => bail!(
             "a crater level (crater_level.json) belongs to one run: evaluate the ensemble's members one by one, or \
@@ -105,7 +119,20 @@ pub fn evaluate<B: TrainOps>(
         "eval",
         |samples| {
             for chunk in samples.chunks(options.batch_size) {
-                let learned = predict_ensemble(runs, chunk, options.symmetry_mean, device);
+                let unframed: Vec<Sample>;
+                let fed = if options.without_crater_frames {
+                    unframed = chunk
+                        .iter()
+                        .map(|s| Sample {
+                            crater: None,
+                            ..s.clone()
+                        })
+                        .collect();
+                    unframed.as_slice()
+                } else {
+                    chunk
+                };
+                let learned = predict_ensemble(runs, fed, options.symmetry_mean, device);
                 // Each crop's renderings, metrics and matches in parallel; then added up in crop order, so every
                 // sum (and so every reported bit) is the same whatever the thread count.
                 let scored: Vec<ScoredImage> = chunk
@@ -125,7 +152,8 @@ pub fn evaluate<B: TrainOps>(
                     })
                     .collect();
                 for (sample, scored) in chunk.iter().zip(scored) {
-                    framed_crops += usize::from(sample.crater.is_some());
+                    framed_crops +=
+                        usize::from(sample.crater.is_some() && !options.without_crater_frames);
                     crater_level_crops += usize::from(
                         crater_level.is_some_and(|level| level.applies(sample.crater.as_ref())),
                     );

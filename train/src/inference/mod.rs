@@ -129,6 +129,11 @@ pub fn infer_params<B: TrainOps>(
     let crater_frames = match (options.input.crater_rms_m(), &options.crater_frames) {
         (None, _) => None,
         (Some(_), Some(frames)) if !frames.is_empty() => Some(frames),
+        // A frame input was trained on unframed crops too: without a catalogue every crop is one.
+        (Some(_), None) if options.input.crater_frame_input() => {
+            tracing::info!("no crater catalogue: every crop is fed as unframed");
+            None
+        }
         (Some(_), _) => bail!(
             "the run feeds each crop's height against its crater's profile (--crater-input): give --crater-catalogue, the crater catalogue its dataset was published with, with a crater on this DEM"
         ),

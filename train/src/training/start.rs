@@ -55,13 +55,20 @@ pub fn input_normalisation(
         if config.context_absolute && !config.elevation_input {
             bail!("an absolute context is normalised as the elevation plane: the run needs --elevation-input");
         }
+        if config.crater_frame_input && !config.crater_input {
+            bail!("the crater frame input is the crater input fed as a frame: the run needs --crater-input");
+        }
         let crater_rms_m = config
             .crater_input
-            .then(|| ContextNormalisation::crater_rms_of_samples(&samples).with_context(on_train))
+            .then(|| {
+                ContextNormalisation::crater_rms_of_samples(&samples, config.crater_frame_input)
+                    .with_context(on_train)
+            })
             .transpose()?;
         input.context = Some(ContextNormalisation {
             absolute: config.context_absolute,
             crater_rms_m,
+            crater_frame: config.crater_frame_input,
             ..context
         });
     }

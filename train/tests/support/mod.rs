@@ -48,8 +48,10 @@ pub fn config() -> FitConfig {
         nonnegative_start: false,
         weight_decay: None,
         also_train_on: Vec::new(),
+        also_validate_on: Vec::new(),
         context_absolute: false,
         crater_input: false,
+        crater_frame_input: false,
     }
 }
 

@@ -43,6 +43,11 @@ pub struct EvalArgs {
     /// ensemble from one network: its error is at most the members' mean; costs 8× network and renderer time.
     #[arg(long)]
     pub symmetry_mean: bool,
+    /// Feed every crop as if the dataset had no crater catalogue: a --crater-frame-input run's crops unframed,
+    /// and no crater level. Against the same eval without it, this is what the catalogue adds (or, with a
+    /// catalogue listing craters that are not there, what it costs).
+    #[arg(long)]
+    pub without_crater_frames: bool,
 }
 
 pub fn run(args: EvalArgs) -> Result<()> {
@@ -57,6 +62,7 @@ pub fn run(args: EvalArgs) -> Result<()> {
         calibration_samples,
         panels,
         symmetry_mean,
+        without_crater_frames,
     } = args;
     let source = open_source(&data)?;
     let out = out.unwrap_or_else(|| runs.run.join(format!("eval-{split}")));
@@ -74,6 +80,7 @@ pub fn run(args: EvalArgs) -> Result<()> {
             calibration_samples,
             panels,
             symmetry_mean,
+            without_crater_frames,
         },
     };
     let report = with_backend!(runs.backend, B => {

@@ -72,6 +72,12 @@ pub struct TrainArgs {
     /// lies below highland; against the crater's own profile they show again.
     #[arg(long, requires = "context_input")]
     pub crater_input: bool,
+    /// Feed the crater input as a frame: the height against the profile, the crop's distance from the crater's
+    /// centre in radii, and whether a listed crater lies within 3 radii at all. Crops past that, or on a site
+    /// with no catalogue, are fed as unframed, so one model runs with a catalogue or without; train it on a
+    /// dataset framed with project.crater_catalogue_error to learn a real catalogue's errors.
+    #[arg(long, requires = "crater_input")]
+    pub crater_frame_input: bool,
     /// Also keep an exponential moving average of the weights with this decay (e.g. 0.995; the first steps
     /// average over about a ninth of the steps taken). It is validated beside the raw network every epoch
     /// (metrics.jsonl `ema_val`) and checkpointed as ema-best/ and last/ema; eval, infer and report load
@@ -128,6 +134,11 @@ pub struct TrainArgs {
     /// and more worlds make it read them from the terrain instead. Each dataset needs its own [dataset] name.
     #[arg(long, value_name = "DATA")]
     pub also_train_on: Vec<String>,
+    /// Also validate on this publication's validation split (repeat the flag for more), pooled with --data's:
+    /// a held-out world, none of whose rows is trained on, so the run is chosen on how it carries to another
+    /// world as well as to held-out tiles. test stays --data's. Each dataset needs its own [dataset] name.
+    #[arg(long, value_name = "DATA")]
+    pub also_validate_on: Vec<String>,
 }
 
 fn parse_ema_decay(text: &str) -> Result<f64, String> {
@@ -191,6 +202,7 @@ impl TrainArgs {
             context_input: self.context_input,
             context_absolute: self.context_absolute,
             crater_input: self.crater_input,
+            crater_frame_input: self.crater_frame_input,
             ema_decay: self.ema,
             steep_weight: self.steep_weight,
             head_hidden: self.head_hidden,
@@ -200,23 +212,26 @@ impl TrainArgs {
             weight_decay: self.weight_decay,
             // Named once the datasets are open ([`training_source`]).
             also_train_on: Vec::new(),
+            also_validate_on: Vec::new(),
         }
     }
 }
 
-/// `--data`, pooled with `--also-train-on`'s publications when there are any, and the run's config, which names
-/// them.
+/// `--data`, pooled with `--also-train-on`'s and `--also-validate-on`'s publications when there are any, and the
+/// run's config, which names them.
 pub fn training_source(data: &str, args: &TrainArgs) -> Result<(Arc<dyn SampleSource>, FitConfig)> {
     let (first, mut config) = (open_source(data)?, args.fit_config());
-    if args.also_train_on.is_empty() {
+    if args.also_train_on.is_empty() && args.also_validate_on.is_empty() {
         return Ok((first, config));
     }
-    let more = args
-        .also_train_on
-        .iter()
-        .map(|data| open_source(data))
-        .collect::<Result<Vec<_>>>()?;
-    let pool = PooledSource::new(first, more)?;
+    let open_all = |all: &[String]| {
+        all.iter()
+            .map(|data| open_source(data))
+            .collect::<Result<Vec<_>>>()
+    };
+    let pool = PooledSource::new(first, open_all(&args.also_train_on)?)?
+        .also_validating_on(open_all(&args.also_validate_on)?)?;
     config.also_train_on = pool.further_names();
+    config.also_validate_on = pool.validation_names();
     Ok((Arc::new(pool), config))
 }
