@@ -460,54 +460,77 @@ fn ensemble_maps_render_as_the_mean_of_the_members_renderings() {
     assert!(err.to_string().contains("one BRDF model"), "{err}");
 }
 
+/// `infer_params` with a 32-pixel overlap, batches of 4 and `frames` as the DEM's crater frames.
+fn infer_framed(
+    net: &UNet<B>,
+    dem: &Raster,
+    input: InputNormalisation,
+    frames: Option<dataset::contract::crater_frame::CraterFrames>,
+) -> anyhow::Result<ParamMaps> {
+    let options = InferOptions {
+        overlap: 32,
+        batch_size: 4,
+        input,
+        crater_frames: frames.map(std::sync::Arc::new),
+        crater_level: None,
+    };
+    infer_params(
+        net,
+        BrdfModel::M2,
+        dem,
+        &options,
+        &Default::default(),
+        |_, _| {},
+    )
+}
+
+/// The frames of one catalogued crater `diameter_m` across, centred `east_m` east and `south_m` south of the test
+/// DEM's grid corner (the DEM spans 1.6 × 1.2 km at 5 m).
+fn one_crater(
+    dem: &Raster,
+    east_m: f64,
+    south_m: f64,
+    diameter_m: f64,
+) -> dataset::contract::crater_frame::CraterFrames {
+    use dataset::contract::crater_frame::{CatalogueCrater, CraterFrames};
+    let (lon_deg, lat_deg) = dem
+        .crs
+        .to_lonlat_deg(-800.0 + east_m, -1_309_000.0 - south_m)
+        .unwrap();
+    let crater = CatalogueCrater {
+        lon_deg,
+        lat_deg,
+        diameter_m,
+    };
+    let (frames, report) = CraterFrames::new(dem, &[crater], 10.0).unwrap();
+    assert_eq!(report.framed, 1);
+    frames
+}
+
 /// A run that feeds the crater input refuses a DEM without crater frames, naming the flag, and with them its
 /// maps follow where the catalogue puts the crater: the same DEM with the crater's catalogued centre moved by
 /// 100 m gives other parameters (the crops' heights against the crater's profile change, nothing else does).
 #[test]
 fn a_crater_input_needs_the_catalogue_and_follows_where_it_puts_the_crater() {
-    use dataset::contract::crater_frame::{CatalogueCrater, CraterFrames};
     let dem = dem(320, 240, 0);
     let input = context_input(Some(20.0));
     let net = random_net_with(1, CONTEXT_CHANNELS + 1);
-    let run = |frames: Option<CraterFrames>| {
-        let options = InferOptions {
-            overlap: 32,
-            batch_size: 4,
-            input,
-            crater_frames: frames.map(std::sync::Arc::new),
-            crater_level: None,
-        };
-        infer_params(
-            &net,
-            BrdfModel::M2,
-            &dem,
-            &options,
-            &Default::default(),
-            |_, _| {},
-        )
-    };
-    let err = run(None)
+    let err = infer_framed(&net, &dem, input, None)
         .err()
         .expect("refused without crater frames")
         .to_string();
     assert!(err.contains("--crater-catalogue"), "{err}");
     // The DEM's larger bowl: 260 m across its radius, centred 900 m east and 700 m south of the grid's corner.
-    let frames = |east_m: f64| {
-        let (lon_deg, lat_deg) = dem
-            .crs
-            .to_lonlat_deg(-800.0 + 900.0 + east_m, -1_309_700.0)
-            .unwrap();
-        let crater = CatalogueCrater {
-            lon_deg,
-            lat_deg,
-            diameter_m: 520.0,
-        };
-        let (frames, report) = CraterFrames::new(&dem, &[crater], 100.0).unwrap();
-        assert_eq!(report.framed, 1);
-        Some(frames)
+    let run = |east_m: f64| {
+        infer_framed(
+            &net,
+            &dem,
+            input,
+            Some(one_crater(&dem, 900.0 + east_m, 700.0, 520.0)),
+        )
+        .unwrap()
     };
-    let (here, moved) = (run(frames(0.0)).unwrap(), run(frames(100.0)).unwrap());
-    let change = max_abs_diff_where(&here, &moved, |_| true);
+    let change = max_abs_diff_where(&run(0.0), &run(100.0), |_| true);
     assert!(
         change > 1e-3 && change.is_finite(),
         "the crater plane did not reach the network: max change {change:e}"
@@ -519,49 +542,15 @@ fn a_crater_input_needs_the_catalogue_and_follows_where_it_puts_the_crater() {
 /// others.
 #[test]
 fn a_crater_frame_input_runs_without_a_catalogue_as_with_craters_out_of_reach() {
-    use dataset::contract::crater_frame::{CatalogueCrater, CraterFrames};
     let dem = dem(320, 240, 0);
     let mut input = context_input(Some(20.0));
     input.context.as_mut().unwrap().crater_frame = true;
     assert_eq!(input.context_channels(), CONTEXT_CHANNELS + 3);
     let net = random_net_with(1, CONTEXT_CHANNELS + 3);
-    let run = |frames: Option<CraterFrames>| {
-        let options = InferOptions {
-            overlap: 32,
-            batch_size: 4,
-            input,
-            crater_frames: frames.map(std::sync::Arc::new),
-            crater_level: None,
-        };
-        infer_params(
-            &net,
-            BrdfModel::M2,
-            &dem,
-            &options,
-            &Default::default(),
-            |_, _| {},
-        )
-        .unwrap()
-    };
-    // A crater `diameter_m` across centred `(east_m, south_m)` from the grid's corner (the DEM spans 1.6 × 1.2 km
-    // at 5 m).
-    let frames = |east_m: f64, south_m: f64, diameter_m: f64| {
-        let (lon_deg, lat_deg) = dem
-            .crs
-            .to_lonlat_deg(-800.0 + east_m, -1_309_000.0 - south_m)
-            .unwrap();
-        let crater = CatalogueCrater {
-            lon_deg,
-            lat_deg,
-            diameter_m,
-        };
-        let (frames, report) = CraterFrames::new(&dem, &[crater], 10.0).unwrap();
-        assert_eq!(report.framed, 1);
-        frames
-    };
+    let run = |frames| infer_framed(&net, &dem, input, frames).unwrap();
     let without = run(None);
     // A 60 m crater midway between four crop centres: each centre lies 113 m, 3.8 radii, from it.
-    let small = frames(880.0, 560.0, 60.0);
+    let small = one_crater(&dem, 880.0, 560.0, 60.0);
     let starts = |len: usize| train::inference::crop_starts(len, 32);
     for r0 in starts(dem.height) {
         for c0 in starts(dem.width) {
@@ -578,7 +567,7 @@ fn a_crater_frame_input_runs_without_a_catalogue_as_with_craters_out_of_reach() 
         max_abs_diff_where(&without, &run(Some(small)), |_| true),
         0.0
     );
-    let in_reach = run(Some(frames(900.0, 700.0, 520.0)));
+    let in_reach = run(Some(one_crater(&dem, 900.0, 700.0, 520.0)));
     let change = max_abs_diff_where(&without, &in_reach, |_| true);
     assert!(
         change > 1e-3 && change.is_finite(),
