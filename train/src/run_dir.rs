@@ -193,7 +193,7 @@ pub struct RunNormalisation {
     /// minimum diameter to it and check a catalogue against it. Absent for runs on unframed data (and runs
     /// trained before it was recorded).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub crater_frame: Option<dataset::contract::crater_frame::CraterFrameSource>,
+    pub crater_frame: Option<dataset::contract::manifest::CraterFrameSource>,
 }
 
 /// A run's `normalisation.json`.

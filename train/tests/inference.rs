@@ -748,7 +748,7 @@ fn report_overlap_rows_apply_the_crater_level_as_infer_does() {
 /// crater, while the flag's 100 m frames it.
 #[test]
 fn infer_frames_craters_with_the_minimum_diameter_the_run_was_trained_with() {
-    use dataset::contract::crater_frame::CraterFrameSource;
+    use dataset::contract::manifest::CraterFrameSource;
     use train::inference::crater_frames_for_runs;
     use train::run_dir::RunNormalisation;
     let dem = dem(320, 240, 0);

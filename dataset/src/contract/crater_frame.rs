@@ -160,21 +160,6 @@ pub struct CraterFrames {
     frames: Vec<Frame>,
 }
 
-/// What framed a published dataset's samples (their crater columns): the catalogue, by name and blake3, and the
-/// smallest diameter that frames. The dataset manifest records it, so that no reader is asked for it again.
-#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct CraterFrameSource {
-    /// The catalogue's file name (`inputs.crater_catalogue`).
-    pub catalogue: String,
-    pub catalogue_blake3: String,
-    /// Catalogued craters at least this wide frame the samples (`project.crater_frame_min_diameter_m`).
-    pub min_diameter_m: f64,
-    /// The simulated errors the samples were framed with, when they were (`project.crater_catalogue_error`,
-    /// drawn from the dataset's seed; [`crate::contract::catalogue_error`]).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub catalogue_error: Option<crate::contract::catalogue_error::CatalogueError>,
-}
-
 impl CraterFrames {
     /// One profile per catalogued crater at least `min_diameter_m` across with DEM around it (one pass over its
     /// square of the DEM each; the DEM is read on a stride of half a ring, which keeps the memory to a few MB).
@@ -204,24 +189,6 @@ impl CraterFrames {
             }
         }
         Ok((Self { frames }, report))
-    }
-
-    /// What these frames were built from, as a dataset manifest records it.
-    pub fn source(
-        catalogue: &Path,
-        min_diameter_m: f64,
-        catalogue_error: Option<crate::contract::catalogue_error::CatalogueError>,
-    ) -> Result<CraterFrameSource> {
-        Ok(CraterFrameSource {
-            catalogue: catalogue
-                .file_name()
-                .map(|name| name.to_string_lossy().into_owned())
-                .unwrap_or_default(),
-            catalogue_blake3: crate::files::hash_file(catalogue)
-                .with_context(|| format!("{}: cannot read the catalogue", catalogue.display()))?,
-            min_diameter_m,
-            catalogue_error,
-        })
     }
 
     /// The frames of a catalogue file's craters at least `min_diameter_m` wide over `dem` ([`read_catalogue`], then
@@ -534,13 +501,6 @@ mod tests {
                 "{err}"
             );
         }
-        let source = CraterFrames::source(&on_the_dem, 1000.0, None).unwrap();
-        assert_eq!(source.catalogue, "here.csv");
-        assert_eq!(
-            source.catalogue_blake3,
-            crate::files::hash_file(&on_the_dem).unwrap()
-        );
-        assert_eq!(source.min_diameter_m, 1000.0);
     }
 
     #[test]

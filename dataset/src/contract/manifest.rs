@@ -6,6 +6,7 @@ use std::collections::BTreeMap;
 use std::io;
 use std::path::{Path, PathBuf};
 
+use crate::contract::catalogue_error::CatalogueError;
 use crate::contract::schema::SCHEMA_VERSION;
 use crate::files::hash_file;
 
@@ -56,7 +57,44 @@ pub struct DatasetManifest {
     /// The crater catalogue that framed the samples, when the pipeline was given one (absent otherwise, and in
     /// manifests written before it was recorded).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub crater_frame: Option<crate::contract::crater_frame::CraterFrameSource>,
+    pub crater_frame: Option<CraterFrameSource>,
+}
+
+/// What framed a published dataset's samples (their crater columns, `crate::contract::crater_frame`): the
+/// catalogue, by name and blake3, the smallest diameter that frames, and the catalogue's simulated errors when
+/// the samples were framed with them. The dataset manifest records it, so that no reader is asked for it again.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct CraterFrameSource {
+    /// The catalogue's file name (`inputs.crater_catalogue`).
+    pub catalogue: String,
+    pub catalogue_blake3: String,
+    /// Catalogued craters at least this wide frame the samples (`project.crater_frame_min_diameter_m`).
+    pub min_diameter_m: f64,
+    /// The simulated errors the samples were framed with, when they were (`project.crater_catalogue_error`,
+    /// drawn from the dataset's seed; [`crate::contract::catalogue_error`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub catalogue_error: Option<CatalogueError>,
+}
+
+impl CraterFrameSource {
+    /// The record of samples framed by the catalogue file `catalogue` (its name and blake3).
+    pub fn of(
+        catalogue: &Path,
+        min_diameter_m: f64,
+        catalogue_error: Option<CatalogueError>,
+    ) -> anyhow::Result<Self> {
+        use anyhow::Context;
+        Ok(Self {
+            catalogue: catalogue
+                .file_name()
+                .map(|name| name.to_string_lossy().into_owned())
+                .unwrap_or_default(),
+            catalogue_blake3: hash_file(catalogue)
+                .with_context(|| format!("{}: cannot read the catalogue", catalogue.display()))?,
+            min_diameter_m,
+            catalogue_error,
+        })
+    }
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -157,6 +195,21 @@ impl DatasetManifest {
 
 #[cfg(test)]
 mod tests {
+
+    #[test]
+    fn a_crater_frame_source_names_its_catalogue_by_file_name_and_blake3() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("here.csv");
+        std::fs::write(&path, "lon_deg,lat_deg,diameter_m\n0,0,1000\n").unwrap();
+        let source = CraterFrameSource::of(&path, 1000.0, None).unwrap();
+        assert_eq!(source.catalogue, "here.csv");
+        assert_eq!(source.catalogue_blake3, hash_file(&path).unwrap());
+        assert_eq!(source.min_diameter_m, 1000.0);
+        let json = serde_json::to_string(&source).unwrap();
+        assert!(!json.contains("catalogue_error"), "{json}");
+        let err = CraterFrameSource::of(&dir.path().join("missing.csv"), 1000.0, None).unwrap_err();
+        assert!(format!("{err:#}").contains("missing.csv"), "{err:#}");
+    }
     use super::*;
     use crate::files::write_json_atomic;
 

@@ -16,7 +16,7 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use dataset::contract::catalogue_error::FramedCatalogue;
-use dataset::contract::crater_frame::CraterFrames;
+use dataset::contract::manifest::CraterFrameSource;
 use dataset::contract::publication::{DOCUMENT_FILES, MANIFEST_FILE};
 use dataset::science::raster::Raster;
 
@@ -369,7 +369,7 @@ pub fn pipeline_scoped(
                 lock_blake3,
                 crater_frame: catalogue6
                     .as_deref()
-                    .map(|path| CraterFrames::source(path, min_diameter6, error6))
+                    .map(|path| CraterFrameSource::of(path, min_diameter6, error6))
                     .transpose()?,
             };
             let p = &out.paths;

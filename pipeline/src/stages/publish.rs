@@ -27,7 +27,7 @@ pub struct PublishContext<'a> {
     pub dem_bounds: (f64, f64, f64, f64),
     pub lock_blake3: String,
     /// What framed the samples, recorded in the manifest.
-    pub crater_frame: Option<dataset::contract::crater_frame::CraterFrameSource>,
+    pub crater_frame: Option<dataset::contract::manifest::CraterFrameSource>,
 }
 
 pub struct PublishOutputs<'a> {

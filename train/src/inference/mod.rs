@@ -24,7 +24,8 @@ use std::path::Path;
 
 use anyhow::{bail, Context, Result};
 use burn::prelude::*;
-use dataset::contract::crater_frame::{CraterFrameSource, CraterFrames};
+use dataset::contract::crater_frame::CraterFrames;
+use dataset::contract::manifest::CraterFrameSource;
 use dataset::contract::schema::{CONTEXT_PX, CROP_PX};
 use dataset::science::brdf::{leaky_relu, BrdfModel};
 use dataset::science::raster::Raster;
