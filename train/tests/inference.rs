@@ -112,22 +112,7 @@ fn infer(net: &UNet<B>, dem: &Raster, overlap: usize) -> ParamMaps {
 }
 
 fn infer_with(net: &UNet<B>, dem: &Raster, overlap: usize, input: InputNormalisation) -> ParamMaps {
-    let options = InferOptions {
-        overlap,
-        batch_size: 4,
-        input,
-        crater_frames: None,
-        crater_level: None,
-    };
-    infer_params(
-        net,
-        BrdfModel::M2,
-        dem,
-        &options,
-        &Default::default(),
-        |_, _| {},
-    )
-    .unwrap()
+    infer_framed(net, dem, overlap, input, None).unwrap()
 }
 
 #[test]
@@ -460,15 +445,16 @@ fn ensemble_maps_render_as_the_mean_of_the_members_renderings() {
     assert!(err.to_string().contains("one BRDF model"), "{err}");
 }
 
-/// `infer_params` with a 32-pixel overlap, batches of 4 and `frames` as the DEM's crater frames.
+/// `infer_params` with batches of 4 and `frames` as the DEM's crater frames.
 fn infer_framed(
     net: &UNet<B>,
     dem: &Raster,
+    overlap: usize,
     input: InputNormalisation,
     frames: Option<dataset::contract::crater_frame::CraterFrames>,
 ) -> anyhow::Result<ParamMaps> {
     let options = InferOptions {
-        overlap: 32,
+        overlap,
         batch_size: 4,
         input,
         crater_frames: frames.map(std::sync::Arc::new),
@@ -515,7 +501,7 @@ fn a_crater_input_needs_the_catalogue_and_follows_where_it_puts_the_crater() {
     let dem = dem(320, 240, 0);
     let input = context_input(Some(20.0));
     let net = random_net_with(1, CONTEXT_CHANNELS + 1);
-    let err = infer_framed(&net, &dem, input, None)
+    let err = infer_framed(&net, &dem, 32, input, None)
         .err()
         .expect("refused without crater frames")
         .to_string();
@@ -525,6 +511,7 @@ fn a_crater_input_needs_the_catalogue_and_follows_where_it_puts_the_crater() {
         infer_framed(
             &net,
             &dem,
+            32,
             input,
             Some(one_crater(&dem, 900.0 + east_m, 700.0, 520.0)),
         )
@@ -547,7 +534,7 @@ fn a_crater_frame_input_runs_without_a_catalogue_as_with_craters_out_of_reach() 
     input.context.as_mut().unwrap().crater_frame = true;
     assert_eq!(input.context_channels(), CONTEXT_CHANNELS + 3);
     let net = random_net_with(1, CONTEXT_CHANNELS + 3);
-    let run = |frames| infer_framed(&net, &dem, input, frames).unwrap();
+    let run = |frames| infer_framed(&net, &dem, 32, input, frames).unwrap();
     let without = run(None);
     // A 60 m crater midway between four crop centres: each centre lies 113 m, 3.8 radii, from it.
     let small = one_crater(&dem, 880.0, 560.0, 60.0);

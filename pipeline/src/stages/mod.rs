@@ -262,17 +262,15 @@ pub fn pipeline_scoped(
         // The row-group size is the shards' (publish copies whole groups), so it is a projection parameter too.
         // The seed draws the catalogue's simulated errors; without them it does not enter, and the lock of a
         // dataset framed by the catalogue as it is stays as it was.
-        params: if m.project.crater_catalogue_error.is_some() {
-            serde_json::json!({
+        params: {
+            let mut params = serde_json::json!({
                 "project": serde_json::to_value(&m.project)?,
                 "row_group_rows": group_rows,
-                "seed": seed,
-            })
-        } else {
-            serde_json::json!({
-                "project": serde_json::to_value(&m.project)?,
-                "row_group_rows": group_rows,
-            })
+            });
+            if m.project.crater_catalogue_error.is_some() {
+                params["seed"] = serde_json::json!(seed);
+            }
+            params
         },
         outputs: layout
             .split_samples
