@@ -24,6 +24,7 @@ pub mod cache;
 pub mod index;
 pub mod loadtest;
 pub mod preview;
+pub mod tensors;
 
 use std::collections::BTreeMap;
 use std::net::SocketAddr;
@@ -35,11 +36,10 @@ use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
 use axum::response::{Html, IntoResponse, Response};
 use axum::routing::get;
 use axum::{Json, Router};
-use base64::Engine;
 use tower::ServiceExt;
 
 use dataset::contract::planner::plan_epoch;
-use dataset::contract::schema::{Sample, CONTEXT_PX, CROP_PX, DEM_PX};
+use dataset::contract::schema::Sample;
 use dataset::storage::{DatasetLocation, RemoteDir};
 use index::DatasetIndex;
 use preview::Preview;
@@ -252,7 +252,7 @@ struct SampleJson<'a> {
     tile_id: &'a str,
     /// Rasters, in `/v1/rows?tensors=base64` pages only.
     #[serde(skip_serializing_if = "Option::is_none")]
-    tensors: Option<serde_json::Value>,
+    tensors: Option<tensors::TensorsJson>,
 }
 
 #[derive(serde::Serialize)]
@@ -297,21 +297,6 @@ fn sample_json(index: &DatasetIndex, row: usize) -> SampleJson<'_> {
 }
 
 /// Rasters as little-endian base64 with dtype and shape (row-major, north row first).
-fn tensors_json(s: &Sample) -> serde_json::Value {
-    let b64 = |bytes: &[u8]| base64::engine::general_purpose::STANDARD.encode(bytes);
-    let f32s = |v: &[f32]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
-    serde_json::json!({
-        "dem": { "dtype": "float32", "shape": [DEM_PX, DEM_PX], "base64": b64(&f32s(&s.dem_m)) },
-        "image": { "dtype": "float32", "shape": [CROP_PX, CROP_PX], "base64": b64(&f32s(&s.image)) },
-        "valid": { "dtype": "uint8", "shape": [CROP_PX, CROP_PX], "base64": b64(&s.valid) },
-        "sun_lit": { "dtype": "float32", "shape": [CROP_PX, CROP_PX], "base64": b64(&f32s(&s.sun_lit)) },
-        // null for a schema 1.1 dataset, which has no context window.
-        "context_dem": s.context.as_ref().map(|c| serde_json::json!({
-            "dtype": "float32", "shape": [CONTEXT_PX, CONTEXT_PX], "base64": b64(&f32s(&c.heights_m)), "gsd_m": c.gsd_m,
-        })),
-    })
-}
-
 async fn viewer() -> Html<&'static str> {
     Html(VIEWER_HTML)
 }
@@ -424,7 +409,7 @@ impl RowsPage {
             .map(|&r| sample_json(index, r))
             .collect();
         for (row, sample) in rows.iter_mut().zip(full) {
-            row.tensors = Some(tensors_json(sample));
+            row.tensors = Some(tensors::TensorsJson::of(sample));
         }
         PageJson {
             offset: self.offset,

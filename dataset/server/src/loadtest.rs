@@ -25,6 +25,33 @@ pub struct LoadReport {
     pub p50_ms: f64,
     pub p99_ms: f64,
     pub max_ms: f64,
+    /// The same percentiles for each kind of request, so a tail can be traced to what makes it.
+    pub by_kind: Vec<KindLatency>,
+}
+
+/// Latency of one kind of request in the mix.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct KindLatency {
+    pub kind: &'static str,
+    pub requests: usize,
+    pub p50_ms: f64,
+    pub p99_ms: f64,
+    pub max_ms: f64,
+}
+
+/// The kinds of request in the mix, in the order they are drawn.
+const KINDS: [&str; 4] = ["metadata page", "tensor page", "preview", "shard range"];
+
+/// The `q` quantile of ascending `sorted` latencies (nearest rank).
+fn quantile(sorted: &[f64], q: f64) -> f64 {
+    sorted[((sorted.len() - 1) as f64 * q).round() as usize]
+}
+
+/// Latencies in ms, ascending.
+fn sorted_ms<'a>(outcomes: impl Iterator<Item = &'a Outcome>) -> Vec<f64> {
+    let mut ms: Vec<f64> = outcomes.map(|r| r.latency.as_secs_f64() * 1e3).collect();
+    ms.sort_by(f64::total_cmp);
+    ms
 }
 
 /// A `/v1/rows` answer, read only as far as its row count.
@@ -35,6 +62,8 @@ struct RowCount {
 
 /// One request's result.
 struct Outcome {
+    /// Index into [`KINDS`].
+    kind: usize,
     latency: Duration,
     bytes: usize,
     rows: usize,
@@ -42,8 +71,9 @@ struct Outcome {
 }
 
 impl Outcome {
-    fn failed(latency: Duration, error: String) -> Self {
+    fn failed(kind: usize, latency: Duration, error: String) -> Self {
         Self {
+            kind,
             latency,
             bytes: 0,
             rows: 0,
@@ -101,8 +131,14 @@ pub fn run(base_url: &str, clients: usize, requests: usize, seed: u64) -> Result
                     (0..count)
                         .map(|_| {
                             let (split, rows, _) = &splits[rng.random_range(0..splits.len())];
-                            let kind = rng.random_range(0..10);
-                            let (path, range) = match kind {
+                            let draw = rng.random_range(0..10);
+                            let kind = match draw {
+                                0..=3 => 0,
+                                4 | 5 => 1,
+                                6 | 7 => 2,
+                                _ => 3,
+                            };
+                            let (path, range) = match draw {
                                 0..=3 => (
                                     format!(
                                         "/v1/rows?split={split}&offset={}&length=20",
@@ -150,6 +186,7 @@ pub fn run(base_url: &str, clients: usize, requests: usize, seed: u64) -> Result
                                         0
                                     };
                                     Outcome {
+                                        kind,
                                         latency,
                                         bytes: r.body.len(),
                                         rows: rows_returned,
@@ -157,10 +194,11 @@ pub fn run(base_url: &str, clients: usize, requests: usize, seed: u64) -> Result
                                     }
                                 }
                                 Ok(r) => Outcome::failed(
+                                    kind,
                                     latency,
                                     format!("{path}: HTTP {} {}", r.status, r.text().trim()),
                                 ),
-                                Err(e) => Outcome::failed(latency, format!("{e:#}")),
+                                Err(e) => Outcome::failed(kind, latency, format!("{e:#}")),
                             }
                         })
                         .collect()
@@ -174,9 +212,21 @@ pub fn run(base_url: &str, clients: usize, requests: usize, seed: u64) -> Result
     });
     let wall_s = start.elapsed().as_secs_f64();
     let all: Vec<_> = results.into_iter().flatten().collect();
-    let mut latencies: Vec<f64> = all.iter().map(|r| r.latency.as_secs_f64() * 1e3).collect();
-    latencies.sort_by(f64::total_cmp);
-    let pct = |q: f64| latencies[((latencies.len() - 1) as f64 * q).round() as usize];
+    let latencies = sorted_ms(all.iter());
+    let by_kind = KINDS
+        .iter()
+        .enumerate()
+        .filter_map(|(k, &kind)| {
+            let ms = sorted_ms(all.iter().filter(|r| r.kind == k));
+            (!ms.is_empty()).then(|| KindLatency {
+                kind,
+                requests: ms.len(),
+                p50_ms: quantile(&ms, 0.5),
+                p99_ms: quantile(&ms, 0.99),
+                max_ms: quantile(&ms, 1.0),
+            })
+        })
+        .collect();
     let errors: Vec<String> = all.iter().filter_map(|r| r.error.clone()).collect();
     Ok(LoadReport {
         clients,
@@ -187,8 +237,9 @@ pub fn run(base_url: &str, clients: usize, requests: usize, seed: u64) -> Result
         requests_per_s: all.len() as f64 / wall_s,
         rows_per_s: all.iter().map(|r| r.rows).sum::<usize>() as f64 / wall_s,
         mb_per_s: all.iter().map(|r| r.bytes).sum::<usize>() as f64 / 1e6 / wall_s,
-        p50_ms: pct(0.5),
-        p99_ms: pct(0.99),
-        max_ms: pct(1.0),
+        p50_ms: quantile(&latencies, 0.5),
+        p99_ms: quantile(&latencies, 0.99),
+        max_ms: quantile(&latencies, 1.0),
+        by_kind,
     })
 }

@@ -246,8 +246,9 @@ pub fn pipeline_scoped(
         // 2: projects assigned positions only, into one file per split. 3: every sample carries its context
         // window (schema 1.2). 4: context cells average blocks of pixels (dataset::contract::context), not single pixels.
         // 5: the train DEM statistic is summed per ortho (partitions merge to the same bits). 6: every sample
-        // carries its crater frame, NaN without a catalogue (schema 1.3).
-        code_version: "6",
+        // carries its crater frame, NaN without a catalogue (schema 1.3). 7: tensor pages of at most
+        // `TENSOR_PAGE_BYTES` (same values, other bytes: a one-row read decompresses an eighth of what it did).
+        code_version: "7",
         // Everything projection reads: assigned positions, the DEM, and each ortho's image and metadata.
         inputs: [
             layout.assignment.clone(),

@@ -92,9 +92,15 @@ impl ShardError {
     }
 }
 
+/// Uncompressed bytes at which a tensor column's data page is closed: two rows of a 64 KiB raster. A reader that
+/// wants one row (the server, a shuffled trainer) decompresses the whole page it lies on, and with the offset index
+/// it decompresses no other; Parquet's default 1 MiB page made that 16 rows of each raster for every row read.
+pub const TENSOR_PAGE_BYTES: usize = 128 << 10;
+
 /// Writer properties: zstd everywhere; on the tensor leaves no dictionary (interning the 16k values per row of the
-/// `valid` mask was ~9 % of the writer thread's time in the tycho-full project stage) and no page statistics
-/// (min/max of a tensor column helps no query), and BYTE_STREAM_SPLIT on the float ones.
+/// `valid` mask was ~9 % of the writer thread's time in the tycho-full project stage), no page statistics
+/// (min/max of a tensor column helps no query), pages of [`TENSOR_PAGE_BYTES`], and BYTE_STREAM_SPLIT on the float
+/// ones.
 pub fn writer_properties() -> WriterProperties {
     let schema = sample_schema();
     let descriptor = ArrowSchemaConverter::new()
@@ -117,7 +123,8 @@ pub fn writer_properties() -> WriterProperties {
         }
         builder = builder
             .set_column_dictionary_enabled(path.clone(), false)
-            .set_column_statistics_enabled(path.clone(), EnabledStatistics::None);
+            .set_column_statistics_enabled(path.clone(), EnabledStatistics::None)
+            .set_column_data_page_size_limit(path.clone(), TENSOR_PAGE_BYTES);
         if FLOAT_TENSOR_COLUMNS.contains(&top)
             && matches!(
                 column.physical_type(),
@@ -239,6 +246,60 @@ mod tests {
                 .append_encoded_row_group(&source, 3),
             Err(ShardError::RowGroup { count: 3, .. })
         ));
+    }
+
+    #[test]
+    fn a_tensor_page_holds_the_rows_of_its_byte_budget_and_no_more() {
+        // One row read decompresses the pages it lies on: every raster's pages must hold as many rows as
+        // TENSOR_PAGE_BYTES of it (the page is closed at the first row that reaches the budget), not Parquet's
+        // default 1 MiB. Counted from the offset index a reader selects pages by.
+        use crate::contract::schema::{CONTEXT_PX, CROP_PX, DEM_PX};
+        use parquet::file::reader::{FileReader, SerializedFileReader};
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join(shard_name("train", 0, 1));
+        let mut w = ShardWriter::create(&path).unwrap();
+        w.write(&(0..256).map(synthetic_sample).collect::<Vec<_>>())
+            .unwrap();
+        w.finish().unwrap();
+        let options = parquet::file::serialized_reader::ReadOptionsBuilder::new()
+            .with_page_index()
+            .build();
+        let reader =
+            SerializedFileReader::new_with_options(File::open(&path).unwrap(), options).unwrap();
+        let metadata = reader.metadata();
+        let group = metadata.row_group(0);
+        let page_index = metadata.page_index_for_row_group(0);
+        let row_bytes = [
+            ("dem", DEM_PX * DEM_PX * 4),
+            ("image", CROP_PX * CROP_PX * 4),
+            ("sun_lit", CROP_PX * CROP_PX * 4),
+            // Parquet has no 8-bit integer: a UInt8 column is stored as INT32, four bytes a value.
+            ("valid", CROP_PX * CROP_PX * 4),
+            ("context_dem", CONTEXT_PX * CONTEXT_PX * 4),
+        ];
+        for (column, bytes) in row_bytes {
+            let k = (0..group.num_columns())
+                .find(|&k| group.column(k).column_path().parts()[0] == column)
+                .unwrap();
+            let starts: Vec<i64> = page_index
+                .page_locations(k)
+                .expect("an offset index is written")
+                .iter()
+                .map(|p| p.first_row_index)
+                .chain([256])
+                .collect();
+            let rows: Vec<i64> = starts.windows(2).map(|w| w[1] - w[0]).collect();
+            let budget_rows = TENSOR_PAGE_BYTES.div_ceil(bytes) as i64;
+            assert!(
+                rows.iter().all(|&r| r <= budget_rows),
+                "{column}: pages of {rows:?} rows, budget {budget_rows}"
+            );
+            // Full pages (all but the last) reach the budget: pages are not cut smaller than it asks.
+            assert!(
+                rows[..rows.len() - 1].iter().all(|&r| r == budget_rows),
+                "{column}: pages of {rows:?} rows, budget {budget_rows}"
+            );
+        }
     }
 
     #[test]
