@@ -296,7 +296,6 @@ fn sample_json(index: &DatasetIndex, row: usize) -> SampleJson<'_> {
     }
 }
 
-/// Rasters as little-endian base64 with dtype and shape (row-major, north row first).
 async fn viewer() -> Html<&'static str> {
     Html(VIEWER_HTML)
 }

@@ -131,29 +131,29 @@ pub fn run(base_url: &str, clients: usize, requests: usize, seed: u64) -> Result
                     (0..count)
                         .map(|_| {
                             let (split, rows, _) = &splits[rng.random_range(0..splits.len())];
-                            let draw = rng.random_range(0..10);
-                            let kind = match draw {
+                            // 40 % metadata pages, 20 % each of the others (KINDS' order).
+                            let kind = match rng.random_range(0..10) {
                                 0..=3 => 0,
                                 4 | 5 => 1,
                                 6 | 7 => 2,
                                 _ => 3,
                             };
-                            let (path, range) = match draw {
-                                0..=3 => (
+                            let (path, range) = match kind {
+                                0 => (
                                     format!(
                                         "/v1/rows?split={split}&offset={}&length=20",
                                         rng.random_range(0..*rows)
                                     ),
                                     None,
                                 ),
-                                4 | 5 => (
+                                1 => (
                                     format!(
                                         "/v1/rows?split={split}&offset={}&length=2&tensors=base64",
                                         rng.random_range(0..*rows)
                                     ),
                                     None,
                                 ),
-                                6 | 7 => {
+                                2 => {
                                     let id = &ids[rng.random_range(0..ids.len())];
                                     let file =
                                         ["dem.png", "image.png", "lit.png"][rng.random_range(0..3)];

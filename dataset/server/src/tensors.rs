@@ -1,5 +1,5 @@
-//! A sample's rasters as JSON (`/v1/rows?tensors=base64`): each raster's little-endian bytes as base64, with its
-//! dtype and shape.
+//! A sample's rasters as JSON (`/v1/rows?tensors=base64`): each raster's little-endian bytes as base64 (row-major,
+//! north row first), with its dtype and shape.
 //!
 //! The base64 text goes into the JSON as it is. Base64 holds no character JSON escapes, but serde_json checks every
 //! character of a string it writes, and on a load test's tensor pages (~0.6 MB of base64 each) that check took
