@@ -1,0 +1,87 @@
+#!/bin/bash
+# Worlds and scores of the many-craters recipe (issue 62), from the release binaries (cargo build --release --workspace
+# --bins). Each world is the preset `many-craters` at a seed; its manifest is manifests/many-craters.toml with the
+# seed, paths and name changed, written beside the world.
+#
+#   many_craters.sh publish OUT SEED train   a training world: framed by 8 error draws of its catalogue (the manifest's)
+#   many_craters.sh publish OUT SEED exact   a validation world: framed by its exact catalogue
+#   many_craters.sh test OUT SEED RUN [N]    a test world, published three times from the same crops (framed by its
+#                                            exact catalogue, a perturbed one and one listing a phantom 18 km crater:
+#                                            docs/scripts/catalogue_variants.py), and RUN scored on N spread test
+#                                            crops (default 4096) of each, and on the exact one without crater frames
+#
+# A test world differs from a training world's publication only in size: coverage 4 (not 19.3) and 85 % of its tiles in
+# test (5 % val, 10 % train, where the honest Hapke scale's calibration crops come from), since nothing trains on it.
+# Each step is skipped when its output exists; the pipeline's stages/ are deleted after publication, for disk (a
+# world is ~10 GB, a training publication ~6 GB). Timings go to OUT/*.time (/usr/bin/time -v).
+set -euo pipefail
+repo=$(cd "$(dirname "$0")/../.." && pwd)
+bin=$repo/target/release
+python=${PYTHON:-$repo/.venv/bin/python3}
+mode=$1; out=$2; seed=$3
+mkdir -p "$out"
+cd "$out"
+
+world() {
+  if [ ! -f world-$seed/world.json ]; then
+    /usr/bin/time -v "$bin/g2r-pipeline" synth --preset many-craters --seed "$seed" --out world-$seed \
+      > world-$seed.log 2> world-$seed.time
+  fi
+}
+
+# manifest NAME CATALOGUE DATASET_DIR [sed expressions...]: the preset's manifest for this world.
+manifest() {
+  local name=$1 catalogue=$2 dataset=$3
+  shift 3
+  sed -e "s#\.\./out/many-craters-world/truth/complex_craters.csv#$catalogue#" \
+      -e "s#\.\./out/many-craters-world#world-$seed#g" -e "s#\.\./out/many-craters-dataset#$dataset#" \
+      -e "s/^seed = 42/seed = $seed/" -e "s/^name = \"g2r-many-craters\"/name = \"$name\"/" "$@" \
+      "$repo/manifests/many-craters.toml" > manifest-$dataset.toml
+}
+
+publish() { # DATASET_DIR
+  if [ ! -f $1/dataset/manifest.json ]; then
+    /usr/bin/time -v "$bin/g2r-pipeline" run manifest-$1.toml > $1.log 2> $1.time
+    rm -rf $1/stages
+  fi
+}
+
+case $mode in
+  publish)
+    role=$4
+    world
+    case $role in
+      train) manifest g2r-many-craters-$seed world-$seed/truth/complex_craters.csv data-$seed ;;
+      exact) manifest g2r-many-craters-$seed world-$seed/truth/complex_craters.csv data-$seed \
+               -e '/^crater_catalogue_error = /d' ;;
+      *) echo "publish: role must be train or exact, not $role" >&2; exit 2 ;;
+    esac
+    publish data-$seed
+    ;;
+  test)
+    run=$4; samples=${5:-4096}
+    world
+    mkdir -p catalogues-$seed
+    cp world-$seed/truth/complex_craters.csv catalogues-$seed/exact.csv
+    "$python" "$repo/docs/scripts/catalogue_variants.py" world-$seed catalogues-$seed > catalogues-$seed/variants.txt
+    for variant in exact perturbed phantom; do
+      manifest g2r-many-craters-$seed-$variant catalogues-$seed/$variant.csv test-$seed-$variant \
+        -e "s|# the drawn craters, exact|# $variant: docs/scripts/catalogue_variants.py|" \
+        -e '/^crater_catalogue_error = /d' -e 's/^coverage = .*/coverage = 4.0/' \
+        -e 's/^val_fraction = .*/val_fraction = 0.05/' -e 's/^test_fraction = .*/test_fraction = 0.85/'
+      publish test-$seed-$variant
+    done
+    score() { # NAME DATASET_VARIANT [eval flags...]
+      local scored=$run/eval-world-$seed-$1
+      if [ ! -f $scored/metrics.json ]; then
+        /usr/bin/time -v "$bin/g2r-train" eval --run "$run" --data test-$seed-$2/dataset --world world-$seed \
+          --max-samples "$samples" --out $scored "${@:3}" > $scored.log 2> $scored.time
+      fi
+    }
+    score exact exact
+    score unframed exact --without-crater-frames
+    score perturbed perturbed
+    score phantom phantom
+    ;;
+  *) echo "usage: many_craters.sh publish OUT SEED train|exact | test OUT SEED RUN [N]" >&2; exit 2 ;;
+esac
