@@ -407,13 +407,21 @@ pub fn write_geotiff(
     let tmp = crate::files::tmp_path(path);
     limit_gdal_block_cache();
     let driver = DriverManager::get_driver_by_name("GTiff").map_err(gdal_err(path))?;
-    let options = RasterCreationOptions::from_iter([
+    let mut options = vec![
         "TILED=YES",
         "COMPRESS=DEFLATE",
         "PREDICTOR=3",
         "ZLEVEL=1",
         "BIGTIFF=IF_SAFER",
-    ]);
+    ];
+    // Several bands are stored band after band. GDAL's default for a new GTiff interleaves them pixel by pixel,
+    // so every tile holds all bands: writing them one at a time, as below, makes GDAL compress each tile again
+    // for every band (re-reading it once the block cache has let it go), and a band of one value never
+    // compresses beside a varying one. One band is left as it was, so single-band files keep their bytes.
+    if bands.len() > 1 {
+        options.push("INTERLEAVE=BAND");
+    }
+    let options = RasterCreationOptions::from_iter(options);
     {
         let mut ds = driver
             .create_with_band_type_with_options::<f32, _>(
@@ -596,6 +604,65 @@ mod tests {
         assert_eq!(back.transform, raster.transform);
         assert!(back.data[3].is_nan() && back.data[4] == 1.5);
         assert_eq!(back.description, "height_m");
+    }
+
+    /// A multi-band raster is band-interleaved: its bands of one value cost next to nothing beside a varying band
+    /// (pixel interleaving made the file grow with every band, as GDAL compressed each tile again per band), and
+    /// every band reads back exactly as written.
+    #[test]
+    fn bands_of_one_value_cost_little_beside_a_varying_band() {
+        let dir = tempfile::tempdir().unwrap();
+        let crs = LunarCrs::equirectangular(-43.3, -11.2);
+        let n = 1024;
+        let layout = RasterLayout {
+            width: n,
+            height: n,
+            transform: GeoTransform::north_up(0.0, 0.0, 2.5),
+            crs: &crs,
+            nodata: -1.0,
+        };
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        let varying: Vec<f32> = (0..n * n)
+            .map(|_| {
+                state ^= state << 13;
+                state ^= state >> 7;
+                state ^= state << 17;
+                0.3 + (state >> 40) as f32 / 16_777_216.0 * 0.01
+            })
+            .collect();
+        let band = |values, description| BandOut {
+            values,
+            description,
+        };
+        let one = dir.path().join("one.tif");
+        write_geotiff(&one, &layout, &[band(BandValues::Grid(&varying), "w")], &[]).unwrap();
+        let five = dir.path().join("five.tif");
+        let constants = [0.6f32, 2.0, 0.07, 23.0];
+        let mut bands = vec![band(BandValues::Grid(&varying), "w")];
+        bands.extend(
+            constants
+                .iter()
+                .map(|&v| band(BandValues::Constant(v), "constant")),
+        );
+        write_geotiff(&five, &layout, &bands, &[]).unwrap();
+        let size = |p: &Path| std::fs::metadata(p).unwrap().len() as f64;
+        assert!(
+            size(&five) < 1.05 * size(&one),
+            "five bands {} B, the varying one alone {} B",
+            size(&five),
+            size(&one)
+        );
+        let ds = Dataset::open(&five).unwrap();
+        assert_eq!(
+            ds.metadata_item("INTERLEAVE", "IMAGE_STRUCTURE").as_deref(),
+            Some("BAND")
+        );
+        let back = read_bands(&five).unwrap();
+        assert_eq!(back.len(), 5);
+        assert!(back[0].data == varying, "the varying band, bit for bit");
+        for (b, &v) in back[1..].iter().zip(&constants) {
+            assert!(b.data.iter().all(|&x| x == v));
+        }
     }
 
     /// LROC CDR orthos store I/F as Int16 "Scaled I/F" (band scale 3.0518509475997199e-05); DEMs are sometimes
