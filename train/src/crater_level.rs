@@ -10,12 +10,18 @@
 //!
 //! - **Fitted on train crops, with no network:** the target is the log of each crop's best uniform H1 scale
 //!   (least squares of the ground truth on the Moon-wide Hapke rendering, [`best_uniform_scale`]); the features are
-//!   a logistic step in the crop's height against the crater's profile (centre and width chosen on a grid), the
-//!   crop's mean slope and its normalised radius ρ. One regression for each band of ρ ([`BANDS`]: the melt floor,
-//!   terraced wall, rim and ejecta of a complex crater).
-//! - **Chosen on the validation split:** for each band, how far the network's level moves toward the regression's
-//!   (`weight`, in log space; 0 keeps the network's), by the summed squared error of the run's renderings of the
-//!   band's validation crops. The bands are disjoint, so each band's choice is its own.
+//!   a logistic step in the crop's height against the crater's profile, the crop's mean slope and its normalised
+//!   radius ρ. One regression for each zone of ρ.
+//! - **Zones and steps from the data, not the world generator:** the zones are grown on the train crops
+//!   ([`grow_zones`]): one zone over the frame's reach, then, step by step, the split (at a sixteenth of a zone's
+//!   crops' ρ) that lowers the train residual most, up to [`MAX_ZONES`]. The step's centre is tried at quantiles of
+//!   the zone's heights against the profile and its width at fractions of their interquartile range, so a crater
+//!   ten times deeper gives the same fit with its heights ten times larger (tested).
+//! - **Chosen on the validation split:** how many zones to keep, and for each zone how far the network's level
+//!   moves toward the regression's (`weight`, in log space; 0 keeps the network's), by the summed squared error of
+//!   the run's renderings of the validation crops. With the world's terrain classes (`crater-level --world`) the
+//!   weights are also held so that no kind of ground (class and unit) gets a larger validation error than the
+//!   network's alone.
 //! - **Applied** by scaling every pixel's H1 scale in a crop by `(predicted / network)^weight`, where `network` is
 //!   the crop's mean scale in the network's maps: in `eval` read off its rendering ([`rendered_scale`]), in
 //!   `infer` the mean of its scale band. Crops in a band of weight 0, beyond the bands, or without a crater frame
@@ -31,6 +37,7 @@ use dataset::contract::crater_frame::CraterPosition;
 use dataset::contract::schema::Sample;
 use dataset::science::brdf::BrdfModel;
 use dataset::science::least_squares::solve_small_system;
+use rayon::prelude::*;
 
 use crate::data::mean_slope_deg;
 
@@ -39,15 +46,18 @@ pub const CRATER_LEVEL_FILE: &str = "crater_level.json";
 /// Bumped when the file's meaning changes; older files are refused with the command that rewrites them.
 pub const CRATER_LEVEL_VERSION: u32 = 1;
 
-/// The disjoint bands of ρ, each with its own regression and weight: a complex crater's melt floor (ρ < 0.45),
-/// terraced wall (to 1), rim (to 1.5) and ejecta (to 3 radii), the classes `eval` groups crops by.
-pub const BANDS: [(f64, f64); 4] = [(0.0, 0.45), (0.45, 1.0), (1.0, 1.5), (1.5, 3.0)];
 /// How far a crop's level moves from the network's toward the regression's, in log space; 0 keeps the network's.
 pub const CANDIDATE_WEIGHTS: [f64; 5] = [0.0, 0.25, 0.5, 0.75, 1.0];
-/// Grid of the logistic step's centre (m against the profile) and width (m).
-const STEP_CENTRES_M: std::ops::RangeInclusive<i32> = -12..=12; // × 25 m: −300 … 300 m
-const STEP_CENTRE_SPACING_M: f64 = 25.0;
-const STEP_WIDTHS_M: [f64; 5] = [10.0, 25.0, 50.0, 100.0, 200.0];
+/// The most zones of ρ the fit grows; how many it keeps is chosen on validation.
+pub const MAX_ZONES: usize = 8;
+/// The fewest train crops a zone is fitted on: a split leaving fewer on either side is not tried.
+pub const MIN_ZONE_TRAIN_CROPS: usize = 64;
+/// A zone is split only at its crops' ρ sixteenths.
+const SPLIT_QUANTILES: usize = 16;
+/// The step's centre is tried at the zone's height twentieths (5 % to 95 %), its width at these fractions of the
+/// heights' interquartile range.
+const STEP_CENTRE_QUANTILES: usize = 20;
+const STEP_WIDTH_IQR_FRACTIONS: [f64; 5] = [0.0625, 0.125, 0.25, 0.5, 1.0];
 /// Slopes enter as mean slope / this, so the coefficients are of one order.
 const SLOPE_UNIT_DEG: f64 = 30.0;
 
@@ -70,6 +80,11 @@ pub struct LevelRegression {
 impl LevelRegression {
     pub fn covers(&self, rho: f64) -> bool {
         rho >= self.rho_min && rho < self.rho_max
+    }
+
+    /// Its summed squared residual on the train crops it was fitted on.
+    fn train_sse(&self) -> f64 {
+        self.train_rms_log.powi(2) * self.train_crops as f64
     }
 
     fn features(&self, at: &CraterPosition, slope_deg: f64) -> [f64; 4] {
@@ -139,8 +154,39 @@ pub struct CraterLevel {
     pub val_crops_framed: usize,
     /// The whole validation split's summed squared error with the chosen weights over the network's alone.
     pub val_sse_ratio: f64,
-    /// Every candidate, band by band; each band's chosen weight has its lowest `band_sse_ratio`.
+    /// Every candidate of the kept zones, zone by zone: without a ground guard each zone's chosen weight has its
+    /// lowest `band_sse_ratio`.
     pub candidates: Vec<CandidateScore>,
+    /// Each partition the fit grew (1, 2, … zones), scored on validation with its own chosen weights; the kept one
+    /// has the lowest ratio (the fewest zones on a tie). Empty in files written before zones were grown.
+    #[serde(default)]
+    pub zone_counts: Vec<ZoneCountScore>,
+    /// With the world's terrain classes (`crater-level --world`): each kind of ground's validation error with the
+    /// chosen level over the network's alone, which the choice holds at or below 1. Empty without them.
+    #[serde(default)]
+    pub ground_guard: Vec<GroundScore>,
+}
+
+/// One partition of ρ into zones, as the validation choice scored it.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ZoneCountScore {
+    pub zones: usize,
+    /// The zones' inner edges in ρ, in order (the outer ones are 0 and the frame's reach).
+    pub edges: Vec<f64>,
+    /// The validation split's summed squared error with this partition's chosen weights over the network's.
+    pub val_sse_ratio: f64,
+    /// Whether holding every kind of ground at or below the network's error changed the weights.
+    pub guard_bound: bool,
+}
+
+/// One kind of ground's validation error under the chosen level.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct GroundScore {
+    /// Class and unit (`rim, highland`), as `eval` labels them; `unknown` off the world's class map.
+    pub ground: String,
+    pub val_crops: usize,
+    /// Its summed squared error with the chosen level over the network's alone (at most 1).
+    pub val_sse_ratio: f64,
 }
 
 /// A band and its weight, as `eval` reports which levels it applied.
@@ -161,6 +207,8 @@ impl CraterLevel {
             val_crops_framed: 0,
             val_sse_ratio: 1.0,
             candidates: Vec::new(),
+            zone_counts: Vec::new(),
+            ground_guard: Vec::new(),
         }
     }
 
@@ -275,19 +323,28 @@ pub(crate) struct TrainCrop {
     pub log_scale: f64,
 }
 
-/// Fit the regression of one band on the train crops in it: the step's centre and width on a grid, the four
-/// coefficients by least squares at each; the pair with the smallest residual wins.
-pub(crate) fn fit_band(crops: &[TrainCrop], band: (f64, f64)) -> Option<LevelRegression> {
+/// Fit the regression of one zone of ρ on the train crops in it: the step's centre and width on a grid drawn
+/// from the zone's own heights, the four coefficients by least squares at each; the pair with the smallest
+/// residual wins. `None` with fewer than [`MIN_ZONE_TRAIN_CROPS`] crops in the zone.
+pub(crate) fn fit_zone(crops: &[TrainCrop], zone: (f64, f64)) -> Option<LevelRegression> {
     let inside: Vec<&TrainCrop> = crops
         .iter()
-        .filter(|c| c.at.rho >= band.0 && c.at.rho < band.1)
+        .filter(|c| c.at.rho >= zone.0 && c.at.rho < zone.1)
         .collect();
-    if inside.len() < 16 {
+    if inside.len() < MIN_ZONE_TRAIN_CROPS {
         return None;
     }
+    let mut heights: Vec<f64> = inside.iter().map(|c| c.at.relative_height_m).collect();
+    heights.sort_by(f64::total_cmp);
+    let quantile = |q: f64| heights[((heights.len() - 1) as f64 * q).round() as usize];
+    // Heights that do not spread (all crops at one height) make the step constant over the zone whatever its
+    // width; the ridge below keeps that solvable, so any positive width serves.
+    let iqr = (quantile(0.75) - quantile(0.25)).max(f64::MIN_POSITIVE);
     let mut best: Option<LevelRegression> = None;
-    for centre in STEP_CENTRES_M.map(|i| i as f64 * STEP_CENTRE_SPACING_M) {
-        for width in STEP_WIDTHS_M {
+    for k in 1..STEP_CENTRE_QUANTILES {
+        let centre = quantile(k as f64 / STEP_CENTRE_QUANTILES as f64);
+        for fraction in STEP_WIDTH_IQR_FRACTIONS {
+            let width = fraction * iqr;
             let (mut ata, mut atb) = (vec![vec![0.0; 4]; 4], vec![0.0; 4]);
             for c in &inside {
                 let x = features(&c.at, c.slope_deg, centre, width);
@@ -298,7 +355,7 @@ pub(crate) fn fit_band(crops: &[TrainCrop], band: (f64, f64)) -> Option<LevelReg
                     }
                 }
             }
-            // A whisker of ridge keeps a step that is flat over the band (all crops on one side) solvable.
+            // A whisker of ridge keeps a step that is flat over the zone (all crops on one side) solvable.
             for (i, row) in ata.iter_mut().enumerate() {
                 row[i] += 1e-9 * inside.len() as f64;
             }
@@ -315,8 +372,8 @@ pub(crate) fn fit_band(crops: &[TrainCrop], band: (f64, f64)) -> Option<LevelReg
             let rms = (residual / inside.len() as f64).sqrt();
             if rms.is_finite() && best.as_ref().is_none_or(|b| rms < b.train_rms_log) {
                 best = Some(LevelRegression {
-                    rho_min: band.0,
-                    rho_max: band.1,
+                    rho_min: zone.0,
+                    rho_max: zone.1,
                     step_centre_m: centre,
                     step_width_m: width,
                     coefficients,
@@ -327,6 +384,69 @@ pub(crate) fn fit_band(crops: &[TrainCrop], band: (f64, f64)) -> Option<LevelReg
         }
     }
     best
+}
+
+/// The places a zone may be split: midway between neighbouring crops at each sixteenth of its crops' ρ, where
+/// both sides keep [`MIN_ZONE_TRAIN_CROPS`].
+fn split_points(crops: &[TrainCrop], zone: &LevelRegression) -> Vec<f64> {
+    let mut rho: Vec<f64> = crops
+        .iter()
+        .map(|c| c.at.rho)
+        .filter(|&r| zone.covers(r))
+        .collect();
+    rho.sort_by(f64::total_cmp);
+    let mut points: Vec<f64> = (1..SPLIT_QUANTILES)
+        .map(|k| k * rho.len() / SPLIT_QUANTILES)
+        .filter(|&i| i >= MIN_ZONE_TRAIN_CROPS && rho.len() - i >= MIN_ZONE_TRAIN_CROPS)
+        .filter(|&i| rho[i - 1] < rho[i])
+        .map(|i| 0.5 * (rho[i - 1] + rho[i]))
+        .collect();
+    points.dedup();
+    points
+}
+
+/// Zones of ρ grown on the train crops within `reach` radii: one zone first, then at each step the split of one
+/// zone into two regressions that lowers the summed train residual most, until `max_zones` or no split helps.
+/// Returns every partition on the way (1, 2, … zones), each a list of disjoint zones covering `[0, reach)` in
+/// order; empty when fewer than [`MIN_ZONE_TRAIN_CROPS`] crops lie within reach.
+pub(crate) fn grow_zones(
+    crops: &[TrainCrop],
+    reach: f64,
+    max_zones: usize,
+) -> Vec<Vec<LevelRegression>> {
+    let Some(whole) = fit_zone(crops, (0.0, reach)) else {
+        return Vec::new();
+    };
+    let mut partitions = vec![vec![whole]];
+    while let Some(current) = partitions.last().filter(|p| p.len() < max_zones) {
+        let tries: Vec<(usize, f64)> = current
+            .iter()
+            .enumerate()
+            .flat_map(|(i, zone)| split_points(crops, zone).into_iter().map(move |s| (i, s)))
+            .collect();
+        let splits: Vec<(usize, f64, LevelRegression, LevelRegression)> = tries
+            .par_iter()
+            .filter_map(|&(i, at)| {
+                let zone = &current[i];
+                let below = fit_zone(crops, (zone.rho_min, at))?;
+                let above = fit_zone(crops, (at, zone.rho_max))?;
+                let gain = zone.train_sse() - below.train_sse() - above.train_sse();
+                (gain > 0.0).then_some((i, gain, below, above))
+            })
+            .collect();
+        // The largest gain; on a tie the first in zone and ρ order, so the result does not depend on threads.
+        let Some((i, _, below, above)) =
+            splits
+                .into_iter()
+                .reduce(|best, s| if s.1 > best.1 { s } else { best })
+        else {
+            break;
+        };
+        let mut next = current.clone();
+        next.splice(i..=i, [below, above]);
+        partitions.push(next);
+    }
+    partitions
 }
 
 #[cfg(test)]
@@ -342,43 +462,145 @@ mod tests {
         }
     }
 
-    /// Crops drawn from a known law are fitted back: a step of 0.5 in ln(scale) at +50 m against the
-    /// profile, slope and ρ terms, inside the band; crops outside it are not fitted on.
+    /// 400 crops in a zone: ρ over 0.45–1, heights against the profile from −200 to 180 m, slopes 10–28°.
+    fn zone_crops(law: impl Fn(&CraterPosition, f64) -> f64, height_scale: f64) -> Vec<TrainCrop> {
+        (0..400)
+            .map(|i| {
+                let a = at(
+                    0.45 + 0.55 * (i % 20) as f64 / 20.0,
+                    height_scale * (-200.0 + (i / 20) as f64 * 20.0),
+                );
+                let slope = 10.0 + (i % 7) as f64 * 3.0;
+                TrainCrop {
+                    at: a,
+                    slope_deg: slope,
+                    log_scale: law(&a, slope),
+                }
+            })
+            .collect()
+    }
+
+    /// Crops drawn from a known law are fitted back, with the step's centre and width found on the grid the
+    /// crops' own heights give (their median, a quarter of their interquartile range, computed here from the
+    /// heights); crops outside the zone are not fitted on.
     #[test]
-    fn a_band_recovers_the_law_its_crops_follow() {
+    fn a_zone_recovers_the_law_its_crops_follow_on_a_grid_from_their_heights() {
+        let mut heights: Vec<f64> = zone_crops(|_, _| 0.0, 1.0)
+            .iter()
+            .map(|c| c.at.relative_height_m)
+            .collect();
+        heights.sort_by(f64::total_cmp);
+        let pick = |q: f64| heights[(399.0 * q).round() as usize];
+        let (centre, width) = (pick(0.5), (pick(0.75) - pick(0.25)) / 4.0);
+        assert_eq!(
+            (centre, width),
+            (0.0, 45.0),
+            "median 0 m, IQR 180 m: the crops' own"
+        );
         let law = |a: &CraterPosition, slope: f64| {
-            let step = 1.0 / (1.0 + (-(a.relative_height_m - 50.0) / 25.0).exp());
+            let step = 1.0 / (1.0 + (-(a.relative_height_m - centre) / width).exp());
             -1.2 + 0.5 * step + 0.2 * slope / 30.0 - 0.1 * a.rho
         };
-        let mut crops = Vec::new();
-        for i in 0..400 {
-            let a = at(
-                0.45 + 0.55 * (i % 20) as f64 / 20.0,
-                -200.0 + (i / 20) as f64 * 20.0,
-            );
-            let slope = 10.0 + (i % 7) as f64 * 3.0;
-            crops.push(TrainCrop {
-                at: a,
-                slope_deg: slope,
-                log_scale: law(&a, slope),
-            });
-        }
-        // Outside the band, a law that would spoil the fit if it were used.
+        let mut crops = zone_crops(law, 1.0);
+        // Outside the zone, a law that would spoil the fit if it were used.
         crops.push(TrainCrop {
             at: at(2.0, 0.0),
             slope_deg: 5.0,
             log_scale: 9.0,
         });
-        let r = fit_band(&crops, (0.45, 1.0)).expect("enough crops");
+        let r = fit_zone(&crops, (0.45, 1.0)).expect("enough crops");
         assert_eq!(r.train_crops, 400);
-        assert_eq!((r.step_centre_m, r.step_width_m), (50.0, 25.0));
+        assert_eq!((r.step_centre_m, r.step_width_m), (centre, width));
         for (got, want) in r.coefficients.iter().zip([-1.2, 0.5, 0.2, -0.1]) {
             assert!((got - want).abs() < 1e-6, "{:?}", r.coefficients);
         }
         assert!(r.train_rms_log < 1e-6);
         let probe = at(0.7, 80.0);
         assert!((r.scale(&probe, 20.0).ln() - law(&probe, 20.0)).abs() < 1e-6);
-        assert!(fit_band(&crops, (1.0, 1.5)).is_none(), "no crops there");
+        assert!(fit_zone(&crops, (1.0, 1.5)).is_none(), "no crops there");
+    }
+
+    /// No depth in metres is built in: a crater ten times deeper, whose crops follow the same law of their
+    /// heights over ten, is fitted with the same coefficients and a step ten times wider, ten times further out.
+    #[test]
+    fn a_deeper_crater_gives_the_same_fit_with_its_heights_scaled() {
+        let law = |scale: f64| {
+            move |a: &CraterPosition, slope: f64| {
+                let step = 1.0 / (1.0 + (-(a.relative_height_m / scale - 37.0) / 60.0).exp());
+                -1.0 + 0.4 * step + 0.1 * slope / 30.0 + 0.2 * a.rho
+            }
+        };
+        let shallow = fit_zone(&zone_crops(law(1.0), 1.0), (0.45, 1.0)).unwrap();
+        let deep = fit_zone(&zone_crops(law(10.0), 10.0), (0.45, 1.0)).unwrap();
+        assert!(
+            shallow.train_rms_log > 1e-4,
+            "the law is off the grid: a real fit"
+        );
+        assert!((deep.step_centre_m - 10.0 * shallow.step_centre_m).abs() < 1e-9);
+        assert!((deep.step_width_m - 10.0 * shallow.step_width_m).abs() < 1e-9);
+        for (d, s) in deep.coefficients.iter().zip(&shallow.coefficients) {
+            assert!(
+                (d - s).abs() < 1e-9,
+                "{:?} vs {:?}",
+                deep.coefficients,
+                shallow.coefficients
+            );
+        }
+        assert!((deep.train_rms_log - shallow.train_rms_log).abs() < 1e-12);
+    }
+
+    /// Where the level changes with ρ, the zones grow there: a large change at 1.5 radii splits first, a small
+    /// one at 0.75 second (both fall on the sixteenths of the crops of the zone they split), and the third
+    /// partition has those edges and no residual. Every partition covers the reach without gaps, keeps the minimum
+    /// crops per zone, and fits the train crops no worse than the one before.
+    #[test]
+    fn zones_grow_where_the_level_changes_with_the_radius() {
+        let n = 1600;
+        let crops: Vec<TrainCrop> = (0..n)
+            .map(|i| {
+                let rho = 3.0 * (i as f64 + 0.5) / n as f64;
+                let level = if rho < 0.75 {
+                    -1.0
+                } else if rho < 1.5 {
+                    -0.9
+                } else {
+                    -2.0
+                };
+                TrainCrop {
+                    at: at(rho, -100.0 + (i % 41) as f64 * 5.0),
+                    slope_deg: 5.0 + (i % 13) as f64,
+                    log_scale: level,
+                }
+            })
+            .collect();
+        let partitions = grow_zones(&crops, 3.0, MAX_ZONES);
+        assert!(partitions.len() >= 3, "{} partitions", partitions.len());
+        let mut last_sse = f64::INFINITY;
+        for (k, zones) in partitions.iter().enumerate() {
+            assert_eq!(zones.len(), k + 1);
+            assert_eq!(zones[0].rho_min, 0.0);
+            assert_eq!(zones.last().unwrap().rho_max, 3.0);
+            for pair in zones.windows(2) {
+                assert_eq!(pair[0].rho_max, pair[1].rho_min, "no gap, no overlap");
+            }
+            assert!(zones.iter().all(|z| z.train_crops >= MIN_ZONE_TRAIN_CROPS));
+            assert_eq!(zones.iter().map(|z| z.train_crops).sum::<usize>(), n);
+            let sse: f64 = zones.iter().map(LevelRegression::train_sse).sum();
+            assert!(sse <= last_sse, "partition {k}: {sse} after {last_sse}");
+            last_sse = sse;
+        }
+        let three = &partitions[2];
+        let edges: Vec<f64> = three[1..].iter().map(|z| z.rho_min).collect();
+        assert!(
+            (edges[0] - 0.75).abs() < 1e-12 && (edges[1] - 1.5).abs() < 1e-12,
+            "{edges:?}"
+        );
+        assert_eq!(
+            partitions[1][1].rho_min, edges[1],
+            "the large change splits first"
+        );
+        assert!(three.iter().all(|z| z.train_rms_log < 1e-4), "{three:?}");
+        assert!(grow_zones(&crops[..MIN_ZONE_TRAIN_CROPS - 1], 3.0, MAX_ZONES).is_empty());
     }
 
     /// The factor moves the network's level the chosen fraction of the way (in log space) toward the prediction,

@@ -1,10 +1,12 @@
 //! Fitting a run's [`crate::crater_level`] (`crater-level`, `fit --crater-level`), beside the run it scores: the
-//! passes over a dataset: each band's regression fitted on the train split (no network), then
-//! every band's weight chosen on the validation split with the run's network, from each crop's sufficient
-//! statistics.
+//! passes over a dataset: zones of ρ grown and their regressions fitted on the train split (no network), then how
+//! many zones to keep and every zone's weight chosen on the validation split with the run's network, from each
+//! crop's sufficient statistics.
+
+use std::collections::BTreeMap;
 
 use anyhow::{bail, Result};
-use dataset::contract::crater_frame::CraterPosition;
+use dataset::contract::crater_frame::{CraterPosition, PROFILE_RHO_MAX};
 use dataset::contract::schema::{Split, CROP_PX};
 use dataset::science::brdf::BrdfModel;
 use dataset::science::hapke::HapkeParams;
@@ -12,19 +14,23 @@ use rayon::prelude::*;
 
 use crate::baseline::{hapke_render, truth_and_valid};
 use crate::crater_level::{
-    best_uniform_scale, fit_band, rendered_scale, BandLevel, CandidateScore, CraterLevel,
-    LevelRegression, TrainCrop, BANDS, CANDIDATE_WEIGHTS, CRATER_LEVEL_VERSION,
+    best_uniform_scale, grow_zones, rendered_scale, BandLevel, CandidateScore, CraterLevel,
+    GroundScore, LevelRegression, TrainCrop, ZoneCountScore, CANDIDATE_WEIGHTS,
+    CRATER_LEVEL_VERSION, MAX_ZONES, MIN_ZONE_TRAIN_CROPS,
 };
 use crate::data::{for_each_sample_group, mean_slope_deg, SampleSource};
+use crate::evaluation::TerrainMap;
 use crate::kernels::TrainOps;
 use crate::prediction::predict_ensemble;
 use crate::run_dir::TrainedRun;
 
 /// One validation crop's sufficient statistics: for a factor k on the learned rendering L, its squared error is
 /// k²·ll − 2k·lg + gg.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 struct ValCrop {
     at: Option<CraterPosition>,
+    /// Its kind of ground (class and unit) from the world's terrain classes, when the fit has them.
+    ground: Option<String>,
     slope_deg: f64,
     network_scale: f64,
     ll: f64,
@@ -65,13 +71,15 @@ pub struct CraterLevelFit {
     pub train_crops_framed: usize,
 }
 
-/// Fit each band's regression on the train split (no network), score every candidate on the validation split
-/// with the run's network, and return the best (lowest validation SSE). Refuses a dataset without crater frames
-/// and a run that is not H1.
+/// Grow the zones and fit their regressions on the train split (no network), score every partition and weight on
+/// the validation split with the run's network, and return the best (lowest validation SSE). With `terrain` (the
+/// world's classes) no kind of ground may end above the network's validation error. Refuses a dataset without
+/// crater frames and a run that is not H1.
 pub fn fit_crater_level<B: TrainOps>(
     run: &TrainedRun<B>,
     source: &dyn SampleSource,
     options: &CraterLevelOptions,
+    terrain: Option<&TerrainMap>,
     device: &B::Device,
 ) -> Result<CraterLevelFit> {
     if run.config.model != BrdfModel::H1 {
@@ -93,7 +101,8 @@ pub fn fit_crater_level<B: TrainOps>(
         ),
     }
     let params = HapkeParams::lunar_typical();
-    let reach = BANDS.iter().map(|b| b.1).fold(0.0, f64::max);
+    // The frame's own reach: past it a crop's position is clamped to the profile's end.
+    let reach = PROFILE_RHO_MAX;
     let (mut read, mut framed, mut train) = (0usize, 0usize, Vec::<TrainCrop>::new());
     for_each_sample_group(
         source,
@@ -128,17 +137,13 @@ pub fn fit_crater_level<B: TrainOps>(
             source.describe()
         );
     }
-    let regressions: Vec<LevelRegression> = BANDS
-        .iter()
-        .filter_map(|&band| fit_band(&train, band))
-        .collect();
-    if regressions.is_empty() {
+    let partitions = grow_zones(&train, reach, MAX_ZONES);
+    if partitions.is_empty() {
         bail!(
-            "{}: no band of crater radii holds 16 train crops within {reach} radii of a catalogued crater: nothing to fit a crater level on",
+            "{}: fewer than {MIN_ZONE_TRAIN_CROPS} train crops lie within {reach} radii of a catalogued crater: nothing to fit a crater level on",
             source.describe()
         );
     }
-
     let runs = std::slice::from_ref(run);
     let mut val = Vec::<ValCrop>::new();
     for_each_sample_group(
@@ -167,6 +172,10 @@ pub fn fit_crater_level<B: TrainOps>(
                         }
                         ValCrop {
                             at: s.crater,
+                            ground: terrain.map(|t| {
+                                t.ground_at(s.center_x_m, s.center_y_m)
+                                    .map_or_else(|| "unknown".to_string(), |g| g.label())
+                            }),
                             slope_deg: mean_slope_deg(s),
                             network_scale: rendered_scale(l, &hapke).unwrap_or(0.0),
                             ll,
@@ -185,72 +194,203 @@ pub fn fit_crater_level<B: TrainOps>(
             source.describe()
         );
     }
-    // The bands are disjoint, so each crop's error depends on its own band's weight only: each band's weight is
-    // chosen on its own crops, and the split's error is the network's plus each band's change.
     let network_sse: f64 = val.iter().map(|c| c.sse(1.0)).sum();
-    let (mut bands, mut candidates, mut chosen_sse) = (Vec::new(), Vec::new(), network_sse);
-    for regression in regressions {
+    let guarded = terrain.is_some();
+    let mut best: Option<(usize, WeightChoice)> = None;
+    let mut zone_counts = Vec::new();
+    for (k, zones) in partitions.iter().enumerate() {
+        let choice = choose_weights(zones, &val);
+        zone_counts.push(ZoneCountScore {
+            zones: zones.len(),
+            edges: zones[1..].iter().map(|z| z.rho_min).collect(),
+            val_sse_ratio: choice.sse / network_sse,
+            guard_bound: guarded && choice.guard_bound,
+        });
+        // Fewer zones first, so a tie keeps the smaller partition.
+        if best.as_ref().is_none_or(|(_, b)| choice.sse < b.sse) {
+            best = Some((k, choice));
+        }
+    }
+    let (kept, choice) = best.expect("at least one partition");
+    let zones = &partitions[kept];
+    let mut candidates = Vec::new();
+    let mut bands = Vec::new();
+    for (z, regression) in zones.iter().enumerate() {
         let inside: Vec<&ValCrop> = val
             .iter()
             .filter(|c| c.at.is_some_and(|at| regression.covers(at.rho)))
             .collect();
         let band_network: f64 = inside.iter().map(|c| c.sse(1.0)).sum();
-        let level_oracle: f64 = inside.iter().map(|c| c.sse(c.best_factor())).sum();
-        let mut best = (f64::INFINITY, 0.0);
-        for weight in CANDIDATE_WEIGHTS {
-            let band = BandLevel {
-                regression: regression.clone(),
-                weight,
-                val_level_oracle_sse_ratio: f64::NAN,
-            };
-            let sse: f64 = inside
-                .iter()
-                .map(|c| {
-                    let at = c.at.as_ref().expect("inside a band");
-                    c.sse(band.factor(at, c.slope_deg, c.network_scale))
-                })
-                .sum();
+        let ratio = |sse: f64| {
+            if band_network > 0.0 {
+                sse / band_network
+            } else {
+                1.0
+            }
+        };
+        for (w, &weight) in CANDIDATE_WEIGHTS.iter().enumerate() {
+            let sse: f64 = choice.zone_sse[z][w].iter().sum();
             candidates.push(CandidateScore {
                 rho_min: regression.rho_min,
                 rho_max: regression.rho_max,
                 weight,
                 crops_in_band: inside.len(),
-                band_sse_ratio: if band_network > 0.0 {
-                    sse / band_network
-                } else {
-                    1.0
-                },
+                band_sse_ratio: ratio(sse),
                 val_sse_ratio: (network_sse - band_network + sse) / network_sse,
             });
-            // Ties keep the smaller weight (weight 0 first): the network's level unless moving it helps.
-            if sse < best.0 {
-                best = (sse, weight);
-            }
         }
-        chosen_sse += best.0 - band_network;
+        let level_oracle: f64 = inside.iter().map(|c| c.sse(c.best_factor())).sum();
         bands.push(BandLevel {
-            regression,
-            weight: best.1,
-            val_level_oracle_sse_ratio: if band_network > 0.0 {
-                level_oracle / band_network
-            } else {
-                1.0
-            },
+            regression: regression.clone(),
+            weight: CANDIDATE_WEIGHTS[choice.weights[z]],
+            val_level_oracle_sse_ratio: ratio(level_oracle),
         });
     }
+    let ground_guard = if guarded {
+        ground_scores(&CraterLevel::from_bands(bands.clone()), &val)
+    } else {
+        Vec::new()
+    };
     let level = CraterLevel {
         version: CRATER_LEVEL_VERSION,
         bands,
         val_crops: val.len(),
         val_crops_framed: val.iter().filter(|c| c.at.is_some()).count(),
-        val_sse_ratio: chosen_sse / network_sse,
+        val_sse_ratio: choice.sse / network_sse,
         candidates,
+        zone_counts,
+        ground_guard,
     };
     Ok(CraterLevelFit {
         level,
         train_crops_read: read,
         train_crops_framed: framed,
     })
+}
+
+/// The weights chosen for one partition: an index into [`CANDIDATE_WEIGHTS`] per zone, the validation split's
+/// summed squared error with them, and each zone's error per weight and kind of ground (for the candidate table).
+struct WeightChoice {
+    weights: Vec<usize>,
+    sse: f64,
+    /// `zone_sse[zone][weight][ground]`: the zone's validation crops of that ground, at that weight.
+    zone_sse: Vec<Vec<Vec<f64>>>,
+    /// Whether keeping every kind of ground at or below the network's error changed the weights.
+    guard_bound: bool,
+}
+
+/// Choose each zone's weight by the validation split's summed squared error, holding every kind of ground the
+/// crops carry (all one kind without the world's classes) at or below the network's error there. The zones are
+/// disjoint, so each zone's best weight alone is the answer when it keeps every ground; otherwise every
+/// combination is tried (at most 5⁸), and the best that keeps them wins. Weight 0 everywhere is the network and
+/// always keeps them, so there is always an answer. Ties keep the smaller weights.
+fn choose_weights(zones: &[LevelRegression], val: &[ValCrop]) -> WeightChoice {
+    let mut grounds = BTreeMap::<Option<&str>, usize>::new();
+    for c in val {
+        let next = grounds.len();
+        grounds.entry(c.ground.as_deref()).or_insert(next);
+    }
+    let mut zone_sse = vec![vec![vec![0.0; grounds.len()]; CANDIDATE_WEIGHTS.len()]; zones.len()];
+    let mut outside = 0.0;
+    for c in val {
+        let g = grounds[&c.ground.as_deref()];
+        let zone =
+            c.at.as_ref()
+                .and_then(|at| zones.iter().position(|z| z.covers(at.rho)).map(|z| (z, at)));
+        let Some((z, at)) = zone else {
+            outside += c.sse(1.0);
+            continue;
+        };
+        for (w, &weight) in CANDIDATE_WEIGHTS.iter().enumerate() {
+            let band = BandLevel {
+                regression: zones[z].clone(),
+                weight,
+                val_level_oracle_sse_ratio: f64::NAN,
+            };
+            zone_sse[z][w][g] += c.sse(band.factor(at, c.slope_deg, c.network_scale));
+        }
+    }
+    let total = |weights: &[usize]| -> f64 {
+        outside
+            + weights
+                .iter()
+                .enumerate()
+                .map(|(z, &w)| zone_sse[z][w].iter().sum::<f64>())
+                .sum::<f64>()
+    };
+    // A ground's change against weight 0 (the network's own error there, summed the same way).
+    let keeps_every_ground = |weights: &[usize]| -> bool {
+        (0..grounds.len()).all(|g| {
+            weights
+                .iter()
+                .enumerate()
+                .map(|(z, &w)| zone_sse[z][w][g] - zone_sse[z][0][g])
+                .sum::<f64>()
+                <= 0.0
+        })
+    };
+    let alone: Vec<usize> = zone_sse
+        .iter()
+        .map(|by_weight| {
+            let sums: Vec<f64> = by_weight.iter().map(|g| g.iter().sum()).collect();
+            // The first of the lowest: weight 0 unless moving helps.
+            (0..sums.len()).fold(0, |best, w| if sums[w] < sums[best] { w } else { best })
+        })
+        .collect();
+    let (weights, guard_bound) = if keeps_every_ground(&alone) {
+        (alone, false)
+    } else {
+        let mut best = (vec![0; zones.len()], total(&vec![0; zones.len()]));
+        let mut weights = vec![0; zones.len()];
+        // Every combination, counting up from all zeros (so a tie keeps the first, smaller, weights).
+        'combinations: loop {
+            let mut z = 0;
+            loop {
+                if z == zones.len() {
+                    break 'combinations;
+                }
+                weights[z] += 1;
+                if weights[z] < CANDIDATE_WEIGHTS.len() {
+                    break;
+                }
+                weights[z] = 0;
+                z += 1;
+            }
+            if keeps_every_ground(&weights) {
+                let sse = total(&weights);
+                if sse < best.1 {
+                    best = (weights.clone(), sse);
+                }
+            }
+        }
+        (best.0, true)
+    };
+    WeightChoice {
+        sse: total(&weights),
+        weights,
+        zone_sse,
+        guard_bound,
+    }
+}
+
+/// Each kind of ground's validation error with `level` applied over the network's alone.
+fn ground_scores(level: &CraterLevel, val: &[ValCrop]) -> Vec<GroundScore> {
+    let mut sums = BTreeMap::<&str, (usize, f64, f64)>::new();
+    for c in val {
+        let entry = sums
+            .entry(c.ground.as_deref().unwrap_or("unknown"))
+            .or_default();
+        entry.0 += 1;
+        entry.1 += c.sse(level.factor(c.at.as_ref(), c.slope_deg, c.network_scale));
+        entry.2 += c.sse(1.0);
+    }
+    sums.into_iter()
+        .map(|(ground, (n, with, without))| GroundScore {
+            ground: ground.to_string(),
+            val_crops: n,
+            val_sse_ratio: if without > 0.0 { with / without } else { 1.0 },
+        })
+        .collect()
 }
 
 /// The fit's Markdown: each band's regression and chosen weight, then every candidate's validation score.
@@ -260,7 +400,7 @@ pub fn markdown(fit: &CraterLevelFit) -> String {
         "# Crater level\n\nTrain crops read: {} ({} with a crater frame). Chosen on {} validation crops ({} \
          framed): the split's summed squared error is **{:.4}** × the network's alone.\n\n\
          ln(scale) = c0 + c1·step + c2·slope/30° + c3·ρ, step = logistic((height against the profile − centre) / width)\n\n\
-         | ρ band | train crops | RMS residual (ln) | c0 | c1 | c2 | c3 | step centre, width (m) | chosen weight | \
+         | ρ zone | train crops | RMS residual (ln) | c0 | c1 | c2 | c3 | step centre, width (m) | chosen weight | \
          band SSE with each crop's best level (peeks) / network's |\n\
          |---|---|---|---|---|---|---|---|---|---|\n",
         fit.train_crops_read,
@@ -272,7 +412,7 @@ pub fn markdown(fit: &CraterLevelFit) -> String {
     for band in &level.bands {
         let r = &band.regression;
         text.push_str(&format!(
-            "| {}–{} | {} | {:.3} | {:.4} | {:.4} | {:.4} | {:.4} | {:.0}, {:.0} | {} | {:.4} |\n",
+            "| {:.3}–{:.3} | {} | {:.3} | {:.4} | {:.4} | {:.4} | {:.4} | {:.1}, {:.1} | {} | {:.4} |\n",
             r.rho_min,
             r.rho_max,
             r.train_crops,
@@ -292,9 +432,35 @@ pub fn markdown(fit: &CraterLevelFit) -> String {
     );
     for c in &level.candidates {
         text.push_str(&format!(
-            "| {}–{} | {} | {} | {:.4} | {:.4} |\n",
+            "| {:.3}–{:.3} | {} | {} | {:.4} | {:.4} |\n",
             c.rho_min, c.rho_max, c.weight, c.crops_in_band, c.band_sse_ratio, c.val_sse_ratio
         ));
+    }
+    text.push_str(
+        "\nZones grown on train crops, each partition with its own weights chosen on validation:\n\n\
+         | zones | inner edges (ρ) | val SSE / network's | held back by the ground guard |\n|---|---|---|---|\n",
+    );
+    for z in &level.zone_counts {
+        let edges: Vec<String> = z.edges.iter().map(|e| format!("{e:.3}")).collect();
+        text.push_str(&format!(
+            "| {} | {} | {:.4} | {} |\n",
+            z.zones,
+            edges.join(", "),
+            z.val_sse_ratio,
+            if z.guard_bound { "yes" } else { "no" }
+        ));
+    }
+    if !level.ground_guard.is_empty() {
+        text.push_str(
+            "\nBy kind of ground (the world's terrain classes), validation:\n\n\
+             | ground | val crops | SSE with the level / network's |\n|---|---|---|\n",
+        );
+        for g in &level.ground_guard {
+            text.push_str(&format!(
+                "| {} | {} | {:.4} |\n",
+                g.ground, g.val_crops, g.val_sse_ratio
+            ));
+        }
     }
     text
 }
@@ -328,6 +494,7 @@ mod tests {
             });
         let crop = ValCrop {
             at: None,
+            ground: None,
             slope_deg: 0.0,
             network_scale: shown,
             ll,
@@ -341,5 +508,120 @@ mod tests {
             .map(|(l, g)| (k * l - g).powi(2))
             .sum();
         assert!((crop.sse(k) - direct).abs() < 1e-15);
+    }
+
+    /// A validation crop in a zone at ρ, of a ground, whose error is least at factor `best` on the network's
+    /// rendering, with `mass` as its size.
+    fn crop(rho: f64, ground: Option<&str>, best: f64, mass: f64) -> ValCrop {
+        ValCrop {
+            at: Some(CraterPosition {
+                rho,
+                relative_height_m: 0.0,
+            }),
+            ground: ground.map(str::to_string),
+            slope_deg: 0.0,
+            network_scale: 0.5,
+            ll: mass,
+            lg: mass * best,
+            gg: mass * (best * best + 0.01),
+        }
+    }
+
+    /// Lowering the level helps the big ground A and hurts ground B in the inner zone, and helps A alone in the
+    /// outer one. Without grounds both zones move all the way; with them the inner zone keeps the network's level
+    /// and the outer still moves. Both answers equal the best of every pair of weights found by direct sums here,
+    /// the second among the pairs that leave no ground worse.
+    #[test]
+    fn the_weights_leave_no_ground_worse_than_the_network() {
+        let zone = |lo, hi| {
+            crate::testing::constant_crater_level(lo, hi, 0.4, 1.0)
+                .bands
+                .remove(0)
+                .regression
+        };
+        let zones = [zone(0.0, 1.0), zone(1.0, 3.0)];
+        let with_grounds = |named: bool| -> Vec<ValCrop> {
+            let g = |name| named.then_some(name);
+            vec![
+                crop(0.5, g("A"), 0.8, 10.0),
+                crop(0.6, g("B"), 1.0, 1.0),
+                crop(2.0, g("A"), 0.8, 3.0),
+                crop(4.0, g("B"), 1.3, 2.0), // beyond the zones: the network's
+            ]
+        };
+        // Direct sums: each crop's error at its zone's factor (0.4 / 0.5)^weight, by ground.
+        let brute = |val: &[ValCrop], guarded: bool| -> [usize; 2] {
+            let mut best = ([0, 0], f64::INFINITY);
+            for w0 in 0..CANDIDATE_WEIGHTS.len() {
+                for w1 in 0..CANDIDATE_WEIGHTS.len() {
+                    let k = |c: &ValCrop| {
+                        let rho = c.at.unwrap().rho;
+                        let w = if rho < 1.0 {
+                            w0
+                        } else if rho < 3.0 {
+                            w1
+                        } else {
+                            return 1.0;
+                        };
+                        0.8f64.powf(CANDIDATE_WEIGHTS[w])
+                    };
+                    let worse = ["A", "B"].iter().any(|g| {
+                        let of_g = val.iter().filter(|c| c.ground.as_deref() == Some(g));
+                        of_g.clone().map(|c| c.sse(k(c))).sum::<f64>()
+                            > of_g.map(|c| c.sse(1.0)).sum::<f64>() + 1e-12
+                    });
+                    let sse: f64 = val.iter().map(|c| c.sse(k(c))).sum();
+                    if !(guarded && worse) && sse < best.1 - 1e-12 {
+                        best = ([w0, w1], sse);
+                    }
+                }
+            }
+            best.0
+        };
+        let free = with_grounds(false);
+        let choice = choose_weights(&zones, &free);
+        assert_eq!(choice.weights, brute(&free, false));
+        assert_eq!(choice.weights, vec![4, 4], "both zones move all the way");
+        assert!(!choice.guard_bound);
+        let named = with_grounds(true);
+        let choice = choose_weights(&zones, &named);
+        assert_eq!(choice.weights, brute(&named, true));
+        assert_eq!(
+            choice.weights,
+            vec![0, 4],
+            "the inner zone keeps the network's level"
+        );
+        assert!(choice.guard_bound);
+        let direct: f64 = named
+            .iter()
+            .map(|c| {
+                c.sse(if c.at.unwrap().rho >= 1.0 && c.at.unwrap().rho < 3.0 {
+                    0.8
+                } else {
+                    1.0
+                })
+            })
+            .sum();
+        assert!((choice.sse - direct).abs() < 1e-12);
+        let mut level = CraterLevel::from_bands(
+            zones
+                .iter()
+                .zip(&choice.weights)
+                .map(|(r, &w)| BandLevel {
+                    regression: r.clone(),
+                    weight: CANDIDATE_WEIGHTS[w],
+                    val_level_oracle_sse_ratio: f64::NAN,
+                })
+                .collect(),
+        );
+        let scores = ground_scores(&level, &named);
+        assert_eq!(scores.len(), 2);
+        assert!(scores.iter().all(|g| g.val_sse_ratio <= 1.0), "{scores:?}");
+        assert!(scores[0].val_sse_ratio < 1.0, "A gains");
+        level.bands[0].weight = 1.0;
+        assert!(
+            ground_scores(&level, &named)[1].val_sse_ratio > 1.0,
+            "unguarded, B loses"
+        );
     }
 }

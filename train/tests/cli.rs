@@ -445,7 +445,8 @@ fn fit_with_crater_level_leaves_a_crater_level_the_run_loads_with() {
         }
         samples
     };
-    let (data, run) = data_and_run(d, framed(20, 1), framed(4, 2));
+    let train_crops = train::crater_level::MIN_ZONE_TRAIN_CROPS;
+    let (data, run) = data_and_run(d, framed(train_crops, 1), framed(4, 2));
     let (ok, stderr) = train_cli(&[
         "fit",
         "--data",
@@ -474,10 +475,35 @@ fn fit_with_crater_level_leaves_a_crater_level_the_run_loads_with() {
     let level = trained
         .crater_level
         .expect("crater_level.json written and loaded");
-    // All 20 train crops lie on the wall band (0.45–1): it is the one band fitted, on all of them.
+    // The fewest crops a zone is fitted on, all within the frame's reach: one zone over all of them, which no
+    // split could halve.
     assert_eq!(level.bands.len(), 1);
-    assert_eq!(level.bands[0].regression.train_crops, 20);
+    assert_eq!(level.bands[0].regression.train_crops, train_crops);
+    assert_eq!(level.zone_counts.len(), 1);
     assert_eq!(level.val_crops, 4);
+    // A ground guard needs the world's terrain classes: a world without them is refused by name, and the level
+    // already written stays.
+    let written = std::fs::read(d.join("run/crater_level.json")).unwrap();
+    let no_world = d.join("no-world").to_string_lossy().into_owned();
+    let (ok, stderr) = train_cli(&[
+        "crater-level",
+        "--run",
+        &run,
+        "--data",
+        &data,
+        "--world",
+        &no_world,
+    ]);
+    assert!(!ok);
+    let line = error_line(&stderr);
+    assert!(
+        line.contains("terrain_class.tif") && line.contains("--world"),
+        "{stderr}"
+    );
+    assert_eq!(
+        std::fs::read(d.join("run/crater_level.json")).unwrap(),
+        written
+    );
 }
 
 /// `eval` off a terminal writes progress lines while it works (stderr, never stdout), and on a terminal (a pty

@@ -21,13 +21,21 @@ fn the_shipped_model_loads_and_infers_scales_near_its_uniform_start() {
     // The weight average at the end of training: it scored better on validation than the raw network
     // (train/shipped/README.md), so only it ships, and `auto` finds it.
     assert_eq!(trained.checkpoint, "last/ema.mpk", "the default checkpoint");
-    // Its crater level (crater_level.json) loads with it, one regression per band of crater radii, each weight
-    // one of the candidates it was chosen from, and the chosen weights scored no worse than the network alone.
+    // Its crater level (crater_level.json) loads with it: disjoint zones of crater radii in order within the
+    // frame's reach, one regression each, each weight one of the candidates it was chosen from, and the chosen
+    // weights scored no worse than the network alone.
     let level = trained
         .crater_level
         .as_ref()
         .expect("the shipped crater level");
-    assert_eq!(level.bands.len(), train::crater_level::BANDS.len());
+    assert!(!level.bands.is_empty());
+    assert!(level.bands.len() <= train::crater_level::MAX_ZONES);
+    assert_eq!(level.bands[0].regression.rho_min, 0.0);
+    for pair in level.bands.windows(2) {
+        assert!(pair[0].regression.rho_max <= pair[1].regression.rho_min);
+    }
+    let reach = dataset::contract::crater_frame::PROFILE_RHO_MAX;
+    assert!(level.bands.iter().all(|b| b.regression.rho_max <= reach));
     assert!(level.val_sse_ratio <= 1.0, "{}", level.val_sse_ratio);
     for band in &level.bands {
         assert!(train::crater_level::CANDIDATE_WEIGHTS.contains(&band.weight));

@@ -19,8 +19,54 @@ pub struct TruthMaps {
     w_morphology: Option<Raster>,
     /// `truth/dem_true.tif`, for the oracle on the true DEM (worlds always carry it; tiny test worlds may not).
     true_dem: Option<Raster>,
-    /// `truth/terrain_class.tif` (world v3 on): class code and highland fraction per delivered-DEM cell.
-    terrain: Option<(Raster, Raster)>,
+    /// `truth/terrain_class.tif` (world v3 on).
+    terrain: Option<TerrainMap>,
+}
+
+/// `truth/terrain_class.tif` (world v3 on): class code and highland fraction per delivered-DEM cell. Opened alone
+/// where only the kind of ground is needed (`crater-level --world`), without the truth's large parameter maps.
+pub struct TerrainMap {
+    class: Raster,
+    highland: Raster,
+}
+
+impl TerrainMap {
+    /// The world's terrain classes; `None` for worlds generated before they were written (before v3).
+    pub fn open(world: &Path) -> Result<Option<Self>> {
+        let path = world.join(dataset::contract::world::TRUE_TERRAIN_CLASS);
+        if !path.exists() {
+            return Ok(None);
+        }
+        let mut bands = read_bands(&path)?;
+        if bands.len() != 2 {
+            bail!(
+                "{}: {} bands, expected 2 (class, highland fraction); regenerate the world",
+                path.display(),
+                bands.len()
+            );
+        }
+        let highland = bands.pop().expect("two bands");
+        let class = bands.pop().expect("two bands");
+        Ok(Some(Self { class, highland }))
+    }
+
+    /// The terrain class and highland fraction of the delivered-DEM cell holding (x, y); `None` outside it.
+    pub fn ground_at(&self, x: f64, y: f64) -> Option<Ground> {
+        let (col, row) = self.class.transform.map_to_pixel(x, y);
+        let (col, row) = (col.round(), row.round());
+        if col < 0.0
+            || row < 0.0
+            || col >= self.class.width as f64
+            || row >= self.class.height as f64
+        {
+            return None;
+        }
+        let (col, row) = (col as usize, row as usize);
+        Some(Ground {
+            class: TerrainClass::from_code(self.class.get(col, row) as f64)?,
+            highland: self.highland.get(col, row) as f64,
+        })
+    }
 }
 
 /// The ground under a crop's centre, from `truth/terrain_class.tif`.
@@ -29,6 +75,22 @@ pub struct Ground {
     pub class: TerrainClass,
     /// 0 mare, 1 highland.
     pub highland: f64,
+}
+
+impl Ground {
+    /// The unit as reports name it: highland where the highland fraction is at least one half, else mare.
+    pub fn unit(&self) -> &'static str {
+        if self.highland >= 0.5 {
+            "highland"
+        } else {
+            "mare"
+        }
+    }
+
+    /// Class and unit, as `eval`'s `terrain_class_and_unit` breakdown labels them (`rim, highland`).
+    pub fn label(&self) -> String {
+        format!("{}, {}", self.class.name(), self.unit())
+    }
 }
 
 /// Which true albedo an oracle rendering uses.
@@ -81,21 +143,7 @@ impl TruthMaps {
         } else {
             None
         };
-        let terrain_path = world.join(dataset::contract::world::TRUE_TERRAIN_CLASS);
-        let terrain = if terrain_path.exists() {
-            let mut bands = read_bands(&terrain_path)?;
-            if bands.len() != 2 {
-                bail!(
-                    "{}: {} bands, expected 2 (class, highland fraction); regenerate the world",
-                    terrain_path.display(),
-                    bands.len()
-                );
-            }
-            let highland = bands.pop().expect("two bands");
-            Some((bands.pop().expect("two bands"), highland))
-        } else {
-            None
-        };
+        let terrain = TerrainMap::open(world)?;
         Ok(Self {
             bands,
             w_morphology,
@@ -107,17 +155,7 @@ impl TruthMaps {
     /// The terrain class and highland fraction of the delivered-DEM cell holding (x, y); `None` for worlds
     /// without `truth/terrain_class.tif` (before world v3) or outside it.
     pub fn ground_at(&self, x: f64, y: f64) -> Option<Ground> {
-        let (class, highland) = self.terrain.as_ref()?;
-        let (col, row) = class.transform.map_to_pixel(x, y);
-        let (col, row) = (col.round(), row.round());
-        if col < 0.0 || row < 0.0 || col >= class.width as f64 || row >= class.height as f64 {
-            return None;
-        }
-        let (col, row) = (col as usize, row as usize);
-        Some(Ground {
-            class: TerrainClass::from_code(class.get(col, row) as f64)?,
-            highland: highland.get(col, row) as f64,
-        })
+        self.terrain.as_ref()?.ground_at(x, y)
     }
 
     /// The sample with its DEM crop replaced by the true DEM averaged over the same 5 m cells (bilinear at each

@@ -85,7 +85,7 @@ pub fn run(args: FitArgs) -> Result<()> {
             train::run_dir::Checkpoint::Auto,
             training.backend,
         );
-        super::crater_level::fit_and_write(run, source.as_ref(), &options, None)?
+        super::crater_level::fit_and_write(run, source.as_ref(), &options, None, None)?
     };
     dataset::outln!(
         "{}: {} steps, {} trainable parameters, {:.3} s/step; metrics in {}",
