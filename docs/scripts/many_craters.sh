@@ -5,6 +5,11 @@
 #
 #   many_craters.sh publish OUT SEED train   a training world: framed by 8 error draws of its catalogue (the manifest's)
 #   many_craters.sh publish OUT SEED exact   a validation world: framed by its exact catalogue
+#   many_craters.sh train OUT RUN VAL SEED...  the recipe trained across the training worlds SEED... (each published
+#                                            with `publish OUT SEED train`; the first is --data, the rest
+#                                            --also-train-on) and validated on their held-out tiles and on world
+#                                            VAL (published `exact`); run again after a stop and it resumes. Then
+#                                            its crater level, with the first world's ground guard (--world)
 #   many_craters.sh test OUT SEED RUN [N]    a test world, published three times from the same crops (framed by its
 #                                            exact catalogue, a perturbed one and one listing a phantom 18 km crater:
 #                                            docs/scripts/catalogue_variants.py), and RUN scored on N spread test
@@ -46,7 +51,27 @@ publish() { # DATASET_DIR
   fi
 }
 
+# The recipe: the shipped one (train/shipped/README.md) with heights relative to the crop and its surroundings only
+# (no --elevation-input: a new site's datum is not the training worlds') and the crater frame as an input.
+recipe=(--model h1 --width 8 --batch 8 --epochs 8 --max-train-samples 32000 --max-val-samples 1024 --lr 1e-3
+  --lr-schedule cosine --window 8 --no-dropout --context-input --crater-input --crater-frame-input --ema 0.995 --seed 42)
+
 case $mode in
+  train)
+    run=$3; val=$4; shift 4
+    [ $# -ge 1 ] || { echo "train: name at least one training seed" >&2; exit 2; }
+    first=$1; shift
+    pooled=()
+    for s in "$@"; do pooled+=(--also-train-on data-$s/dataset); done
+    resume=()
+    [ -f "$run/config.json" ] && resume=(--resume)
+    /usr/bin/time -v "$bin/g2r-train" fit --data data-$first/dataset "${pooled[@]}" --also-validate-on data-$val/dataset \
+      --out "$run" "${recipe[@]}" "${resume[@]}" >> "$run.log" 2>> "$run.time"
+    if [ ! -f "$run/crater_level.json" ]; then
+      /usr/bin/time -v "$bin/g2r-train" crater-level --run "$run" --data data-$first/dataset --world world-$first \
+        > "$run.crater-level.md" 2> "$run.crater-level.time"
+    fi
+    ;;
   publish)
     role=$4
     world
@@ -83,5 +108,5 @@ case $mode in
     score perturbed perturbed
     score phantom phantom
     ;;
-  *) echo "usage: many_craters.sh publish OUT SEED train|exact | test OUT SEED RUN [N]" >&2; exit 2 ;;
+  *) echo "usage: many_craters.sh publish OUT SEED train|exact | train OUT RUN VAL SEED... | test OUT SEED RUN [N]" >&2; exit 2 ;;
 esac
