@@ -287,12 +287,12 @@ pub fn markdown(report: &EvalReport) -> String {
     }
     if let Some(level) = &report.crater_level {
         text.push_str(&format!(
-            "learned: the network with the run's crater level (weights by band of ρ: {}) on {} of {} crops ({} with \
+            "learned: the network with the run's crater level (weights by zone of ρ: {}) on {} of {} crops ({} with \
              a crater frame); learned_network is the network alone.\n\n",
             level
                 .bands
                 .iter()
-                .map(|b| format!("{}–{}: {}", b.rho_min, b.rho_max, b.weight))
+                .map(|b| format!("{:.3}–{:.3}: {}", b.rho_min, b.rho_max, b.weight))
                 .collect::<Vec<_>>()
                 .join(", "),
             level.crops_in_band,
