@@ -290,6 +290,20 @@ fn choose_weights(zones: &[LevelRegression], val: &[ValCrop]) -> WeightChoice {
         let next = grounds.len();
         grounds.entry(c.ground.as_deref()).or_insert(next);
     }
+    // Each zone at each candidate weight, built once.
+    let levels: Vec<Vec<BandLevel>> = zones
+        .iter()
+        .map(|zone| {
+            CANDIDATE_WEIGHTS
+                .iter()
+                .map(|&weight| BandLevel {
+                    regression: zone.clone(),
+                    weight,
+                    val_level_oracle_sse_ratio: f64::NAN,
+                })
+                .collect()
+        })
+        .collect();
     let mut zone_sse = vec![vec![vec![0.0; grounds.len()]; CANDIDATE_WEIGHTS.len()]; zones.len()];
     let mut outside = 0.0;
     for c in val {
@@ -301,13 +315,8 @@ fn choose_weights(zones: &[LevelRegression], val: &[ValCrop]) -> WeightChoice {
             outside += c.sse(1.0);
             continue;
         };
-        for (w, &weight) in CANDIDATE_WEIGHTS.iter().enumerate() {
-            let band = BandLevel {
-                regression: zones[z].clone(),
-                weight,
-                val_level_oracle_sse_ratio: f64::NAN,
-            };
-            zone_sse[z][w][g] += c.sse(band.factor(at, c.slope_deg, c.network_scale));
+        for (w, level) in levels[z].iter().enumerate() {
+            zone_sse[z][w][g] += c.sse(level.factor(at, c.slope_deg, c.network_scale));
         }
     }
     let total = |weights: &[usize]| -> f64 {

@@ -119,10 +119,7 @@ pub const LIT_BINS: [f64; 5] = [0.0, 0.5, 0.8, 0.95, 0.99];
 /// Every breakdown the images support: by terrain class, by unit and by both (worlds with the class map), and
 /// by incidence, mean slope and lit fraction.
 pub fn breakdowns(per_image: &[PerImage]) -> Vec<Breakdown> {
-    let unit = |i: &PerImage| {
-        i.highland
-            .map(|h| if h >= 0.5 { "highland" } else { "mare" })
-    };
+    let unit = |i: &PerImage| i.highland.map(super::unit_name);
     let class_order = |name: &str| {
         dataset::contract::world::TerrainClass::ALL
             .iter()
@@ -149,9 +146,11 @@ pub fn breakdowns(per_image: &[PerImage]) -> Vec<Breakdown> {
             by: "terrain_class_and_unit".into(),
             groups: group_images(per_image, |i| {
                 let c = i.terrain_class?;
+                let highland = i.highland?;
                 Some(Bin(
-                    2 * class_order(c).unwrap_or(usize::MAX) + usize::from(unit(i)? == "mare"),
-                    format!("{c}, {}", unit(i)?),
+                    2 * class_order(c).unwrap_or(usize::MAX)
+                        + usize::from(super::unit_name(highland) == "mare"),
+                    super::ground_label(c, highland),
                 ))
             }),
         });

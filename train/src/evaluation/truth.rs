@@ -77,19 +77,24 @@ pub struct Ground {
     pub highland: f64,
 }
 
-impl Ground {
-    /// The unit as reports name it: highland where the highland fraction is at least one half, else mare.
-    pub fn unit(&self) -> &'static str {
-        if self.highland >= 0.5 {
-            "highland"
-        } else {
-            "mare"
-        }
+/// The unit as reports name it: highland where the highland fraction is at least one half, else mare.
+pub fn unit_name(highland: f64) -> &'static str {
+    if highland >= 0.5 {
+        "highland"
+    } else {
+        "mare"
     }
+}
 
-    /// Class and unit, as `eval`'s `terrain_class_and_unit` breakdown labels them (`rim, highland`).
+/// A kind of ground as reports label it: class and unit (`rim, highland`).
+pub fn ground_label(class: &str, highland: f64) -> String {
+    format!("{class}, {}", unit_name(highland))
+}
+
+impl Ground {
+    /// Class and unit, as `eval`'s `terrain_class_and_unit` breakdown labels them.
     pub fn label(&self) -> String {
-        format!("{}, {}", self.class.name(), self.unit())
+        ground_label(self.class.name(), self.highland)
     }
 }
 
