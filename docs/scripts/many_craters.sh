@@ -13,7 +13,8 @@
 #   many_craters.sh test OUT SEED RUN [N]    a test world, published three times from the same crops (framed by its
 #                                            exact catalogue, a perturbed one and one listing a phantom 18 km crater:
 #                                            docs/scripts/catalogue_variants.py), and RUN scored on N spread test
-#                                            crops (default 4096) of each, and on the exact one without crater frames
+#                                            crops (default 4096) of each, and on the exact one without crater frames;
+#                                            the scores go to OUT/eval-RUNNAME-world-SEED-{exact,unframed,perturbed,phantom}
 #
 # A test world differs from a training world's publication only in size: coverage 4 (not 19.3) and 85 % of its tiles in
 # test (5 % val, 10 % train, where the honest Hapke scale's calibration crops come from), since nothing trains on it.
@@ -97,7 +98,8 @@ case $mode in
       publish test-$seed-$variant
     done
     score() { # NAME DATASET_VARIANT [eval flags...]
-      local scored=$run/eval-world-$seed-$1
+      # Beside the worlds, not in RUN: a shipped run directory stays as it shipped.
+      local scored=eval-$(basename "$run")-world-$seed-$1
       if [ ! -f $scored/metrics.json ]; then
         /usr/bin/time -v "$bin/g2r-train" eval --run "$run" --data test-$seed-$2/dataset --world world-$seed \
           --max-samples "$samples" --out $scored "${@:3}" > $scored.log 2> $scored.time
