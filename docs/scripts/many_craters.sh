@@ -54,7 +54,7 @@ publish() { # DATASET_DIR
 
 # The recipe: the shipped one (train/shipped/README.md) with heights relative to the crop and its surroundings only
 # (no --elevation-input: a new site's datum is not the training worlds') and the crater frame as an input.
-recipe=(--model h1 --width 8 --batch 8 --epochs 8 --max-train-samples 32000 --max-val-samples 1024 --lr 1e-3
+recipe=(--model h1 --width 8 --batch 8 --epochs 2 --max-train-samples 32000 --max-val-samples 1024 --lr 1e-3
   --lr-schedule cosine --window 8 --no-dropout --context-input --crater-input --crater-frame-input --ema 0.995 --seed 42)
 
 case $mode in
