@@ -469,6 +469,7 @@ fn trainer_over_http_gets_the_same_first_epoch_batches_as_from_local_files() {
             absolute: false,
             crater_rms_m: None,
             crater_frame: false,
+            crater_relief: None,
         }),
     };
     let from_local: Vec<_> = EpochStream::start(

@@ -50,6 +50,7 @@ fn sample(i: usize) -> Sample {
         crater: Some(CraterPosition {
             rho: 0.8125,
             relative_height_m: -137.5,
+            relief_to_diameter: Some(0.0625),
         }),
     }
 }
@@ -71,7 +72,7 @@ f = pq.ParquetFile(sys.argv[1])
 t = pq.read_table(sys.argv[1])
 assert t.num_rows == 300, t.num_rows
 assert f.metadata.num_row_groups == 2, f.metadata.num_row_groups
-assert f.schema_arrow.metadata[b"g2r.schema_version"] == b"1.3.0", f.schema_arrow.metadata
+assert f.schema_arrow.metadata[b"g2r.schema_version"] == b"1.4.0", f.schema_arrow.metadata
 assert t.column("map_to_en")[0].values.to_pylist() == [1.0, 0.0, 0.0, 1.0]
 assert t.column("enu_origin_height_m").to_pylist()[0] == 0.0
 dem = t.column("dem")[3].values.to_numpy()
@@ -87,6 +88,7 @@ assert ctx[0, 0] != ctx[0, 0] and ctx[1, 3] == 35 - 1500.0, ctx[:2, :4]
 assert t.column("context_gsd_m").to_pylist()[0] == 512.0
 assert t.column("crater_rho").to_pylist()[0] == 0.8125 and t.column("crater_relative_height_m").to_pylist()[0] == -137.5
 assert t.schema.field("crater_relative_height_m").metadata[b"unit"] == b"m"
+assert t.column("crater_relief_to_diameter").to_pylist()[0] == 0.0625
 encodings = f.metadata.row_group(0).column(t.schema.get_field_index("dem")).encodings
 print("ok", encodings)
 "#;

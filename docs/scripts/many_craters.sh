@@ -53,9 +53,11 @@ publish() { # DATASET_DIR
 }
 
 # The recipe: the shipped one (train/shipped/README.md) with heights relative to the crop and its surroundings only
-# (no --elevation-input: a new site's datum is not the training worlds') and the crater frame as an input.
+# (no --elevation-input: a new site's datum is not the training worlds') and the crater frame as an input, with the
+# framing crater's relief over diameter (how worn it is).
 recipe=(--model h1 --width 8 --batch 8 --epochs 2 --max-train-samples 32000 --max-val-samples 1024 --lr 1e-3
-  --lr-schedule cosine --window 8 --no-dropout --context-input --crater-input --crater-frame-input --ema 0.995 --seed 42)
+  --lr-schedule cosine --window 8 --no-dropout --context-input --crater-input --crater-frame-input --crater-relief-input
+  --ema 0.995 --seed 42)
 
 case $mode in
   train)

@@ -459,6 +459,7 @@ mod tests {
         CraterPosition {
             rho,
             relative_height_m: h,
+            relief_to_diameter: None,
         }
     }
 

@@ -526,6 +526,7 @@ mod tests {
             at: Some(CraterPosition {
                 rho,
                 relative_height_m: 0.0,
+                relief_to_diameter: None,
             }),
             ground: ground.map(str::to_string),
             slope_deg: 0.0,

@@ -7,7 +7,8 @@ use dataset::science::brdf::BrdfModel;
 use crate::data::{StreamConfig, CONTEXT_CHANNELS};
 use crate::model::UNetConfig;
 
-/// The `config.json` format this build writes: version 12 since 2026-12-03 (version 11 lacks
+/// The `config.json` format this build writes: version 13 since 2026-12-06 (version 12 lacks
+/// `crater_relief_input`, which loads as false; version 11 lacks
 /// `crater_frame_input`, which loads as false: the crater input is the height alone, and `also_validate_on`, which
 /// loads as empty: validation on `--data`'s held-out tiles alone; version 10 also lacks `crater_input`,
 /// which loads as false; version 9 also lacks `also_train_on`,
@@ -18,7 +19,7 @@ use crate::model::UNetConfig;
 /// every run had before the field existed (constant learning rate, relief input only, no context window). From
 /// version 2 on every field is written and required, and a new field means a new version with its conversion
 /// in `StoredFitConfig`.
-pub const FIT_CONFIG_VERSION: u32 = 12;
+pub const FIT_CONFIG_VERSION: u32 = 13;
 
 /// Everything that defines a run (saved as `config.json`; a resume must match it). The network's head starts
 /// at the model's uniform least-squares fit ([`crate::model::UNet::with_uniform_head`]), unconstrained or
@@ -52,6 +53,9 @@ pub struct FitConfig {
     /// Feed the crater input as a frame: the height, the normalised radius and whether the crop is framed at all
     /// ([`crate::data::ContextNormalisation::crater_frame`]); needs `crater_input`.
     pub crater_frame_input: bool,
+    /// Feed the framing crater's relief over diameter as one more frame plane
+    /// ([`crate::data::ContextNormalisation::crater_relief`]); needs `crater_frame_input`.
+    pub crater_relief_input: bool,
     /// Keep an exponential moving average of the weights with this decay ([`crate::weight_average`]), validated and
     /// checkpointed beside the raw network; `None`: no average.
     pub ema_decay: Option<f64>,
@@ -109,6 +113,7 @@ struct StoredFitConfig {
     crater_input: Option<bool>,
     crater_frame_input: Option<bool>,
     also_validate_on: Option<Vec<String>>,
+    crater_relief_input: Option<bool>,
 }
 
 /// A key that is in the file, whatever its value (`null` included): serde alone reads a missing `Option` field
@@ -232,6 +237,13 @@ impl TryFrom<StoredFitConfig> for FitConfig {
                     .ok_or_else(|| required("also_validate_on"))?,
             )
         };
+        let crater_relief_input = if version < 13 {
+            false
+        } else {
+            stored
+                .crater_relief_input
+                .ok_or_else(|| required("crater_relief_input"))?
+        };
         Ok(Self {
             version: FIT_CONFIG_VERSION,
             model: stored.model,
@@ -247,6 +259,7 @@ impl TryFrom<StoredFitConfig> for FitConfig {
             context_absolute,
             crater_input,
             crater_frame_input,
+            crater_relief_input,
             ema_decay,
             steep_weight,
             head_hidden,
@@ -270,6 +283,7 @@ impl FitConfig {
                     + usize::from(self.context_absolute)
                     + usize::from(self.crater_input)
                     + 2 * usize::from(self.crater_frame_input)
+                    + usize::from(self.crater_relief_input)
             } else {
                 0
             })
@@ -421,6 +435,7 @@ mod tests {
             context_absolute: true,
             crater_input: true,
             crater_frame_input: true,
+            crater_relief_input: true,
             ema_decay: Some(0.995),
             steep_weight: 3.0,
             head_hidden: 32,
@@ -432,17 +447,28 @@ mod tests {
             also_validate_on: vec!["g2r-many-craters-seed7".into()],
         };
         let json = serde_json::to_string(&config).unwrap();
-        assert!(json.contains(r#""version":12"#), "{json}");
+        assert!(json.contains(r#""version":13"#), "{json}");
         assert_eq!(serde_json::from_str::<FitConfig>(&json).unwrap(), config);
-        assert_eq!(config.net_config().context_channels, CONTEXT_CHANNELS + 4);
+        assert_eq!(config.net_config().context_channels, CONTEXT_CHANNELS + 5);
         let cut = json.replace(r#","context_input":true"#, "");
         let err = serde_json::from_str::<FitConfig>(&cut)
             .unwrap_err()
             .to_string();
         assert!(
-            err.contains("version 12") && err.contains("`context_input`"),
+            err.contains("version 13") && err.contains("`context_input`"),
             "{err}"
         );
+        let cut = json.replace(r#","crater_relief_input":true"#, "");
+        let err = serde_json::from_str::<FitConfig>(&cut)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("`crater_relief_input`"), "{err}");
+        // Version 12 wrote everything but `crater_relief_input`: its frame had no relief plane.
+        let v12 = cut.replace(r#""version":13"#, r#""version":12"#);
+        let loaded = serde_json::from_str::<FitConfig>(&v12).unwrap();
+        assert!(loaded.crater_frame_input && !loaded.crater_relief_input);
+        assert_eq!(loaded.net_config().context_channels, CONTEXT_CHANNELS + 4);
+        let json = v12;
         let cut = json.replace(r#","crater_frame_input":true"#, "");
         let err = serde_json::from_str::<FitConfig>(&cut)
             .unwrap_err()

@@ -132,6 +132,7 @@ pub fn synthetic_samples(n: usize, seed: u64) -> Vec<Sample> {
                 crater: Some(CraterPosition {
                     rho: 0.2 * i as f64,
                     relative_height_m: 30.0 * i as f64 - 60.0,
+                    relief_to_diameter: Some(0.04 + 0.01 * i as f64),
                 }),
             }
         })

@@ -441,6 +441,7 @@ fn fit_with_crater_level_leaves_a_crater_level_the_run_loads_with() {
             s.crater = Some(CraterPosition {
                 rho: 0.5 + 0.4 * (i as f64 / n as f64),
                 relative_height_m: -150.0 + 300.0 * ((i * 7) % n) as f64 / n as f64,
+                relief_to_diameter: Some(0.05 + 0.04 * ((i * 3) % n) as f64 / n as f64),
             });
         }
         samples

@@ -52,6 +52,7 @@ fn m2_config() -> FitConfig {
         context_absolute: false,
         crater_input: false,
         crater_frame_input: false,
+        crater_relief_input: false,
     }
 }
 
@@ -487,6 +488,7 @@ fn a_crater_level_sets_learned_in_its_band_and_keeps_the_network_beside_it() {
         sample.crater = rho.map(|rho| CraterPosition {
             rho,
             relative_height_m: 40.0,
+            relief_to_diameter: Some(0.07),
         });
     }
     write_synthetic_dataset(dir.path(), synthetic_samples(6, 1), val);

@@ -276,6 +276,7 @@ fn context_input(crater_rms_m: Option<f64>) -> InputNormalisation {
             absolute: false,
             crater_rms_m,
             crater_frame: false,
+            crater_relief: None,
         }),
     }
 }
@@ -349,6 +350,7 @@ fn symmetry_mean_is_an_equivariant_ensemble_of_the_eight_views() {
             absolute: false,
             crater_rms_m: None,
             crater_frame: false,
+            crater_relief: None,
         }),
     };
     let net = random_net_with(1, CONTEXT_CHANNELS);

@@ -111,7 +111,18 @@ pub struct CraterPosition {
     /// The crop's mean height minus the crater's azimuthal median profile at `rho` (at [`PROFILE_RHO_MAX`] past
     /// it), metres.
     pub relative_height_m: f64,
+    /// The crater's relief over its diameter ([`RELIEF_CREST_RHO_MAX`]); `None` in shards older than schema 1.4.
+    pub relief_to_diameter: Option<f64>,
 }
+
+/// The crest of a crater's relief is its median profile's highest ring within this many radii (past the rim,
+/// so a catalogue diameter a few per cent small still finds it), its floor the lowest ring within one radius.
+///
+/// Why: crest minus floor over diameter is the depth/diameter ratio by which crater morphometry dates a
+/// crater's wear; a fresh crater is deeper for its size and its wall and ejecta are brighter, fresh material
+/// not yet darkened by space weathering. It is read from the DEM and the catalogue's centre and diameter alone,
+/// so a new site gives it as the training worlds do.
+pub const RELIEF_CREST_RHO_MAX: f64 = 1.5;
 
 /// One crater's frame on the map.
 #[derive(Debug, Clone)]
@@ -122,6 +133,8 @@ struct Frame {
     radius_m: f64,
     /// Median height of each ring, metres; ring `i` spans `i..i+1` × [`PROFILE_BIN_RHO`].
     profile_m: Vec<f64>,
+    /// Crest minus floor of `profile_m` over the diameter ([`RELIEF_CREST_RHO_MAX`]).
+    relief_to_diameter: f64,
 }
 
 impl Frame {
@@ -133,6 +146,22 @@ impl Frame {
     }
 
     /// The profile's height at `rho` (clamped to the profile's reach), linear between ring centres.
+    /// Crest minus floor of the profile over the diameter ([`RELIEF_CREST_RHO_MAX`]); rings are taken by
+    /// their centres.
+    fn relief_to_diameter(&self) -> f64 {
+        let ring_rho = |i: usize| (i as f64 + 0.5) * PROFILE_BIN_RHO;
+        let within = |reach: f64| {
+            self.profile_m
+                .iter()
+                .enumerate()
+                .filter(move |&(i, _)| ring_rho(i) < reach)
+                .map(|(_, &z)| z)
+        };
+        let crest = within(RELIEF_CREST_RHO_MAX).fold(f64::NEG_INFINITY, f64::max);
+        let floor = within(1.0).fold(f64::INFINITY, f64::min);
+        (crest - floor) / (2.0 * self.radius_m)
+    }
+
     fn profile_at(&self, rho: f64) -> f64 {
         let t = (rho.min(PROFILE_RHO_MAX) / PROFILE_BIN_RHO - 0.5).max(0.0);
         let last = self.profile_m.len() - 1;
@@ -239,6 +268,7 @@ impl CraterFrames {
         Some(CraterPosition {
             rho,
             relative_height_m: crop_mean_m - frame.profile_at(rho),
+            relief_to_diameter: Some(frame.relief_to_diameter),
         })
     }
 }
@@ -255,6 +285,7 @@ fn profile(
         map_to_en,
         radius_m,
         profile_m: Vec::new(),
+        relief_to_diameter: f64::NAN,
     };
     let bins = (PROFILE_RHO_MAX / PROFILE_BIN_RHO).round() as usize;
     let t = dem.transform;
@@ -311,6 +342,7 @@ fn profile(
             }
         })
         .collect();
+    frame.relief_to_diameter = frame.relief_to_diameter();
     Some(frame)
 }
 
@@ -396,6 +428,30 @@ mod tests {
                 "majority unit at ({x}, {y}): {p:?}"
             );
         }
+    }
+
+    /// The fixture's crater rises `slope` metres per radius from its centre to its crest at ρ 1.2: its relief is
+    /// 1.2 × slope over its diameter, within a ring's rise at the floor (the centre ring's median sits a few
+    /// metres up its slope). The ratio is the crater's shape, not its size: half the crater at half the depth
+    /// reads the same; at half the depth alone, half of it.
+    #[test]
+    fn relief_to_diameter_is_the_profiles_crest_minus_floor_over_the_diameter() {
+        let relief = |radius: f64, slope: f64| {
+            let (dem, crater) = crater_dem(radius, slope, 0.0);
+            let frames = CraterFrames::new(&dem, &[crater], 1000.0).unwrap().0;
+            let p = frames.position(0.5 * radius, 0.0, 0.0).unwrap();
+            let ratio = p.relief_to_diameter.unwrap();
+            let ring_rise = slope * PROFILE_BIN_RHO / (2.0 * radius);
+            let expected = 1.2 * slope / (2.0 * radius);
+            assert!(
+                (ratio - expected).abs() < ring_rise,
+                "radius {radius} m, slope {slope} m: {ratio} against {expected}"
+            );
+            ratio
+        };
+        let fresh = relief(6000.0, 1600.0);
+        assert!((relief(3000.0, 800.0) - fresh).abs() < 1e-3);
+        assert!((relief(6000.0, 800.0) - fresh / 2.0).abs() < 1e-3);
     }
 
     #[test]

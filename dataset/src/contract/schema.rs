@@ -16,7 +16,8 @@ use crate::contract::crater_frame::CraterPosition;
 /// 1.2: `context_dem` + `context_gsd_m` added (readers of 1.2 still read 1.1 shards, without context).
 /// 1.3: `crater_rho` + `crater_relative_height_m` added, NaN where the dataset was built without a crater
 /// catalogue (readers of 1.3 still read 1.1 and 1.2 shards, without a crater frame).
-pub const SCHEMA_VERSION: &str = "1.3.0";
+/// 1.4: `crater_relief_to_diameter` added (readers of 1.4 read 1.3 shards' frames without it).
+pub const SCHEMA_VERSION: &str = "1.4.0";
 /// Crop edge in pixels (the network's input/output size).
 pub const CROP_PX: usize = 128;
 /// DEM edge in pixels: the crop plus a 1-pixel apron on every side, so border normals are exact.
@@ -332,6 +333,12 @@ pub fn sample_schema() -> SchemaRef {
             "crop mean height minus that crater's azimuthal median DEM profile at crater_rho (at 3 radii past them); NaN without a crater catalogue",
             "m",
         ),
+        field(
+            "crater_relief_to_diameter",
+            DataType::Float64,
+            "that crater's relief (its profile's highest ring within 1.5 radii minus its lowest within 1) over its catalogued diameter, the depth/diameter measure of its wear; NaN without a crater catalogue",
+            "1",
+        ),
     ];
     let metadata = HashMap::from([
         ("g2r.schema_version".to_string(), SCHEMA_VERSION.to_string()),
@@ -471,6 +478,11 @@ pub fn samples_to_batch(samples: &[Sample]) -> Result<RecordBatch, SchemaError> 
                 .iter()
                 .map(|s| s.crater.map_or(f64::NAN, |c| c.relative_height_m)),
         ),
+        f64s(samples.iter().map(|s| {
+            s.crater
+                .and_then(|c| c.relief_to_diameter)
+                .unwrap_or(f64::NAN)
+        })),
     ];
     Ok(RecordBatch::try_new(sample_schema(), columns)?)
 }
@@ -598,6 +610,11 @@ fn decode(batch: &RecordBatch) -> Result<Vec<Sample>, SchemaError> {
         (Some(_), Some(_)) => Some((f("crater_rho")?, f("crater_relative_height_m")?)),
         _ => None,
     };
+    // Absent from shards older than schema 1.4.
+    let relief = match batch.column_by_name("crater_relief_to_diameter") {
+        Some(_) => Some(f("crater_relief_to_diameter")?),
+        None => None,
+    };
     let (sun, _) = list_values::<Float64Array>(batch, "sun_dir_enu")?;
     let (cam, _) = list_values::<Float64Array>(batch, "camera_pos_enu")?;
     let (att, _) = list_values::<Float64Array>(batch, "camera_att")?;
@@ -649,6 +666,7 @@ fn decode(batch: &RecordBatch) -> Result<Vec<Sample>, SchemaError> {
                     CraterPosition {
                         rho: rho.value(i),
                         relative_height_m: relative.value(i),
+                        relief_to_diameter: relief.map(|r| r.value(i)).filter(|r| r.is_finite()),
                     }
                 })
             }),
@@ -688,18 +706,32 @@ mod tests {
         assert!(samples.iter().all(|s| s.crater.is_some()));
         let batch = samples_to_batch(&samples).unwrap();
         assert_eq!(batch_to_samples(&batch).unwrap(), samples);
-        // Schema 1.2 had every column but the two crater ones; schema 1.1 neither the two context ones.
-        let older = |prefixes: &[&str]| {
+        // Schema 1.3 had every column but the crater relief; 1.2 none of the three crater ones; 1.1 neither the
+        // two context ones.
+        let older = |prefixes: &[&str], dropped: usize| {
             let keep: Vec<usize> = (0..batch.num_columns())
                 .filter(|&k| {
                     let name = batch.schema().field(k).name().clone();
                     !prefixes.iter().any(|p| name.starts_with(p))
                 })
                 .collect();
-            assert_eq!(keep.len(), batch.num_columns() - 2 * prefixes.len());
+            assert_eq!(keep.len(), batch.num_columns() - dropped);
             batch_to_samples(&batch.project(&keep).unwrap()).unwrap()
         };
-        for (read, written) in older(&["crater_"]).iter().zip(&samples) {
+        for (read, written) in older(&["crater_relief"], 1).iter().zip(&samples) {
+            let crater = written.crater.map(|c| CraterPosition {
+                relief_to_diameter: None,
+                ..c
+            });
+            assert_eq!(
+                *read,
+                Sample {
+                    crater,
+                    ..written.clone()
+                }
+            );
+        }
+        for (read, written) in older(&["crater_"], 3).iter().zip(&samples) {
             assert_eq!(
                 *read,
                 Sample {
@@ -708,7 +740,7 @@ mod tests {
                 }
             );
         }
-        for (read, written) in older(&["crater_", "context_"]).iter().zip(&samples) {
+        for (read, written) in older(&["crater_", "context_"], 5).iter().zip(&samples) {
             assert_eq!(
                 *read,
                 Sample {

@@ -57,6 +57,7 @@ pub fn synthetic_sample(i: usize) -> Sample {
         crater: Some(CraterPosition {
             rho: 0.25 * i as f64,
             relative_height_m: 10.0 * i as f64 - 40.0,
+            relief_to_diameter: Some(0.06 + 0.005 * i as f64),
         }),
     }
 }

@@ -51,6 +51,22 @@ pub struct ContextNormalisation {
     /// without. Runs written before it existed have none.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub crater_frame: bool,
+    /// Feed the framing crater's relief over its diameter (the sample's `crater_relief_to_diameter`,
+    /// `dataset::contract::crater_frame::RELIEF_CREST_RHO_MAX`) as one more frame plane, standardised by these
+    /// train statistics, 0 where the crop is not framed (`--crater-relief-input`). A crater's wall and ejecta are
+    /// as bright as the crater is fresh, and a fresh crater is deep for its size: the relief says which crater
+    /// of a field is the young one, where the crop's own window sees only part of it. Runs written before it
+    /// existed have none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub crater_relief: Option<ReliefNormalisation>,
+}
+
+/// Mean and std of the framing craters' relief over diameter over framed train crops (each crop counts once,
+/// so a crater counts as often as it frames crops).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ReliefNormalisation {
+    pub mean: f64,
+    pub std: f64,
 }
 
 /// A crop's crater frame when it has one within the profile's reach ([`PROFILE_RHO_MAX`] radii): past it the
@@ -102,7 +118,39 @@ impl ContextNormalisation {
             absolute: false,
             crater_rms_m: None,
             crater_frame: false,
+            crater_relief: None,
         })
+    }
+
+    /// Statistics of the [`framed`] train crops' crater relief over diameter, for `--crater-relief-input`. A
+    /// framed crop without one (a shard older than schema 1.4) is refused.
+    pub fn crater_relief_of_samples<'a>(
+        samples: impl IntoIterator<Item = &'a Sample>,
+    ) -> Result<ReliefNormalisation> {
+        let (mut n, mut sum, mut sum_sq) = (0usize, 0f64, 0f64);
+        for s in samples {
+            let Some(crater) = framed(s.crater.as_ref()) else {
+                continue;
+            };
+            let Some(relief) = crater.relief_to_diameter else {
+                bail!(
+                    "sample {} has a crater frame without its crater's relief: re-run `g2r-pipeline run` to publish schema 1.4, or train without --crater-relief-input",
+                    s.sample_id
+                );
+            };
+            n += 1;
+            sum += relief;
+            sum_sq += relief * relief;
+        }
+        if n < 2 {
+            bail!("fewer than two framed train crops: no crater relief to normalise the relief input with");
+        }
+        let mean = sum / n as f64;
+        let std = (sum_sq / n as f64 - mean * mean).max(0.0).sqrt();
+        if !(std > 0.0 && std.is_finite()) {
+            bail!("every framed train crop's crater has the same relief: the relief input would divide by zero");
+        }
+        Ok(ReliefNormalisation { mean, std })
     }
 
     /// The RMS of train samples' crater-relative heights, for `--crater-input`: over every sample, each of
@@ -209,6 +257,12 @@ impl InputNormalisation {
                 source.describe()
             );
         }
+        if self.crater_relief().is_some() && minor.is_none_or(|m| m < 4) {
+            bail!(
+                "{}: dataset schema {version} has no crater relief, but the run feeds it (--crater-relief-input): re-run `g2r-pipeline run` with inputs.crater_catalogue to publish schema 1.4",
+                source.describe()
+            );
+        }
         Ok(())
     }
 
@@ -219,7 +273,15 @@ impl InputNormalisation {
                 + usize::from(c.absolute)
                 + usize::from(c.crater_rms_m.is_some())
                 + 2 * usize::from(c.crater_rms_m.is_some() && c.crater_frame)
+                + usize::from(self.crater_relief().is_some())
         })
+    }
+
+    /// The relief plane's statistics, when the run feeds one (only as part of a crater frame).
+    pub fn crater_relief(&self) -> Option<ReliefNormalisation> {
+        self.context
+            .filter(|c| c.crater_rms_m.is_some() && c.crater_frame)
+            .and_then(|c| c.crater_relief)
     }
 
     /// The crater input's scale, when the run feeds one.
@@ -303,12 +365,22 @@ impl InputNormalisation {
                 ));
             }
             (Some(rms), true) => {
-                let (height, rho, framed) = match framed(crater) {
+                let at = framed(crater);
+                let (height, rho, framed) = match at {
                     Some(at) => (at.relative_height_m / rms, at.rho / PROFILE_RHO_MAX, 1.0),
                     None => (0.0, 1.0, 0.0),
                 };
                 for value in [height, rho, framed] {
                     out.extend(std::iter::repeat_n(value, context_m.len()));
+                }
+                if let Some(r) = self.crater_relief() {
+                    let relief = at.map_or(0.0, |at| {
+                        let relief = at.relief_to_diameter.expect(
+                            "a relief input needs every frame's relief (schema 1.4, checked when a run starts)",
+                        );
+                        (relief - r.mean) / r.std
+                    });
+                    out.extend(std::iter::repeat_n(relief, context_m.len()));
                 }
             }
         }
@@ -402,12 +474,14 @@ mod tests {
                 absolute: false,
                 crater_rms_m: Some(50.0),
                 crater_frame: false,
+                crater_relief: None,
             }),
             ..InputNormalisation::relief(2.0)
         };
         let crater = CraterPosition {
             rho: 0.7,
             relative_height_m: -125.0,
+            relief_to_diameter: None,
         };
         let mut out = Vec::new();
         input.push_context(
@@ -455,6 +529,7 @@ mod tests {
                 absolute: false,
                 crater_rms_m: Some(50.0),
                 crater_frame: true,
+                crater_relief: None,
             }),
             ..InputNormalisation::relief(2.0)
         };
@@ -481,6 +556,7 @@ mod tests {
         let at = |rho: f64| CraterPosition {
             rho,
             relative_height_m: -125.0,
+            relief_to_diameter: None,
         };
         // Height over its RMS, ρ over the reach of 3 radii, framed.
         assert_eq!(planes(Some(at(0.75))), [-2.5, 0.25, 1.0]);
@@ -503,6 +579,64 @@ mod tests {
     }
 
     #[test]
+    fn a_relief_input_feeds_the_standardised_relief_after_the_frame_and_zero_unframed() {
+        // Framed train crops' reliefs 0.05, 0.07 and 0.09 (one crop unframed, one past the reach): mean 0.07,
+        // population std √(0.0008 / 3).
+        let mut samples: Vec<Sample> = (1..=5).map(dataset::testing::synthetic_sample).collect();
+        for (s, relief) in samples.iter_mut().zip([0.05, 0.07, 0.09, 0.5, 0.5]) {
+            s.crater.as_mut().unwrap().relief_to_diameter = Some(relief);
+        }
+        samples[3].crater.as_mut().unwrap().rho = 4.0;
+        samples[4].crater = None;
+        let r = ContextNormalisation::crater_relief_of_samples(&samples).unwrap();
+        assert!((r.mean - 0.07).abs() < 1e-15, "{r:?}");
+        assert!((r.std - (0.0008f64 / 3.0).sqrt()).abs() < 1e-15, "{r:?}");
+        // A framed crop whose shard predates the relief is refused, not fed as some value.
+        samples[0].crater.as_mut().unwrap().relief_to_diameter = None;
+        let err = ContextNormalisation::crater_relief_of_samples(&samples).unwrap_err();
+        assert!(err.to_string().contains("schema 1.4"), "{err}");
+
+        let input = InputNormalisation {
+            context: Some(ContextNormalisation {
+                gsd_m: 512.0,
+                std_m: 4.0,
+                absolute: false,
+                crater_rms_m: Some(50.0),
+                crater_frame: true,
+                crater_relief: Some(ReliefNormalisation {
+                    mean: 0.07,
+                    std: 0.01,
+                }),
+            }),
+            ..InputNormalisation::relief(2.0)
+        };
+        let n = CONTEXT_PX * CONTEXT_PX;
+        assert_eq!(input.context_channels(), 6);
+        let planes = |crater: Option<CraterPosition>| {
+            let mut out = Vec::new();
+            input.push_context(&[-1200.0], &context_window(), crater.as_ref(), &mut out);
+            assert_eq!(out.len(), 6 * n);
+            (1..5).map(|k| out[k * n]).collect::<Vec<f64>>()
+        };
+        let at = CraterPosition {
+            rho: 0.75,
+            relative_height_m: -125.0,
+            relief_to_diameter: Some(0.095),
+        };
+        let framed = planes(Some(at));
+        assert_eq!(framed[..3], [-2.5, 0.25, 1.0]);
+        assert!((framed[3] - 2.5).abs() < 1e-12, "{framed:?}");
+        assert_eq!(planes(None), [0.0, 1.0, 0.0, 0.0]);
+        // Without the frame input the relief is not fed, whatever the file holds.
+        let mut height_only = input;
+        height_only.context.as_mut().unwrap().crater_frame = false;
+        assert!(height_only.crater_relief().is_none());
+        let json = serde_json::to_string(&input.context).unwrap();
+        let back: Option<ContextNormalisation> = serde_json::from_str(&json).unwrap();
+        assert_eq!(back, input.context);
+    }
+
+    #[test]
     fn context_planes_are_height_above_the_crop_mean_then_the_mask() {
         let input = InputNormalisation {
             context: Some(ContextNormalisation {
@@ -511,6 +645,7 @@ mod tests {
                 absolute: false,
                 crater_rms_m: None,
                 crater_frame: false,
+                crater_relief: None,
             }),
             ..InputNormalisation::relief(2.0)
         };
@@ -545,6 +680,7 @@ mod tests {
                 absolute: true,
                 crater_rms_m: None,
                 crater_frame: false,
+                crater_relief: None,
             }),
             ..InputNormalisation::relief(2.0)
         };

@@ -65,10 +65,20 @@ pub fn input_normalisation(
                     .with_context(on_train)
             })
             .transpose()?;
+        if config.crater_relief_input && !config.crater_frame_input {
+            bail!("the crater relief input is one more plane of the crater frame: the run needs --crater-frame-input");
+        }
+        let crater_relief = config
+            .crater_relief_input
+            .then(|| {
+                ContextNormalisation::crater_relief_of_samples(&samples).with_context(on_train)
+            })
+            .transpose()?;
         input.context = Some(ContextNormalisation {
             absolute: config.context_absolute,
             crater_rms_m,
             crater_frame: config.crater_frame_input,
+            crater_relief,
             ..context
         });
     }

@@ -52,6 +52,7 @@ pub fn config() -> FitConfig {
         context_absolute: false,
         crater_input: false,
         crater_frame_input: false,
+        crater_relief_input: false,
     }
 }
 

@@ -78,6 +78,12 @@ pub struct TrainArgs {
     /// dataset framed with project.crater_catalogue_error to learn a real catalogue's errors.
     #[arg(long, requires = "crater_input")]
     pub crater_frame_input: bool,
+    /// Feed the framing crater's relief over its diameter as one more frame plane (the dataset's
+    /// crater_relief_to_diameter, schema 1.4: the crater's median profile's crest minus its floor, read from the
+    /// DEM around the catalogued crater). A fresh crater is deep for its size and its wall and ejecta are bright;
+    /// the crop's own context window sees only part of the crater.
+    #[arg(long, requires = "crater_frame_input")]
+    pub crater_relief_input: bool,
     /// Also keep an exponential moving average of the weights with this decay (e.g. 0.995; the first steps
     /// average over about a ninth of the steps taken). It is validated beside the raw network every epoch
     /// (metrics.jsonl `ema_val`) and checkpointed as ema-best/ and last/ema; eval, infer and report load
@@ -203,6 +209,7 @@ impl TrainArgs {
             context_absolute: self.context_absolute,
             crater_input: self.crater_input,
             crater_frame_input: self.crater_frame_input,
+            crater_relief_input: self.crater_relief_input,
             ema_decay: self.ema,
             steep_weight: self.steep_weight,
             head_hidden: self.head_hidden,
