@@ -681,8 +681,8 @@ fn a_schema_1_1_dataset_serves_and_streams_its_rows_without_context() {
     expected.sort_by(|a, b| a.sample_id.cmp(&b.sample_id));
     assert_eq!(streamed, expected);
 
-    // The JSON views describe the dataset as it is: its own schema (neither the context nor the crater columns of
-    // schemas 1.2 and 1.3), no context tensor, no context preview.
+    // The JSON views describe the dataset as it is: its own schema (neither the two context columns of schema 1.2
+    // nor the three crater columns of 1.3 and 1.4), no context tensor, no context preview.
     let client = HttpClient::new(&url).unwrap();
     let info: serde_json::Value = client.get_json("/v1/info").unwrap();
     let columns: Vec<&str> = info["schema"]
@@ -693,7 +693,7 @@ fn a_schema_1_1_dataset_serves_and_streams_its_rows_without_context() {
         .collect();
     assert_eq!(
         columns.len(),
-        dataset::contract::schema::sample_schema().fields().len() - 4
+        dataset::contract::schema::sample_schema().fields().len() - 5
     );
     assert!(
         columns.contains(&"dem")

@@ -104,7 +104,7 @@ pub fn write_dataset(
     Ok(manifest)
 }
 
-/// Columns schema 1.1 did not have: the context window's (1.2) and the crater frame's (1.3).
+/// Columns schema 1.1 did not have: the context window's (1.2) and the crater frame's (1.3, 1.4).
 pub fn is_newer_than_1_1(column: &str) -> bool {
     column.starts_with("context_") || column.starts_with("crater_")
 }
