@@ -372,6 +372,13 @@ fn a_crater_catalogue_frames_every_sample_and_a_missing_one_is_named() {
             "{}: {crater:?}",
             s.sample_id
         );
+        // One crater frames every crop: one relief, published with each (schema 1.4).
+        let relief = samples[0].crater.and_then(|c| c.relief_to_diameter);
+        assert!(
+            relief.is_some_and(|r| r > 0.0 && r.is_finite()) && crater.relief_to_diameter == relief,
+            "{}: {crater:?}",
+            s.sample_id
+        );
     }
     // Framed by draws of the catalogue with a real one's errors: the same samples, placed in moved frames, and
     // the manifest says so.
