@@ -1,5 +1,5 @@
 //! The shipped models (`train/shipped/tycho-full-h1`, the recipe of docs/results.md trained at publication scale,
-//! and `many-craters-h1`, issue 62's recipe across worlds) are run directories like any `fit --out`: each loads with
+//! and `many-craters-relief-h1`, issue 62's recipe across worlds) are run directories like any `fit --out`: each loads with
 //! the default checkpoint and infers on a lunar DEM out of the box, with scales near the Moon-wide fit it started
 //! from.
 
@@ -23,7 +23,7 @@ fn the_tycho_full_model_loads_and_infers_scales_near_its_uniform_start() {
 
 #[test]
 fn the_many_craters_model_loads_and_infers_scales_near_its_uniform_start() {
-    loads_and_infers_scales_near_its_uniform_start("many-craters-h1");
+    loads_and_infers_scales_near_its_uniform_start("many-craters-relief-h1");
 }
 
 fn loads_and_infers_scales_near_its_uniform_start(name: &str) {
@@ -76,7 +76,7 @@ fn loads_and_infers_scales_near_its_uniform_start(name: &str) {
     assert_eq!(scales.len(), dem.width * dem.height);
     assert!(scales.iter().all(|s| s.is_finite()), "finite everywhere");
     // H1 multiplies the Moon-wide Hapke I/F. Each run started from its uniform fit (1.25 for tycho-full-h1, 1.11 for
-    // many-craters-h1, as their fits logged); their worlds' maria and highlands differ by 1.5x in albedo and fresh material
+    // many-craters-relief-h1, as their fits logged); their worlds' maria and highlands differ by 1.5x in albedo and fresh material
     // brightens by up to 1.6x, so a trained map stays within a factor 2.5 of that start on average.
     let mean = scales.iter().sum::<f64>() / scales.len() as f64;
     assert!((0.5..3.1).contains(&mean), "mean scale {mean}");
