@@ -127,7 +127,7 @@ impl ContextNormalisation {
     pub fn crater_relief_of_samples<'a>(
         samples: impl IntoIterator<Item = &'a Sample>,
     ) -> Result<ReliefNormalisation> {
-        let (mut n, mut sum, mut sum_sq) = (0usize, 0f64, 0f64);
+        let mut reliefs = Vec::new();
         for s in samples {
             let Some(crater) = framed(s.crater.as_ref()) else {
                 continue;
@@ -138,15 +138,12 @@ impl ContextNormalisation {
                     s.sample_id
                 );
             };
-            n += 1;
-            sum += relief;
-            sum_sq += relief * relief;
+            reliefs.push(relief);
         }
+        let (n, mean, std) = count_mean_std(reliefs);
         if n < 2 {
             bail!("fewer than two framed train crops: no crater relief to normalise the relief input with");
         }
-        let mean = sum / n as f64;
-        let std = (sum_sq / n as f64 - mean * mean).max(0.0).sqrt();
         if !(std > 0.0 && std.is_finite()) {
             bail!("every framed train crop's crater has the same relief: the relief input would divide by zero");
         }
@@ -192,6 +189,22 @@ pub fn crop_mean(heights_m: &[f64]) -> f64 {
     finite.sum::<f64>() / count.max(1) as f64
 }
 
+/// Count, mean and population std of `values`, in one pass (sums of values and of their squares).
+fn count_mean_std(values: impl IntoIterator<Item = f64>) -> (usize, f64, f64) {
+    let (mut n, mut sum, mut sum_sq) = (0usize, 0f64, 0f64);
+    for v in values {
+        n += 1;
+        sum += v;
+        sum_sq += v * v;
+    }
+    let mean = sum / n.max(1) as f64;
+    (
+        n,
+        mean,
+        (sum_sq / n.max(1) as f64 - mean * mean).max(0.0).sqrt(),
+    )
+}
+
 /// Mean and std of absolute heights over train crops' pixels.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct ElevationNormalisation {
@@ -202,20 +215,15 @@ pub struct ElevationNormalisation {
 impl ElevationNormalisation {
     /// Pooled mean and std of the crops' heights (`crops` of `CROP_PX²` each; non-finite heights skipped).
     pub fn of_crops<'a>(crops: impl IntoIterator<Item = &'a [f64]>) -> Result<Self> {
-        let (mut n, mut sum, mut sum_sq) = (0usize, 0f64, 0f64);
-        for crop in crops {
-            for &z in crop.iter().filter(|z| z.is_finite()) {
-                n += 1;
-                sum += z;
-                sum_sq += z * z;
-            }
-        }
+        // Heights are ~−1e3 m with ~1e2 m spread: the one-pass form loses ~1e-10 relative here, far below need.
+        let (n, mean_m, std_m) = count_mean_std(
+            crops
+                .into_iter()
+                .flat_map(|crop| crop.iter().copied().filter(|z| z.is_finite())),
+        );
         if n < 2 {
             bail!("no finite heights to normalise the elevation input with");
         }
-        let mean_m = sum / n as f64;
-        // Heights are ~−1e3 m with ~1e2 m spread: the one-pass form loses ~1e-10 relative here, far below need.
-        let std_m = ((sum_sq / n as f64 - mean_m * mean_m).max(0.0)).sqrt();
         if std_m <= 0.0 {
             bail!("train crops all have the same height: the elevation input would divide by zero");
         }
