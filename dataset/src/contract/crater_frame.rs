@@ -12,6 +12,13 @@
 //! `LAT_CIRC_IMG`, `LON_CIRC_IMG`, `DIAM_CIRC_IMG` in km); nothing else is taken from it. The profile is the
 //! median height of the DEM's pixels in rings of [`PROFILE_BIN_RHO`] radii out to [`PROFILE_RHO_MAX`] radii,
 //! with ground distances from the map through the local scale at the crater's centre.
+//!
+//! A real catalogue's centres are a few hundred metres off and its diameters a few per cent (Robbins 2018), enough
+//! to smear the profile's wall across the 300 m by which the units differ. So the frame is first *refined to the
+//! rim* the DEM shows, as crater morphometry does before it measures: each azimuth sector's highest point near the
+//! catalogued rim, a circle fitted through them ([`RIM_FIT_MAX_RESIDUAL_RADII`] and the other `RIM_` limits), and
+//! the profile taken again about that circle. Where no circle fits (a crater the DEM does not show, a catalogue's
+//! false entry) the catalogue's centre and diameter stand, and the report counts both.
 
 use std::path::Path;
 
@@ -115,14 +122,38 @@ pub struct CraterPosition {
     pub relief_to_diameter: Option<f64>,
 }
 
-/// The crest of a crater's relief is its median profile's highest ring within this many radii (past the rim,
-/// so a catalogue diameter a few per cent small still finds it), its floor the lowest ring within one radius.
+/// The crest of a crater's relief is the median, over [`RELIEF_CREST_SECTORS`] azimuth sectors about the
+/// catalogued centre, of each sector's highest DEM height within this many radii (past the rim, so a catalogue
+/// diameter a few per cent small still finds it); its floor is the median profile's lowest ring within one radius.
 ///
 /// Why: crest minus floor over diameter is the depth/diameter ratio by which crater morphometry dates a
 /// crater's wear; a fresh crater is deeper for its size and its wall and ejecta are brighter, fresh material
 /// not yet darkened by space weathering. It is read from the DEM and the catalogue's centre and diameter alone,
-/// so a new site gives it as the training worlds do.
+/// so a new site gives it as the training worlds do. Each sector's highest point is on the rim wherever the
+/// centre is, so a catalogue centre a few hundred metres off reads the same crest; the median of a ring, taken
+/// about an offset centre, straddles the rim and reads it low (schema 1.4 did so: its relief read a crater
+/// framed by a real catalogue's errors lower than the same crater framed exactly). A flat floor's lowest ring
+/// keeps its height under such an offset.
 pub const RELIEF_CREST_RHO_MAX: f64 = 1.5;
+
+/// Azimuth sectors of the crest ([`RELIEF_CREST_RHO_MAX`]): 5° each, a few hundred metres of rim on the craters
+/// the frames are for (8 km and more), so each holds DEM posts even at 100 m a post; sectors with none (off the
+/// DEM, a hole) are left out of the median.
+pub const RELIEF_CREST_SECTORS: usize = 72;
+
+/// A sector's highest point is a rim point for the circle fit only if it lies inside this many catalogued radii:
+/// one at the edge of the crest's reach ([`RELIEF_CREST_RHO_MAX`]) is the terrain rising past the crater, not its
+/// rim. 1.4 leaves a catalogue diameter 25 % small room to find its rim.
+pub const RIM_POINT_RHO_MAX: f64 = 1.4;
+/// The circle fit needs rim points in at least half the sectors.
+pub const RIM_MIN_POINTS: usize = RELIEF_CREST_SECTORS / 2;
+/// A rim is a circle if the median distance of its points from the fitted circle is at most this many of its
+/// radii (5 %: a terraced rim's crest wanders, a random field's highest points do not line up at all).
+pub const RIM_FIT_MAX_RESIDUAL_RADII: f64 = 0.05;
+/// The fitted centre moves at most this many catalogued radii (a real catalogue's error is under a tenth)...
+pub const RIM_MAX_CENTRE_SHIFT_RADII: f64 = 0.3;
+/// ... and the fitted radius stays within this factor of the catalogued one, either way.
+pub const RIM_MAX_RADIUS_FACTOR: f64 = 1.25;
 
 /// One crater's frame on the map.
 #[derive(Debug, Clone)]
@@ -133,35 +164,53 @@ struct Frame {
     radius_m: f64,
     /// Median height of each ring, metres; ring `i` spans `i..i+1` × [`PROFILE_BIN_RHO`].
     profile_m: Vec<f64>,
-    /// Crest minus floor of `profile_m` over the diameter ([`RELIEF_CREST_RHO_MAX`]).
+    /// The sectors' crest minus the profile's floor, over the diameter ([`RELIEF_CREST_RHO_MAX`]).
     relief_to_diameter: f64,
 }
 
 impl Frame {
     fn rho(&self, x: f64, y: f64) -> f64 {
-        let (dx, dy) = (x - self.centre.0, y - self.centre.1);
-        let m = self.map_to_en;
-        let (e, n) = (m[0][0] * dx + m[0][1] * dy, m[1][0] * dx + m[1][1] * dy);
+        let (e, n) = self.east_north(x, y);
         e.hypot(n) / self.radius_m
     }
 
-    /// The profile's height at `rho` (clamped to the profile's reach), linear between ring centres.
-    /// Crest minus floor of the profile over the diameter ([`RELIEF_CREST_RHO_MAX`]); rings are taken by
-    /// their centres.
-    fn relief_to_diameter(&self) -> f64 {
-        let ring_rho = |i: usize| (i as f64 + 0.5) * PROFILE_BIN_RHO;
-        let within = |reach: f64| {
-            self.profile_m
-                .iter()
-                .enumerate()
-                .filter(move |&(i, _)| ring_rho(i) < reach)
-                .map(|(_, &z)| z)
-        };
-        let crest = within(RELIEF_CREST_RHO_MAX).fold(f64::NEG_INFINITY, f64::max);
-        let floor = within(1.0).fold(f64::INFINITY, f64::min);
-        (crest - floor) / (2.0 * self.radius_m)
+    /// Ground east and north metres of map `(x, y)` from the centre.
+    fn east_north(&self, x: f64, y: f64) -> (f64, f64) {
+        let (dx, dy) = (x - self.centre.0, y - self.centre.1);
+        let m = self.map_to_en;
+        (m[0][0] * dx + m[0][1] * dy, m[1][0] * dx + m[1][1] * dy)
     }
 
+    /// The map point `en` ground metres east and north of the centre.
+    fn map_from_en(&self, en: [f64; 2]) -> (f64, f64) {
+        let m = self.map_to_en;
+        let det = m[0][0] * m[1][1] - m[0][1] * m[1][0];
+        let dx = (m[1][1] * en[0] - m[0][1] * en[1]) / det;
+        let dy = (-m[1][0] * en[0] + m[0][0] * en[1]) / det;
+        (self.centre.0 + dx, self.centre.1 + dy)
+    }
+
+    /// The azimuth sector of map `(x, y)` ([`RELIEF_CREST_SECTORS`]).
+    fn sector(&self, x: f64, y: f64) -> usize {
+        let (e, n) = self.east_north(x, y);
+        let turns = n.atan2(e) / std::f64::consts::TAU + 0.5;
+        ((turns * RELIEF_CREST_SECTORS as f64) as usize).min(RELIEF_CREST_SECTORS - 1)
+    }
+
+    /// `crest_m` minus the profile's floor (its lowest ring within one radius, rings taken by their centres)
+    /// over the diameter ([`RELIEF_CREST_RHO_MAX`]).
+    fn relief_to_diameter(&self, crest_m: f64) -> f64 {
+        let floor = self
+            .profile_m
+            .iter()
+            .enumerate()
+            .filter(|&(i, _)| (i as f64 + 0.5) * PROFILE_BIN_RHO < 1.0)
+            .map(|(_, &z)| z)
+            .fold(f64::INFINITY, f64::min);
+        (crest_m - floor) / (2.0 * self.radius_m)
+    }
+
+    /// The profile's height at `rho` (clamped to the profile's reach), linear between ring centres.
     fn profile_at(&self, rho: f64) -> f64 {
         let t = (rho.min(PROFILE_RHO_MAX) / PROFILE_BIN_RHO - 0.5).max(0.0);
         let last = self.profile_m.len() - 1;
@@ -181,6 +230,9 @@ pub struct FramesReport {
     /// At least the minimum diameter, but with no DEM within [`PROFILE_RHO_MAX`] radii.
     pub off_the_dem: usize,
     pub framed: usize,
+    /// Of the framed, those whose centre and diameter were refined to the rim the DEM shows; the others keep the
+    /// catalogue's (no circle fits their sectors' highest points).
+    pub refined_to_rim: usize,
 }
 
 /// The frames of a DEM's large catalogued craters.
@@ -210,8 +262,13 @@ impl CraterFrames {
             let (x, y) = dem.crs.from_lonlat_deg(crater.lon_deg, crater.lat_deg)?;
             let local = LocalFrame::new(&dem.crs, x, y, 0.0)?;
             match profile(dem, (x, y), local.map_to_en, crater.diameter_m / 2.0) {
-                Some(frame) => {
-                    frames.push(frame);
+                Some((catalogued, rim_en)) => {
+                    let refined = fit_rim(&rim_en, catalogued.radius_m).and_then(|rim| {
+                        let centre = catalogued.map_from_en(rim.centre_en);
+                        profile(dem, centre, local.map_to_en, rim.radius_m)
+                    });
+                    report.refined_to_rim += usize::from(refined.is_some());
+                    frames.push(refined.map_or(catalogued, |(frame, _)| frame));
                     report.framed += 1;
                 }
                 None => report.off_the_dem += 1,
@@ -237,6 +294,7 @@ impl CraterFrames {
             too_small = report.too_small,
             off_the_dem = report.off_the_dem,
             framed = report.framed,
+            refined_to_rim = report.refined_to_rim,
             "crater frames"
         );
         if frames.is_empty() {
@@ -273,13 +331,14 @@ impl CraterFrames {
     }
 }
 
-/// The azimuthal median profile around `centre` (map metres), or `None` when no DEM lies within its reach.
+/// The azimuthal median profile around `centre` (map metres), or `None` when no DEM lies within its reach; with
+/// it, ground east/north metres from `centre` of each sector's highest point inside [`RIM_POINT_RHO_MAX`] radii.
 fn profile(
     dem: &Raster,
     centre: (f64, f64),
     map_to_en: [[f64; 2]; 2],
     radius_m: f64,
-) -> Option<Frame> {
+) -> Option<(Frame, Vec<[f64; 2]>)> {
     let mut frame = Frame {
         centre,
         map_to_en,
@@ -305,6 +364,8 @@ fn profile(
         clamp(r0.min(r1), dem.height)..clamp(r0.max(r1) + 1.0, dem.height),
     );
     let mut rings: Vec<Vec<f32>> = vec![Vec::new(); bins];
+    // Each sector's highest height within the crest's reach, and where it is (ρ, east, north).
+    let mut sector_crests = [(f32::NEG_INFINITY, 0.0, [0.0; 2]); RELIEF_CREST_SECTORS];
     for row in rows.step_by(stride) {
         for col in cols.clone().step_by(stride) {
             let z = dem.get(col, row);
@@ -312,9 +373,17 @@ fn profile(
                 continue;
             }
             let (x, y) = t.pixel_center(col as f64, row as f64);
-            let ring = (frame.rho(x, y) / PROFILE_BIN_RHO) as usize;
+            let rho = frame.rho(x, y);
+            let ring = (rho / PROFILE_BIN_RHO) as usize;
             if ring < bins {
                 rings[ring].push(z);
+            }
+            if rho < RELIEF_CREST_RHO_MAX {
+                let crest = &mut sector_crests[frame.sector(x, y)];
+                if z > crest.0 {
+                    let (e, n) = frame.east_north(x, y);
+                    *crest = (z, rho, [e, n]);
+                }
             }
         }
     }
@@ -342,8 +411,93 @@ fn profile(
             }
         })
         .collect();
-    frame.relief_to_diameter = frame.relief_to_diameter();
-    Some(frame)
+    // With no DEM within the crest's reach (a crater centred well off the DEM's edge) the crest is the profile's
+    // highest ring there, which its nearest known rings set.
+    let mut crests: Vec<f32> = sector_crests
+        .iter()
+        .map(|c| c.0)
+        .filter(|z| z.is_finite())
+        .collect();
+    let crest = median(&mut crests).unwrap_or_else(|| {
+        let reach = (RELIEF_CREST_RHO_MAX / PROFILE_BIN_RHO) as usize;
+        frame.profile_m[..reach].iter().copied().fold(f64::NEG_INFINITY, f64::max)
+    });
+    frame.relief_to_diameter = frame.relief_to_diameter(crest);
+    let rim_en = sector_crests
+        .iter()
+        .filter(|c| c.0.is_finite() && c.1 < RIM_POINT_RHO_MAX)
+        .map(|c| c.2)
+        .collect();
+    Some((frame, rim_en))
+}
+
+/// A rim fitted to the DEM: its centre in ground metres east and north of the catalogued one, and its radius.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Rim {
+    centre_en: [f64; 2],
+    radius_m: f64,
+}
+
+/// The circle through a crater's rim points (ground metres from its catalogued centre), or `None` if they are too
+/// few or no circle within the `RIM_` limits fits them. An algebraic (Kåsa) least-squares fit, in catalogued
+/// radii for conditioning; then again without the points further from the circle than three times their median
+/// distance (a neighbour's rim, a ridge past the crater).
+fn fit_rim(rim_en: &[[f64; 2]], catalogued_radius_m: f64) -> Option<Rim> {
+    if rim_en.len() < RIM_MIN_POINTS {
+        return None;
+    }
+    let points: Vec<[f64; 2]> = rim_en
+        .iter()
+        .map(|p| [p[0] / catalogued_radius_m, p[1] / catalogued_radius_m])
+        .collect();
+    let circle = |points: &[&[f64; 2]]| -> ([f64; 2], f64) {
+        // e² + n² + a e + b n + c = 0: least squares in (a, b, c) through the normal equations.
+        let mut ata = vec![vec![0.0; 3]; 3];
+        let mut atb = vec![0.0; 3];
+        for p in points {
+            let row = [p[0], p[1], 1.0];
+            let target = -(p[0] * p[0] + p[1] * p[1]);
+            for i in 0..3 {
+                atb[i] += row[i] * target;
+                for j in 0..3 {
+                    ata[i][j] += row[i] * row[j];
+                }
+            }
+        }
+        let abc = crate::science::least_squares::solve_small_system(ata, atb);
+        let (a, b, c) = (abc[0], abc[1], abc[2]);
+        let centre = [-a / 2.0, -b / 2.0];
+        (centre, (centre[0].powi(2) + centre[1].powi(2) - c).max(0.0).sqrt())
+    };
+    let distances = |centre: [f64; 2], radius: f64, points: &[&[f64; 2]]| -> Vec<f32> {
+        points
+            .iter()
+            .map(|p| ((p[0] - centre[0]).hypot(p[1] - centre[1]) - radius).abs() as f32)
+            .collect()
+    };
+    let all: Vec<&[f64; 2]> = points.iter().collect();
+    let (centre, radius) = circle(&all);
+    let first = distances(centre, radius, &all);
+    let cut = 3.0 * median(&mut first.clone())?;
+    let kept: Vec<&[f64; 2]> = all
+        .iter()
+        .zip(&first)
+        .filter(|&(_, &d)| f64::from(d) <= cut)
+        .map(|(p, _)| *p)
+        .collect();
+    if kept.len() < RIM_MIN_POINTS {
+        return None;
+    }
+    let (centre, radius) = circle(&kept);
+    let residual = median(&mut distances(centre, radius, &kept))?;
+    let fits = radius.is_finite()
+        && residual <= RIM_FIT_MAX_RESIDUAL_RADII * radius
+        && centre[0].hypot(centre[1]) <= RIM_MAX_CENTRE_SHIFT_RADII
+        && (1.0 / RIM_MAX_RADIUS_FACTOR..=RIM_MAX_RADIUS_FACTOR).contains(&radius);
+    fits.then(|| Rim {
+        centre_en: [centre[0] * catalogued_radius_m, centre[1] * catalogued_radius_m],
+        radius_m: radius * catalogued_radius_m,
+    })
 }
 
 /// Median of the values (the mean of the middle two for an even count); `None` for none.
@@ -452,6 +606,104 @@ mod tests {
         let fresh = relief(6000.0, 1600.0);
         assert!((relief(3000.0, 800.0) - fresh).abs() < 1e-3);
         assert!((relief(6000.0, 800.0) - fresh / 2.0).abs() < 1e-3);
+    }
+
+    /// A crater with a flat floor to ρ 0.4, a wall rising `relief_m` to its rim crest at ρ 1 and ejecta falling
+    /// as ρ⁻³ past it, on a 24 km DEM at 20 m; its catalogue entry is `offset_m` east of its centre.
+    fn rimmed_crater(radius_m: f64, relief_m: f64, offset_m: f64) -> (Raster, CatalogueCrater) {
+        let crs = LunarCrs::equirectangular(0.0, 0.0);
+        let (px, n) = (20.0, 1200);
+        let transform = GeoTransform::north_up(-12_000.0, 12_000.0, px);
+        let mut dem = Raster::new(n, n, transform, crs.clone(), 0.0);
+        for row in 0..n {
+            for col in 0..n {
+                let (x, y) = transform.pixel_center(col as f64, row as f64);
+                let rho = x.hypot(y) / radius_m;
+                let z = if rho <= 1.0 {
+                    relief_m * ((rho - 0.4) / 0.6).max(0.0)
+                } else {
+                    relief_m * rho.powi(-3)
+                };
+                dem.data[row * n + col] = (z - 1500.0) as f32;
+            }
+        }
+        let (lon_deg, lat_deg) = crs.to_lonlat_deg(offset_m, 0.0).unwrap();
+        let crater = CatalogueCrater {
+            lon_deg,
+            lat_deg,
+            diameter_m: 2.0 * radius_m,
+        };
+        (dem, crater)
+    }
+
+    /// About a centre 10 % of a radius off (a real catalogue's 300 m on a 6 km radius, or more) the relief reads as
+    /// about the exact one, within 1 %, even before the frame is refined to the rim: every sector still holds the
+    /// rim's crest, and the flat floor's lowest ring is still floor. The ring medians about the offset centre
+    /// straddle the rim, and their highest reads it more than 5 % low: the test tells the two crests apart.
+    #[test]
+    fn a_catalogue_centre_off_by_a_tenth_of_a_radius_reads_the_same_relief() {
+        let (radius, relief_m) = (6000.0, 700.0);
+        let expected = relief_m / (2.0 * radius);
+        // The frame about the catalogued centre, before any refinement to the rim.
+        let read = |offset_m: f64| {
+            let (dem, _) = rimmed_crater(radius, relief_m, 0.0);
+            let local = LocalFrame::new(&dem.crs, offset_m, 0.0, 0.0).unwrap();
+            let (frame, _) = profile(&dem, (offset_m, 0.0), local.map_to_en, radius).unwrap();
+            (frame.relief_to_diameter, frame)
+        };
+        let (exact, _) = read(0.0);
+        assert!((exact - expected).abs() < 0.01 * expected, "{exact} against {expected}");
+        let (offset, frame) = read(0.1 * radius);
+        assert!((offset - expected).abs() < 0.01 * expected, "{offset} against {expected}");
+        let ring_crest = frame.profile_m.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        let ring_relief = frame.relief_to_diameter(ring_crest);
+        assert!(ring_relief < 0.95 * expected, "ring medians' crest: {ring_relief} against {expected}");
+    }
+
+    /// A catalogue entry 600 m east of the crater (a tenth of its radius) and 5 % wide is refined to the rim the
+    /// DEM shows: centre within 20 m (a post), radius within 1 %, and a crop's frame then reads as with the exact
+    /// entry, ρ within 0.005 and its height against the profile within a ring's rise of the wall (8 m).
+    #[test]
+    fn a_catalogue_entry_off_centre_and_wide_is_refined_to_the_rim() {
+        let (radius, relief_m) = (6000.0, 700.0);
+        let (dem, exact) = rimmed_crater(radius, relief_m, 0.0);
+        let (_, off) = rimmed_crater(1.05 * radius, relief_m, 600.0);
+        let frame_of = |crater: CatalogueCrater| {
+            let (frames, report) = CraterFrames::new(&dem, &[crater], 1000.0).unwrap();
+            assert_eq!((report.framed, report.refined_to_rim), (1, 1), "{report:?}");
+            frames
+        };
+        let (exact, off) = (frame_of(exact), frame_of(off));
+        let refined = &off.frames[0];
+        assert!(refined.centre.0.hypot(refined.centre.1) < 20.0, "{refined:?}");
+        assert!((refined.radius_m / radius - 1.0).abs() < 0.01, "{}", refined.radius_m);
+        for (x, y, z) in [(3000.0, 1000.0, 0.0), (-4500.0, 2000.0, 300.0), (0.0, -7000.0, 250.0)] {
+            let (a, b) = (exact.position(x, y, z).unwrap(), off.position(x, y, z).unwrap());
+            assert!((a.rho - b.rho).abs() < 0.005, "{a:?} {b:?}");
+            assert!((a.relative_height_m - b.relative_height_m).abs() < 8.0, "{a:?} {b:?}");
+            let relief = (a.relief_to_diameter.unwrap(), b.relief_to_diameter.unwrap());
+            assert!((relief.0 - relief.1).abs() < 0.01 * relief.0, "{relief:?}");
+        }
+    }
+
+    /// Where the DEM shows no crater (a catalogue's false entry on rolling plains) no circle fits the sectors'
+    /// highest points, and the catalogue's centre and diameter stand.
+    #[test]
+    fn an_entry_the_dem_shows_no_crater_for_keeps_the_catalogues_frame() {
+        let (mut dem, crater) = rimmed_crater(6000.0, 700.0, 0.0);
+        for row in 0..dem.height {
+            for col in 0..dem.width {
+                let (x, y) = dem.transform.pixel_center(col as f64, row as f64);
+                dem.data[row * dem.width + col] = (-1500.0
+                    + 60.0 * (x / 2300.0).sin() * (y / 1700.0).cos()
+                    + 15.0 * (x / 370.0 + y / 530.0).sin()) as f32;
+            }
+        }
+        let (frames, report) = CraterFrames::new(&dem, &[crater], 1000.0).unwrap();
+        assert_eq!((report.framed, report.refined_to_rim), (1, 0), "{report:?}");
+        let frame = &frames.frames[0];
+        assert!(frame.centre.0.hypot(frame.centre.1) < 1e-6, "{:?}", frame.centre);
+        assert_eq!(frame.radius_m, 6000.0);
     }
 
     #[test]
