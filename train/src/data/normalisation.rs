@@ -690,8 +690,14 @@ mod tests {
             ..InputNormalisation::relief(2.0)
         };
         for old in ["1.4.0", "1.3.0"] {
-            let err = relief.check_dataset(&at_version(old)).unwrap_err().to_string();
-            assert!(err.contains(old) && err.contains("publish schema 1.5"), "{err}");
+            let err = relief
+                .check_dataset(&at_version(old))
+                .unwrap_err()
+                .to_string();
+            assert!(
+                err.contains(old) && err.contains("publish schema 1.5"),
+                "{err}"
+            );
         }
         frame_only.check_dataset(&at_version("1.4.0")).unwrap();
         relief.check_dataset(&at_version("1.5.0")).unwrap();
