@@ -122,10 +122,11 @@ pub struct CraterPosition {
     pub relief_to_diameter: Option<f64>,
 }
 
-/// The crest of a crater's relief is the median, over [`RELIEF_CREST_SECTORS`] azimuth sectors about the
-/// catalogued centre, of each sector's highest DEM height from [`RELIEF_CREST_RHO_MIN`] to this many radii (past
-/// the rim, so a catalogue diameter a few per cent small still finds it); its floor is the median profile's lowest
-/// ring within one radius.
+/// The crest of a crater's relief is its rim's height: where the frame is refined to the rim, the median height of
+/// the rim points on the fitted circle ([`RIM_MIN_POINTS`]); elsewhere the median, over [`RELIEF_CREST_SECTORS`]
+/// azimuth sectors about the catalogued centre, of each sector's highest DEM height from [`RELIEF_CREST_RHO_MIN`]
+/// to this many radii (past the rim, so a catalogue diameter a few per cent small still finds it). Its floor is
+/// the median profile's lowest ring within one radius.
 ///
 /// Why: crest minus floor over diameter is the depth/diameter ratio by which crater morphometry dates a
 /// crater's wear; a fresh crater is deeper for its size and its wall and ejecta are brighter, fresh material
@@ -151,13 +152,16 @@ pub const RELIEF_CREST_SECTORS: usize = 72;
 /// one at the edge of the crest's reach ([`RELIEF_CREST_RHO_MAX`]) is the terrain rising past the crater, not its
 /// rim. 1.4 leaves a catalogue diameter 25 % small room to find its rim.
 pub const RIM_POINT_RHO_MAX: f64 = 1.4;
-/// The circle fit needs rim points in at least half the sectors.
-pub const RIM_MIN_POINTS: usize = RELIEF_CREST_SECTORS / 2;
-/// A rim is a circle if the median distance of its points from the fitted circle is at most this many of its
-/// radii. 2 %: the synthetic complex craters' rims, fresh or worn, fit within 0.7 %; a worn one at the DEM's
-/// edge, catalogued 6 % of a radius off, fitted at 4.6 % to a circle 6 % of a radius from its rim, a frame worse
-/// than the catalogue's.
+/// A rim is a circle through the highest points of at least a third of the sectors ([`RIM_FIT_MAX_RESIDUAL_RADII`]):
+/// on the many-craters worlds' craters 29 to 36 of 72 lie on the rim, the others on terrain past it.
+pub const RIM_MIN_POINTS: usize = RELIEF_CREST_SECTORS / 3;
+/// A point is on the fitted circle if it lies within this many of its radii. 2 %: the synthetic complex craters'
+/// rim points lie within 0.7 % of their circle; a worn one at the DEM's edge, catalogued 6 % of a radius off,
+/// had its points 4.6 % from a circle 6 % of a radius from its rim, a frame worse than the catalogue's.
 pub const RIM_FIT_MAX_RESIDUAL_RADII: f64 = 0.02;
+/// Rounds of the trimmed circle fit ([`fit_rim`]): each moves the circle toward the rim points' ring, from a
+/// catalogue's circle a tenth of a radius off in two or three.
+pub const RIM_FIT_ROUNDS: usize = 5;
 /// The fitted centre moves at most this many catalogued radii (a real catalogue's error is under a tenth)...
 pub const RIM_MAX_CENTRE_SHIFT_RADII: f64 = 0.3;
 /// ... and the fitted radius stays within this factor of the catalogued one, either way.
@@ -270,13 +274,15 @@ impl CraterFrames {
             let (x, y) = dem.crs.from_lonlat_deg(crater.lon_deg, crater.lat_deg)?;
             let local = LocalFrame::new(&dem.crs, x, y, 0.0)?;
             match profile(dem, (x, y), local.map_to_en, crater.diameter_m / 2.0) {
-                Some((catalogued, rim_en)) => {
-                    let refined = fit_rim(&rim_en, catalogued.radius_m).and_then(|rim| {
+                Some((catalogued, rim_points)) => {
+                    let refined = fit_rim(&rim_points, catalogued.radius_m).and_then(|rim| {
                         let centre = catalogued.map_from_en(rim.centre_en);
-                        profile(dem, centre, local.map_to_en, rim.radius_m)
+                        let (mut frame, _) = profile(dem, centre, local.map_to_en, rim.radius_m)?;
+                        frame.relief_to_diameter = frame.relief_to_diameter(rim.crest_m);
+                        Some(frame)
                     });
                     report.refined_to_rim += usize::from(refined.is_some());
-                    frames.push(refined.map_or(catalogued, |(frame, _)| frame));
+                    frames.push(refined.unwrap_or(catalogued));
                     report.framed += 1;
                 }
                 None => report.off_the_dem += 1,
@@ -340,13 +346,14 @@ impl CraterFrames {
 }
 
 /// The azimuthal median profile around `centre` (map metres), or `None` when no DEM lies within its reach; with
-/// it, ground east/north metres from `centre` of each sector's highest point inside [`RIM_POINT_RHO_MAX`] radii.
+/// it, each sector's highest point inside [`RIM_POINT_RHO_MAX`] radii: ground metres east and north of `centre`,
+/// and its height.
 fn profile(
     dem: &Raster,
     centre: (f64, f64),
     map_to_en: [[f64; 2]; 2],
     radius_m: f64,
-) -> Option<(Frame, Vec<[f64; 2]>)> {
+) -> Option<(Frame, Vec<[f64; 3]>)> {
     let mut frame = Frame {
         centre,
         map_to_en,
@@ -393,9 +400,11 @@ fn profile(
         .iter()
         .filter(|p| (RELIEF_CREST_RHO_MIN..RELIEF_CREST_RHO_MAX).contains(&p.1))
     {
-        let sector = Frame::sector(en[0], en[1]);
-        if f64::from(z) > sector_crests[sector].0 {
-            sector_crests[sector] = (f64::from(z), rho, en);
+        // Of equal heights the innermost: on a flat top the rim is where the rise ends.
+        let (best, best_rho, _) = &mut sector_crests[Frame::sector(en[0], en[1])];
+        let z = f64::from(z);
+        if z > *best || (z == *best && rho < *best_rho) {
+            sector_crests[Frame::sector(en[0], en[1])] = (z, rho, en);
         }
     }
     // With no DEM within the crest's reach (a crater centred well off the DEM's edge) the crest is the profile's
@@ -413,12 +422,12 @@ fn profile(
             .fold(f64::NEG_INFINITY, f64::max)
     });
     frame.relief_to_diameter = frame.relief_to_diameter(crest);
-    let rim_en = sector_crests
+    let rim = sector_crests
         .iter()
         .filter(|c| c.0.is_finite() && c.1 < RIM_POINT_RHO_MAX)
-        .map(|c| c.2)
+        .map(|c| [c.2[0], c.2[1], c.0])
         .collect();
-    Some((frame, rim_en))
+    Some((frame, rim))
 }
 
 /// The median height of each ring, a ring with none (near the centre, or where the DEM has a hole) taking the line
@@ -457,26 +466,31 @@ fn ring_profile(posts: &[(f32, f64, [f64; 2])]) -> Option<Vec<f64>> {
     )
 }
 
-/// A rim fitted to the DEM: its centre in ground metres east and north of the catalogued one, and its radius.
+/// A rim fitted to the DEM: its centre in ground metres east and north of the catalogued one, its radius, and its
+/// crest, the median height of the rim points on it.
 #[derive(Debug, Clone, Copy, PartialEq)]
 struct Rim {
     centre_en: [f64; 2],
     radius_m: f64,
+    crest_m: f64,
 }
 
-/// The circle through a crater's rim points (ground metres from its catalogued centre), or `None` if they are too
-/// few or no circle within the `RIM_` limits fits them. An algebraic (Kåsa) least-squares fit, in catalogued
-/// radii for conditioning; then again without the points further from the circle than three times their median
-/// distance (a neighbour's rim, a ridge past the crater).
-fn fit_rim(rim_en: &[[f64; 2]], catalogued_radius_m: f64) -> Option<Rim> {
-    if rim_en.len() < RIM_MIN_POINTS {
+/// The circle through a crater's rim points (ground metres east and north of its catalogued centre, and height),
+/// or `None` where too few lie on any circle within the `RIM_` limits. Beyond the rim the terrain often stands
+/// higher than it (the many-craters worlds' ejecta and hills hold a third to a half of the sectors' highest
+/// points), so the fit is trimmed: from the catalogue's circle, [`RIM_FIT_ROUNDS`] times an algebraic (Kåsa)
+/// least-squares circle through the half of the points nearest the last one; then the circle through the points
+/// within [`RIM_FIT_MAX_RESIDUAL_RADII`] of it, if they are at least [`RIM_MIN_POINTS`]. Fitted in catalogued
+/// radii, for conditioning.
+fn fit_rim(rim: &[[f64; 3]], catalogued_radius_m: f64) -> Option<Rim> {
+    if rim.len() < RIM_MIN_POINTS {
         return None;
     }
-    let points: Vec<[f64; 2]> = rim_en
+    let points: Vec<[f64; 2]> = rim
         .iter()
         .map(|p| [p[0] / catalogued_radius_m, p[1] / catalogued_radius_m])
         .collect();
-    let circle = |points: &[&[f64; 2]]| -> ([f64; 2], f64) {
+    let circle = |points: &[[f64; 2]]| -> ([f64; 2], f64) {
         // e² + n² + a e + b n + c = 0: least squares in (a, b, c) through the normal equations.
         let mut ata = vec![vec![0.0; 3]; 3];
         let mut atb = vec![0.0; 3];
@@ -491,36 +505,40 @@ fn fit_rim(rim_en: &[[f64; 2]], catalogued_radius_m: f64) -> Option<Rim> {
             }
         }
         let abc = crate::science::least_squares::solve_small_system(ata, atb);
-        let (a, b, c) = (abc[0], abc[1], abc[2]);
-        let centre = [-a / 2.0, -b / 2.0];
+        let centre = [-abc[0] / 2.0, -abc[1] / 2.0];
         (
             centre,
-            (centre[0].powi(2) + centre[1].powi(2) - c).max(0.0).sqrt(),
+            (centre[0].powi(2) + centre[1].powi(2) - abc[2])
+                .max(0.0)
+                .sqrt(),
         )
     };
-    let distances = |centre: [f64; 2], radius: f64, points: &[&[f64; 2]]| -> Vec<f32> {
-        points
-            .iter()
-            .map(|p| ((p[0] - centre[0]).hypot(p[1] - centre[1]) - radius).abs() as f32)
+    let distance = |(centre, radius): ([f64; 2], f64), p: &[f64; 2]| {
+        ((p[0] - centre[0]).hypot(p[1] - centre[1]) - radius).abs()
+    };
+    let mut fitted = ([0.0; 2], 1.0);
+    for _ in 0..RIM_FIT_ROUNDS {
+        let mut nearest = points.clone();
+        nearest.sort_by(|p, q| distance(fitted, p).total_cmp(&distance(fitted, q)));
+        nearest.truncate(points.len().div_ceil(2));
+        fitted = circle(&nearest);
+    }
+    let on_rim = |fitted: ([f64; 2], f64)| -> Vec<usize> {
+        (0..points.len())
+            .filter(|&i| distance(fitted, &points[i]) <= RIM_FIT_MAX_RESIDUAL_RADII * fitted.1)
             .collect()
     };
-    let all: Vec<&[f64; 2]> = points.iter().collect();
-    let (centre, radius) = circle(&all);
-    let first = distances(centre, radius, &all);
-    let cut = 3.0 * median(&mut first.clone())?;
-    let kept: Vec<&[f64; 2]> = all
-        .iter()
-        .zip(&first)
-        .filter(|&(_, &d)| f64::from(d) <= cut)
-        .map(|(p, _)| *p)
-        .collect();
-    if kept.len() < RIM_MIN_POINTS {
+    let inliers = on_rim(fitted);
+    if inliers.len() < RIM_MIN_POINTS {
         return None;
     }
-    let (centre, radius) = circle(&kept);
-    let residual = median(&mut distances(centre, radius, &kept))?;
+    let (centre, radius) = circle(&inliers.iter().map(|&i| points[i]).collect::<Vec<_>>());
+    let mut heights: Vec<f32> = on_rim((centre, radius))
+        .iter()
+        .map(|&i| rim[i][2] as f32)
+        .collect();
     let fits = radius.is_finite()
-        && residual <= RIM_FIT_MAX_RESIDUAL_RADII * radius
+        && heights.len() >= RIM_MIN_POINTS
         && centre[0].hypot(centre[1]) <= RIM_MAX_CENTRE_SHIFT_RADII
         && (1.0 / RIM_MAX_RADIUS_FACTOR..=RIM_MAX_RADIUS_FACTOR).contains(&radius);
     fits.then(|| Rim {
@@ -529,6 +547,7 @@ fn fit_rim(rim_en: &[[f64; 2]], catalogued_radius_m: f64) -> Option<Rim> {
             centre[1] * catalogued_radius_m,
         ],
         radius_m: radius * catalogued_radius_m,
+        crest_m: median(&mut heights).expect("at least RIM_MIN_POINTS heights"),
     })
 }
 
@@ -592,15 +611,20 @@ mod tests {
             FramesReport {
                 catalogued: 1,
                 framed: 1,
+                refined_to_rim: 1,
                 ..FramesReport::default()
             }
         );
+        // The frame is refined to the DEM's crest, 1.2 catalogued radii out, within a post (20 m).
+        let refined_m = frames.frames[0].radius_m;
+        assert!((refined_m - 1.2 * radius).abs() < 20.0, "{refined_m}");
         // On the wall the crater's rise (1,600 m per radius) swamps the 300 m offset; against the profile it is
         // the offset, within a ring's rise (8 m) of the median's place in its ring.
         for (x, y) in [(4000.0, 2000.0), (3300.0, 400.0), (5000.0, 3000.0)] {
             let z = height(x, y, radius, slope, offset);
             let p = frames.position(x, y, z).unwrap();
-            assert!((p.rho - x.hypot(y) / radius).abs() < 1e-6, "{p:?}");
+            // The refined centre lies within a metre of the crater's: ρ within 1e-4.
+            assert!((p.rho - x.hypot(y) / refined_m).abs() < 1e-4, "{p:?}");
             assert!(
                 (p.relative_height_m - offset).abs() < 8.0,
                 "minority unit at ({x}, {y}): {p:?}"
@@ -616,10 +640,11 @@ mod tests {
         }
     }
 
-    /// The fixture's crater rises `slope` metres per radius from its centre to its crest at ρ 1.2: its relief is
-    /// 1.2 × slope over its diameter, within a ring's rise at the floor (the centre ring's median sits a few
-    /// metres up its slope). The ratio is the crater's shape, not its size: half the crater at half the depth
-    /// reads the same; at half the depth alone, half of it.
+    /// The fixture's crater rises `slope` metres per radius from its centre to its crest at ρ 1.2, to which the
+    /// frame is refined: its relief is 1.2 × slope over the crest's diameter, 2.4 radii, within a ring's rise at
+    /// the floor (the centre ring's median sits a few metres up its slope) and a post's place of the crest (20 m
+    /// in 14.4 km). The ratio is the crater's shape, not its size: half the crater at half the depth reads the
+    /// same; at half the depth alone, half of it.
     #[test]
     fn relief_to_diameter_is_the_profiles_crest_minus_floor_over_the_diameter() {
         let relief = |radius: f64, slope: f64| {
@@ -628,9 +653,9 @@ mod tests {
             let p = frames.position(0.5 * radius, 0.0, 0.0).unwrap();
             let ratio = p.relief_to_diameter.unwrap();
             let ring_rise = slope * PROFILE_BIN_RHO / (2.0 * radius);
-            let expected = 1.2 * slope / (2.0 * radius);
+            let expected = 1.2 * slope / (2.0 * 1.2 * radius);
             assert!(
-                (ratio - expected).abs() < ring_rise,
+                (ratio - expected).abs() < ring_rise + expected * 20.0 / (2.4 * radius),
                 "radius {radius} m, slope {slope} m: {ratio} against {expected}"
             );
             ratio

@@ -340,7 +340,7 @@ pub fn sample_schema() -> SchemaRef {
         field(
             "crater_relief_to_diameter",
             DataType::Float64,
-            "that crater's relief (the median over 5° azimuth sectors of each one's highest height within 1.5 radii, minus its median profile's lowest ring within 1) over its diameter, the depth/diameter measure of its wear; NaN without a crater catalogue",
+            "that crater's relief (the median over 5° azimuth sectors of each one's highest height from 0.6 to 1.5 radii, minus its median profile's lowest ring within 1) over its diameter, the depth/diameter measure of its wear; NaN without a crater catalogue",
             "1",
         ),
     ];
