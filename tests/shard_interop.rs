@@ -72,7 +72,7 @@ f = pq.ParquetFile(sys.argv[1])
 t = pq.read_table(sys.argv[1])
 assert t.num_rows == 300, t.num_rows
 assert f.metadata.num_row_groups == 2, f.metadata.num_row_groups
-assert f.schema_arrow.metadata[b"g2r.schema_version"] == b"1.5.0", f.schema_arrow.metadata
+assert f.schema_arrow.metadata[b"g2r.schema_version"] == b"1.4.0", f.schema_arrow.metadata
 assert t.column("map_to_en")[0].values.to_pylist() == [1.0, 0.0, 0.0, 1.0]
 assert t.column("enu_origin_height_m").to_pylist()[0] == 0.0
 dem = t.column("dem")[3].values.to_numpy()

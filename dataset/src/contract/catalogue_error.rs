@@ -163,20 +163,18 @@ impl FramedCatalogue {
         }
         let craters = read_catalogue(catalogue)?;
         let mut draws = Vec::with_capacity(error.draws);
-        let (mut framed, mut refined, mut empty) = (0, 0, 0);
+        let (mut framed, mut empty) = (0, 0);
         for draw in 0..error.draws as u64 {
             let listed = error.draw(dem, &craters, min_diameter_m, seed, draw)?;
             let (frames, report) = CraterFrames::new(dem, &listed, min_diameter_m)
                 .with_context(|| format!("{}: draw {draw} of its errors", catalogue.display()))?;
             framed += report.framed;
-            refined += report.refined_to_rim;
             empty += usize::from(frames.is_empty());
             draws.push(frames);
         }
         tracing::info!(
             draws = error.draws,
             mean_framed = framed as f64 / error.draws as f64,
-            mean_refined_to_rim = refined as f64 / error.draws as f64,
             draws_framing_nothing = empty,
             "crater catalogue with simulated errors"
         );

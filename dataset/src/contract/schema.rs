@@ -17,11 +17,7 @@ use crate::contract::crater_frame::CraterPosition;
 /// 1.3: `crater_rho` + `crater_relative_height_m` added, NaN where the dataset was built without a crater
 /// catalogue (readers of 1.3 still read 1.1 and 1.2 shards, without a crater frame).
 /// 1.4: `crater_relief_to_diameter` added (readers of 1.4 read 1.3 shards' frames without it).
-/// 1.5: the crater frame is refined to the rim the DEM shows before it is measured, and the relief's crest is the
-/// rim's height, not the median profile's highest ring (low about an offset centre; a central peak's, if taller)
-/// ([`crate::contract::crater_frame`]): a catalogue's centre and diameter errors no longer smear the frame. The
-/// columns are 1.4's; a run that feeds the relief refuses datasets older than 1.5.
-pub const SCHEMA_VERSION: &str = "1.5.0";
+pub const SCHEMA_VERSION: &str = "1.4.0";
 /// Crop edge in pixels (the network's input/output size).
 pub const CROP_PX: usize = 128;
 /// DEM edge in pixels: the crop plus a 1-pixel apron on every side, so border normals are exact.
@@ -328,7 +324,7 @@ pub fn sample_schema() -> SchemaRef {
         field(
             "crater_rho",
             DataType::Float64,
-            "ground distance of the crop centre from the nearest catalogued large crater's centre, in its radii (centre and radius refined to the rim the DEM shows where a circle fits it, schema 1.5); NaN without a crater catalogue",
+            "ground distance of the crop centre from the nearest catalogued large crater's centre, in its radii; NaN without a crater catalogue",
             "1",
         ),
         field(
@@ -340,7 +336,7 @@ pub fn sample_schema() -> SchemaRef {
         field(
             "crater_relief_to_diameter",
             DataType::Float64,
-            "that crater's relief (its rim's crest: the median height of the rim points on the circle the frame is refined to, else of 5° azimuth sectors' highest heights from 0.6 to 1.5 radii; minus its median profile's lowest ring within 1) over its diameter, the depth/diameter measure of its wear; NaN without a crater catalogue",
+            "that crater's relief (its profile's highest ring within 1.5 radii minus its lowest within 1) over its catalogued diameter, the depth/diameter measure of its wear; NaN without a crater catalogue",
             "1",
         ),
     ];

@@ -248,9 +248,8 @@ pub fn pipeline_scoped(
         // 5: the train DEM statistic is summed per ortho (partitions merge to the same bits). 6: every sample
         // carries its crater frame, NaN without a catalogue (schema 1.3). 7: tensor pages of at most
         // `TENSOR_PAGE_BYTES` (same values, other bytes: a one-row read decompresses an eighth of what it did).
-        // 8: the crater frame carries its crater's relief over diameter (schema 1.4). 9: the relief's crest is the
-        // median of azimuth sectors' highest heights (schema 1.5).
-        code_version: "9",
+        // 8: the crater frame carries its crater's relief over diameter (schema 1.4).
+        code_version: "8",
         // Everything projection reads: assigned positions, the DEM, and each ortho's image and metadata.
         inputs: [
             layout.assignment.clone(),

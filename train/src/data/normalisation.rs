@@ -123,8 +123,7 @@ impl ContextNormalisation {
     }
 
     /// Statistics of the [`framed`] train crops' crater relief over diameter, for `--crater-relief-input`. A
-    /// framed crop without one (a shard older than schema 1.4) is refused; `check_dataset` refuses a dataset older
-    /// than 1.5, whose relief reads its crest another way.
+    /// framed crop without one (a shard older than schema 1.4) is refused.
     pub fn crater_relief_of_samples<'a>(
         samples: impl IntoIterator<Item = &'a Sample>,
     ) -> Result<ReliefNormalisation> {
@@ -135,7 +134,7 @@ impl ContextNormalisation {
             };
             let Some(relief) = crater.relief_to_diameter else {
                 bail!(
-                    "sample {} has a crater frame without its crater's relief: re-run `g2r-pipeline run` to publish schema 1.5, or train without --crater-relief-input",
+                    "sample {} has a crater frame without its crater's relief: re-run `g2r-pipeline run` to publish schema 1.4, or train without --crater-relief-input",
                     s.sample_id
                 );
             };
@@ -266,11 +265,9 @@ impl InputNormalisation {
                 source.describe()
             );
         }
-        // Schema 1.4's relief read the crest from ring medians, low where a catalogue's centre is off: a run that
-        // learned 1.5's relief would read it biased, so it is refused with the fix.
-        if self.crater_relief().is_some() && minor.is_none_or(|m| m < 5) {
+        if self.crater_relief().is_some() && minor.is_none_or(|m| m < 4) {
             bail!(
-                "{}: dataset schema {version} has no crater relief as this run reads it (schema 1.5), but the run feeds it (--crater-relief-input): re-run `g2r-pipeline run` with inputs.crater_catalogue to publish schema 1.5",
+                "{}: dataset schema {version} has no crater relief, but the run feeds it (--crater-relief-input): re-run `g2r-pipeline run` with inputs.crater_catalogue to publish schema 1.4",
                 source.describe()
             );
         }
@@ -605,7 +602,7 @@ mod tests {
         // A framed crop whose shard predates the relief is refused, not fed as some value.
         samples[0].crater.as_mut().unwrap().relief_to_diameter = None;
         let err = ContextNormalisation::crater_relief_of_samples(&samples).unwrap_err();
-        assert!(err.to_string().contains("schema 1.5"), "{err}");
+        assert!(err.to_string().contains("schema 1.4"), "{err}");
 
         let input = InputNormalisation {
             context: Some(ContextNormalisation {
@@ -645,62 +642,6 @@ mod tests {
         let json = serde_json::to_string(&input.context).unwrap();
         let back: Option<ContextNormalisation> = serde_json::from_str(&json).unwrap();
         assert_eq!(back, input.context);
-    }
-
-    /// A run that feeds the relief refuses a dataset whose relief reads its crest another way (schema 1.4) or that
-    /// has none (1.3), naming the fix; 1.5 passes, and a run without the relief plane takes 1.4.
-    #[test]
-    fn a_relief_input_refuses_a_dataset_older_than_schema_1_5() {
-        let dir = tempfile::tempdir().unwrap();
-        crate::testing::write_synthetic_dataset(
-            dir.path(),
-            crate::testing::synthetic_samples(2, 1),
-            crate::testing::synthetic_samples(1, 2),
-        );
-        let manifest = dir.path().join("manifest.json");
-        let mut written: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(&manifest).unwrap()).unwrap();
-        let mut at_version = |version: &str| {
-            written["schema_version"] = version.into();
-            std::fs::write(&manifest, written.to_string()).unwrap();
-            let source = crate::data::LocalSource::open(dir.path()).unwrap();
-            assert_eq!(source.manifest().schema_version, version);
-            source
-        };
-        let context = ContextNormalisation {
-            gsd_m: 512.0,
-            std_m: 4.0,
-            absolute: false,
-            crater_rms_m: Some(50.0),
-            crater_frame: true,
-            crater_relief: Some(ReliefNormalisation {
-                mean: 0.07,
-                std: 0.01,
-            }),
-        };
-        let relief = InputNormalisation {
-            context: Some(context),
-            ..InputNormalisation::relief(2.0)
-        };
-        let frame_only = InputNormalisation {
-            context: Some(ContextNormalisation {
-                crater_relief: None,
-                ..context
-            }),
-            ..InputNormalisation::relief(2.0)
-        };
-        for old in ["1.4.0", "1.3.0"] {
-            let err = relief
-                .check_dataset(&at_version(old))
-                .unwrap_err()
-                .to_string();
-            assert!(
-                err.contains(old) && err.contains("publish schema 1.5"),
-                "{err}"
-            );
-        }
-        frame_only.check_dataset(&at_version("1.4.0")).unwrap();
-        relief.check_dataset(&at_version("1.5.0")).unwrap();
     }
 
     #[test]
