@@ -10,6 +10,9 @@ pub const ISD_DIR: &str = "isd";
 /// The orthos' rows of an LROC-style cumulative index, and its PDS3 label.
 pub const INDEX_TABLE: &str = "index/CUMINDEX.TAB";
 pub const INDEX_LABEL: &str = "index/CUMINDEX.LBL";
+/// A mare (0) / highland (1) unit map on its own grid (`[unit_map]` worlds only): delivered, not truth, as coarse
+/// and displaced as a real site's; the pipeline reads it as `inputs.unit_map`.
+pub const UNIT_MAP: &str = "map/units.tif";
 /// The true fine DEM (evaluation only).
 pub const TRUE_DEM: &str = "truth/dem_true.tif";
 /// The true Hapke parameter maps: w, b, c, B_S0, h_S, θ̄ in degrees (evaluation only).

@@ -19,6 +19,27 @@ pub struct WorldConfig {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub acquisition_draws: Option<AcquisitionDraws>,
     pub dem_product: DemProductConfig,
+    /// A mare/highland unit map delivered beside the DEM (`map/units.tif`), as coarse and as misplaced as a real
+    /// site's: without the section, none is written.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub unit_map: Option<UnitMapConfig>,
+}
+
+/// The delivered unit map ([`super::geologic_units::unit_map`]): the true units generalised and displaced, then
+/// classed mare (0) or highland (1), as a geologic map's polygons or a thresholded FeO map give them.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct UnitMapConfig {
+    /// Cell size of the raster, metres.
+    pub gsd_m: f64,
+    /// Side of the square the true units are averaged over before classing: features narrower than about half
+    /// of it are lost, as a map at its scale drops them.
+    pub generalisation_m: f64,
+    /// Amplitude of the smooth displacement of the whole map (the largest octave of an fBm warp), metres: a
+    /// boundary's positional error.
+    pub displacement_m: f64,
+    /// Longest wavelength of the displacement, metres.
+    pub displacement_wavelength_m: f64,
 }
 
 /// Bounds of a world's drawn acquisitions ([`WorldConfig::with_drawn_acquisitions`]); each draw is uniform.
@@ -282,6 +303,17 @@ impl WorldConfig {
                 && d.incidence_low_max_deg + d.incidence_span_max_deg < 90.0;
             if !in_bounds {
                 return Err("acquisition_draws: need 1 ≤ count_min ≤ count_max, 0 ≤ incidence_low_min_deg ≤ incidence_low_max_deg, 0 ≤ incidence_span_min_deg ≤ incidence_span_max_deg, and incidence_low_max_deg + incidence_span_max_deg < 90 (sun above the horizon)".into());
+            }
+        }
+        if let Some(m) = &self.unit_map {
+            let positive = |v: f64| v.is_finite() && v > 0.0;
+            if !(positive(m.gsd_m)
+                && positive(m.generalisation_m)
+                && positive(m.displacement_wavelength_m)
+                && m.displacement_m.is_finite()
+                && m.displacement_m >= 0.0)
+            {
+                return Err("unit_map: need positive gsd_m, generalisation_m and displacement_wavelength_m, and displacement_m ≥ 0".into());
             }
         }
         let a = &self.acquisitions;

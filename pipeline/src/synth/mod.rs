@@ -148,7 +148,7 @@ pub fn generate(
     if partial.exists() {
         std::fs::remove_dir_all(&partial)?;
     }
-    for sub in ["dem", "ortho", "isd", "index", "truth"] {
+    for sub in ["dem", "ortho", "isd", "index", "truth", "map"] {
         std::fs::create_dir_all(partial.join(sub))
             .with_context(|| format!("creating {}", partial.display()))?;
     }
@@ -407,6 +407,27 @@ pub fn generate(
     truth_phase.inc(1);
     truth_phase.finish();
 
+    if let Some(map_cfg) = &config.unit_map {
+        let map_grid = Grid {
+            min_x,
+            max_y,
+            gsd_m: map_cfg.gsd_m,
+            width: (w.width_m / map_cfg.gsd_m).ceil() as usize,
+            height: (w.height_m / map_cfg.gsd_m).ceil() as usize,
+        };
+        let map = geologic_units::unit_map(&units, map_cfg, &map_grid, seed);
+        write_geotiff(
+            &partial.join(layout::UNIT_MAP),
+            &map_grid.layout(&crs, -1.0),
+            &[BandOut {
+                values: BandValues::Grid(&map),
+                description: "unit: 0 mare, 1 highland",
+            }],
+            &[("PRODUCT", "mare/highland unit map (synthetic)".into())],
+        )?;
+    } else {
+        std::fs::remove_dir(partial.join("map"))?;
+    }
     let mut files = Vec::new();
     if config.complex_craters.is_some() {
         // The drawn craters as a catalogue the pipeline reads (`inputs.crater_catalogue`): exact, as a truth file.
@@ -434,6 +455,9 @@ pub fn generate(
     relative.extend([layout::INDEX_LABEL.into(), layout::INDEX_TABLE.into()]);
     if config.complex_craters.is_some() {
         relative.push(layout::TRUE_COMPLEX_CRATERS.into());
+    }
+    if config.unit_map.is_some() {
+        relative.push(layout::UNIT_MAP.into());
     }
     for s in &strips {
         relative.push(format!("{}/{}", layout::ORTHO_DIR, s.meta.image_file));
