@@ -432,3 +432,114 @@ fn a_crater_catalogue_frames_every_sample_and_a_missing_one_is_named() {
         "{err}"
     );
 }
+
+#[test]
+fn a_unit_map_gives_every_context_window_its_highland_fraction_and_a_bad_one_is_named() {
+    let tmp = tempfile::tempdir().unwrap();
+    let mut config = g2r_tests::tiny_world_config();
+    config.unit_map = Some(pipeline::synth::config::UnitMapConfig {
+        gsd_m: 100.0,
+        generalisation_m: 1000.0,
+        displacement_m: 400.0,
+        displacement_wavelength_m: 4000.0,
+    });
+    pipeline::synth::generate(&config, 5, &tmp.path().join("world"), false).unwrap();
+    let map_path = tmp
+        .path()
+        .join("world")
+        .join(dataset::contract::world::UNIT_MAP);
+    let map = dataset::science::raster::read_raster(&map_path).unwrap();
+    assert!(map.data.iter().all(|&v| v == 0.0 || v == 1.0));
+    let path = tmp.path().join("tiny.toml");
+    std::fs::write(
+        &path,
+        pipeline::manifest::tiny_manifest_toml(9, 2.0).replace(
+            "ortho_dir = \"world/ortho\"",
+            "ortho_dir = \"world/ortho\"\nunit_map = \"world/map/units.tif\"",
+        ),
+    )
+    .unwrap();
+    run(&path, None);
+    let m = PipelineManifest::load(&path).unwrap();
+    let mut checked = 0;
+    for entry in std::fs::read_dir(tmp.path().join("out/dataset"))
+        .unwrap()
+        .flatten()
+    {
+        if entry.path().extension().is_none_or(|e| e != "parquet") {
+            continue;
+        }
+        let file = dataset::contract::shard::ShardFile::open(&entry.path()).unwrap();
+        for sample in file.read_all().unwrap() {
+            let context = sample.context.unwrap();
+            let highland = context
+                .highland
+                .expect("every window carries the map's units");
+            let g = context.gsd_m;
+            assert_eq!(g, m.project.context_gsd_m);
+            // The independent expectation: the mean of the map pixels whose centres lie in each cell, for the
+            // cells the map covers whole (100 m pixels in 512 m cells: the windows' blocks are the pixels).
+            let t = &map.transform;
+            for (k, &got) in highland.iter().enumerate() {
+                let (i, j) = ((k / 32) as f64, (k % 32) as f64);
+                let (x0, y1) = (
+                    sample.center_x_m + (j - 16.0) * g,
+                    sample.center_y_m + (16.0 - i) * g,
+                );
+                let (c0, r0) = t.map_to_pixel(x0, y1);
+                let (c1, r1) = t.map_to_pixel(x0 + g, y1 - g);
+                // Pixel-centre coordinates: the centres in [c0, c1) × [r0, r1).
+                let cols = c0.ceil() as i64..c1.ceil() as i64;
+                let rows = r0.ceil() as i64..r1.ceil() as i64;
+                let inside = |n: i64, len: usize| n >= 0 && (n as usize) < len;
+                let whole = cols.clone().all(|c| inside(c, map.width))
+                    && rows.clone().all(|r| inside(r, map.height));
+                if !whole {
+                    continue;
+                }
+                let (mut sum, mut n) = (0.0, 0);
+                for r in rows.clone() {
+                    for c in cols.clone() {
+                        sum += f64::from(map.get(c as usize, r as usize));
+                        n += 1;
+                    }
+                }
+                assert!(
+                    (f64::from(got) - sum / n as f64).abs() < 1e-5,
+                    "{} cell {k}: {got} against {}",
+                    sample.sample_id,
+                    sum / n as f64
+                );
+                checked += 1;
+            }
+        }
+    }
+    assert!(checked > 1000, "{checked} cells checked");
+    // A map of class codes, not fractions, is refused with the file and the fix.
+    let bad_path = tmp.path().join("codes.tif");
+    let codes: Vec<f32> = map.data.iter().map(|v| v + 1.0).collect();
+    dataset::science::raster::write_geotiff(
+        &bad_path,
+        &dataset::science::raster::RasterLayout {
+            width: map.width,
+            height: map.height,
+            transform: map.transform,
+            crs: &map.crs,
+            nodata: -1.0,
+        },
+        &[dataset::science::raster::BandOut {
+            values: dataset::science::raster::BandValues::Grid(&codes),
+            description: "unit code",
+        }],
+        &[],
+    )
+    .unwrap();
+    let dem = dataset::science::raster::read_raster(&tmp.path().join("world/dem/dem.tif")).unwrap();
+    let err = dataset::contract::context::read_unit_map(&bad_path, &dem)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("codes.tif") && err.contains("[0, 1]") && !err.contains('\n'),
+        "{err}"
+    );
+}

@@ -252,6 +252,10 @@ for k, row in enumerate(body["rows"]):
     want = np.asarray(table.column("context_dem")[i].values.to_numpy(zero_copy_only=False), dtype=np.float32)
     assert ctx["shape"] == [32, 32] and np.array_equal(got, want.reshape(32, 32), equal_nan=True), "context_dem"
     assert ctx["gsd_m"] == table.column("context_gsd_m")[i].as_py()
+    units = row["tensors"]["context_highland"]
+    got = np.frombuffer(base64.b64decode(units["base64"]), dtype=np.float32).reshape(units["shape"])
+    want = np.asarray(table.column("context_highland")[i].values.to_numpy(zero_copy_only=False), dtype=np.float32)
+    assert np.array_equal(got, want.reshape(32, 32), equal_nan=True), "context_highland"
 # Remote reads through HTTP Range requests, with no custom code.
 remote = pl.read_parquet(f"{url}/v1/shards/{name}", columns=["sample_id", "incidence_deg", "dem"])
 local = pl.read_parquet(f"{shard_dir}/{name}", columns=["sample_id", "incidence_deg", "dem"])
@@ -682,7 +686,8 @@ fn a_schema_1_1_dataset_serves_and_streams_its_rows_without_context() {
     assert_eq!(streamed, expected);
 
     // The JSON views describe the dataset as it is: its own schema (neither the two context columns of schema 1.2
-    // nor the three crater columns of 1.3 and 1.4), no context tensor, no context preview.
+    // nor the three crater columns of 1.3 and 1.4 nor the unit column of 1.6), no context tensor, no context
+    // preview.
     let client = HttpClient::new(&url).unwrap();
     let info: serde_json::Value = client.get_json("/v1/info").unwrap();
     let columns: Vec<&str> = info["schema"]
@@ -693,7 +698,7 @@ fn a_schema_1_1_dataset_serves_and_streams_its_rows_without_context() {
         .collect();
     assert_eq!(
         columns.len(),
-        dataset::contract::schema::sample_schema().fields().len() - 5
+        dataset::contract::schema::sample_schema().fields().len() - 6
     );
     assert!(
         columns.contains(&"dem")

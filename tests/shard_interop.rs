@@ -46,6 +46,15 @@ fn sample(i: usize) -> Sample {
             heights_m: (0..CONTEXT_PX * CONTEXT_PX)
                 .map(|k| if k == 0 { f32::NAN } else { k as f32 - 1500.0 })
                 .collect(),
+            // Unmapped (NaN) in row 0, then mare west of column 16 and highland east of it.
+            highland: Some(
+                (0..CONTEXT_PX * CONTEXT_PX)
+                    .map(|k| match (k / CONTEXT_PX, k % CONTEXT_PX) {
+                        (0, _) => f32::NAN,
+                        (_, col) => f32::from(u8::from(col >= 16)),
+                    })
+                    .collect(),
+            ),
         }),
         crater: Some(CraterPosition {
             rho: 0.8125,
@@ -72,7 +81,7 @@ f = pq.ParquetFile(sys.argv[1])
 t = pq.read_table(sys.argv[1])
 assert t.num_rows == 300, t.num_rows
 assert f.metadata.num_row_groups == 2, f.metadata.num_row_groups
-assert f.schema_arrow.metadata[b"g2r.schema_version"] == b"1.4.0", f.schema_arrow.metadata
+assert f.schema_arrow.metadata[b"g2r.schema_version"] == b"1.6.0", f.schema_arrow.metadata
 assert t.column("map_to_en")[0].values.to_pylist() == [1.0, 0.0, 0.0, 1.0]
 assert t.column("enu_origin_height_m").to_pylist()[0] == 0.0
 dem = t.column("dem")[3].values.to_numpy()
@@ -89,6 +98,9 @@ assert t.column("context_gsd_m").to_pylist()[0] == 512.0
 assert t.column("crater_rho").to_pylist()[0] == 0.8125 and t.column("crater_relative_height_m").to_pylist()[0] == -137.5
 assert t.schema.field("crater_relative_height_m").metadata[b"unit"] == b"m"
 assert t.column("crater_relief_to_diameter").to_pylist()[0] == 0.0625
+units = t.column("context_highland")[4].values.to_numpy().reshape(32, 32)
+assert units[0, 7] != units[0, 7] and units[1, 15] == 0.0 and units[1, 16] == 1.0, units[:2, 14:18]
+assert t.schema.field("context_highland").metadata[b"unit"] == b"1"
 encodings = f.metadata.row_group(0).column(t.schema.get_field_index("dem")).encodings
 print("ok", encodings)
 "#;

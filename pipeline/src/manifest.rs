@@ -43,6 +43,11 @@ pub struct Inputs {
     /// nearest large crater (`crater_rho`, `crater_relative_height_m`); without, those columns hold NaN.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub crater_catalogue: Option<PathBuf>,
+    /// A mare/highland unit map (`dataset::contract::context::read_unit_map`: a GDAL raster in the DEM's CRS, 0
+    /// mare, 1 highland, nodata unmapped), a local path. With one, every sample's context window carries the
+    /// highland fraction of its cells (`context_highland`); without, that column holds NaN.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub unit_map: Option<PathBuf>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -164,12 +169,18 @@ impl PipelineManifest {
                 path.display()
             );
         }
-        if let Some(catalogue) = &manifest.inputs.crater_catalogue {
-            if dataset::storage::is_url(&catalogue.to_string_lossy()) {
+        for (field, local) in [
+            ("crater_catalogue", &manifest.inputs.crater_catalogue),
+            ("unit_map", &manifest.inputs.unit_map),
+        ] {
+            if let Some(local) = local
+                .as_ref()
+                .filter(|p| dataset::storage::is_url(&p.to_string_lossy()))
+            {
                 anyhow::bail!(
-                    "{}: inputs.crater_catalogue = \"{}\": the catalogue is read from a local path; copy it next to the manifest",
+                    "{}: inputs.{field} = \"{}\": it is read from a local path; copy it next to the manifest",
                     path.display(),
-                    catalogue.display()
+                    local.display()
                 );
             }
         }

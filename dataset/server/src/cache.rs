@@ -31,7 +31,9 @@ pub fn sample_bytes(s: &Sample) -> u64 {
     let floats = s.dem_m.len()
         + s.image.len()
         + s.sun_lit.len()
-        + s.context.as_ref().map_or(0, |c| c.heights_m.len());
+        + s.context.as_ref().map_or(0, |c| {
+            c.heights_m.len() + c.highland.as_ref().map_or(0, Vec::len)
+        });
     let strings = s.sample_id.len()
         + s.tile_id.len()
         + s.ortho_id.len()
@@ -146,7 +148,9 @@ mod tests {
     #[test]
     fn a_sample_weighs_its_rasters() {
         let s = sample(0);
-        let context = s.context.as_ref().map_or(0, |c| c.heights_m.len());
+        let context = s.context.as_ref().map_or(0, |c| {
+            c.heights_m.len() + c.highland.as_ref().map_or(0, Vec::len)
+        });
         let rasters =
             (s.dem_m.len() + s.image.len() + s.sun_lit.len() + context) * 4 + s.valid.len();
         assert!(sample_bytes(&s) >= rasters as u64);

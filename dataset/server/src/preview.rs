@@ -218,6 +218,7 @@ mod tests {
         let context = ContextWindow {
             gsd_m: 160.0,
             heights_m,
+            highland: None,
         };
         let img = context_image(&context, 5.0);
         assert_eq!((img.width(), img.height()), (128, 128));

@@ -21,10 +21,12 @@ pub struct TensorJson {
     shape: [usize; 2],
 }
 
-/// A sample's rasters; `context_dem` is null for a schema 1.1 dataset, which has no context window.
+/// A sample's rasters; `context_dem` is null for a schema 1.1 dataset, which has no context window, and
+/// `context_highland` for a dataset built without a unit map.
 #[derive(serde::Serialize)]
 pub struct TensorsJson {
     context_dem: Option<TensorJson>,
+    context_highland: Option<TensorJson>,
     dem: TensorJson,
     image: TensorJson,
     sun_lit: TensorJson,
@@ -43,6 +45,12 @@ impl TensorsJson {
             context_dem: s.context.as_ref().map(|c| TensorJson {
                 gsd_m: Some(c.gsd_m),
                 ..float32(&c.heights_m, CONTEXT_PX)
+            }),
+            context_highland: s.context.as_ref().and_then(|c| {
+                c.highland.as_ref().map(|h| TensorJson {
+                    gsd_m: Some(c.gsd_m),
+                    ..float32(h, CONTEXT_PX)
+                })
             }),
             dem: float32(&s.dem_m, DEM_PX),
             image: float32(&s.image, CROP_PX),

@@ -15,8 +15,10 @@
 //! 8000 × 8000 tycho-full DEM that was 0.72 GiB, which took the dataset build's peak RSS from 1.8 to 2.5 GiB
 //! (docs/design.md, Performance targets asks ≤ 2 GiB regardless of size); over 6 × 6-pixel blocks (512 m cells on a 5 m DEM) it is 21 MB.
 
+use std::path::{Path, PathBuf};
+
 use crate::contract::schema::CONTEXT_PX;
-use crate::science::raster::Raster;
+use crate::science::raster::{read_raster, Raster, RasterError};
 
 /// Blocks per cell edge (at least): sets the block size from the cell size and the DEM's pixel size.
 pub const BLOCKS_PER_CELL: f64 = 16.0;
@@ -144,6 +146,60 @@ impl<'a> ContextSampler<'a> {
         let sum = corner_sum(rb, cb) - corner_sum(ra, cb) - corner_sum(rb, ca) + corner_sum(ra, ca);
         (self.offset_m + sum / count as f64) as f32
     }
+}
+
+/// Why a unit map cannot frame a DEM's samples: one line each, naming the file and the fix.
+#[derive(Debug, thiserror::Error)]
+pub enum UnitMapError {
+    #[error(transparent)]
+    Raster(#[from] RasterError),
+    #[error("{path}: CRS differs from the DEM's; reproject the unit map with gdalwarp -t_srs to the DEM's CRS")]
+    Crs { path: PathBuf },
+    #[error("{path}: value {value} at pixel ({col}, {row}) is not a highland fraction in [0, 1]; code mare 0 and highland 1 (gdal_calc.py), other ground as nodata")]
+    Value {
+        path: PathBuf,
+        value: f32,
+        col: usize,
+        row: usize,
+    },
+    #[error(
+        "{path}: covers none of the DEM; map the DEM's area, or build without inputs.unit_map"
+    )]
+    NoOverlap { path: PathBuf },
+}
+
+/// A site's mare/highland unit map for the context windows' `highland` plane: band 1 of a GDAL raster in the DEM's
+/// CRS, 0 mare and 1 highland (fractions between are kept), nodata where unmapped. A geologic map's polygons
+/// become one with `gdal_rasterize`; a global FeO map, thresholded, with `gdal_calc.py`. Any cell size: the
+/// windows average it as they average the DEM.
+pub fn read_unit_map(path: &Path, dem: &Raster) -> Result<Raster, UnitMapError> {
+    let map = read_raster(path)?;
+    let probes = dem.transform.corners(dem.width, dem.height);
+    if !dem.crs.same_map(&map.crs, &probes).unwrap_or(false) {
+        return Err(UnitMapError::Crs {
+            path: path.to_path_buf(),
+        });
+    }
+    if let Some(k) = map
+        .data
+        .iter()
+        .position(|v| v.is_finite() && !(0.0..=1.0).contains(v))
+    {
+        return Err(UnitMapError::Value {
+            path: path.to_path_buf(),
+            value: map.data[k],
+            col: k % map.width,
+            row: k / map.width,
+        });
+    }
+    let (x0, y0, x1, y1) = map.transform.bounds(map.width, map.height);
+    let (dx0, dy0, dx1, dy1) = dem.transform.bounds(dem.width, dem.height);
+    if x1 <= dx0 || dx1 <= x0 || y1 <= dy0 || dy1 <= y0 || !map.data.iter().any(|v| v.is_finite()) {
+        return Err(UnitMapError::NoOverlap {
+            path: path.to_path_buf(),
+        });
+    }
+    Ok(map)
 }
 
 #[cfg(test)]

@@ -17,7 +17,9 @@ use crate::contract::crater_frame::CraterPosition;
 /// 1.3: `crater_rho` + `crater_relative_height_m` added, NaN where the dataset was built without a crater
 /// catalogue (readers of 1.3 still read 1.1 and 1.2 shards, without a crater frame).
 /// 1.4: `crater_relief_to_diameter` added (readers of 1.4 read 1.3 shards' frames without it).
-pub const SCHEMA_VERSION: &str = "1.4.0";
+/// 1.6: `context_highland` added, NaN where the dataset was built without a unit map (readers of 1.6 read older
+/// shards without it). 1.5 was the crater frame refined to the rim, reverted before any dataset was published.
+pub const SCHEMA_VERSION: &str = "1.6.0";
 /// Crop edge in pixels (the network's input/output size).
 pub const CROP_PX: usize = 128;
 /// DEM edge in pixels: the crop plus a 1-pixel apron on every side, so border normals are exact.
@@ -44,6 +46,10 @@ pub struct ContextWindow {
     /// CONTEXT_PX² area-mean heights above the sphere, metres, row-major north first, centred on the crop centre;
     /// NaN where less than half a cell has DEM.
     pub heights_m: Vec<f32>,
+    /// The same cells' highland fraction (0 mare, 1 highland) from a site's unit map, NaN where less than half a
+    /// cell is mapped; `None` when the dataset was built without a unit map (or read from a shard older than
+    /// schema 1.6).
+    pub highland: Option<Vec<f32>>,
 }
 
 /// Which part of a dataset a sample belongs to: tiles are assigned to one split, so no crop footprint touches two.
@@ -175,7 +181,8 @@ fn fixed_list(item: DataType, len: usize) -> DataType {
 }
 
 /// Float tensor columns (written with BYTE_STREAM_SPLIT).
-pub const FLOAT_TENSOR_COLUMNS: [&str; 4] = ["dem", "image", "sun_lit", "context_dem"];
+pub const FLOAT_TENSOR_COLUMNS: [&str; 5] =
+    ["dem", "image", "sun_lit", "context_dem", "context_highland"];
 
 pub fn sample_schema() -> SchemaRef {
     let fields = vec![
@@ -339,6 +346,12 @@ pub fn sample_schema() -> SchemaRef {
             "that crater's relief (its profile's highest ring within 1.5 radii minus its lowest within 1) over its catalogued diameter, the depth/diameter measure of its wear; NaN without a crater catalogue",
             "1",
         ),
+        field(
+            "context_highland",
+            fixed_list(DataType::Float32, CONTEXT_PX * CONTEXT_PX),
+            "the context_dem cells' highland fraction (0 mare, 1 highland) from the site's unit map, NaN where under half a cell is mapped or without a unit map",
+            "1",
+        ),
     ];
     let metadata = HashMap::from([
         ("g2r.schema_version".to_string(), SCHEMA_VERSION.to_string()),
@@ -412,6 +425,9 @@ pub fn samples_to_batch(samples: &[Sample]) -> Result<RecordBatch, SchemaError> 
             context.heights_m.len(),
             CONTEXT_PX * CONTEXT_PX,
         )?;
+        if let Some(highland) = &context.highland {
+            check_len("context_highland", highland.len(), CONTEXT_PX * CONTEXT_PX)?;
+        }
     }
     let contexts = || samples.iter().filter_map(|s| s.context.as_ref());
     let f32_list = |get: fn(&Sample) -> &[f32], len: usize| {
@@ -483,6 +499,18 @@ pub fn samples_to_batch(samples: &[Sample]) -> Result<RecordBatch, SchemaError> 
                 .and_then(|c| c.relief_to_diameter)
                 .unwrap_or(f64::NAN)
         })),
+        list_of(
+            Arc::new(Float32Array::from(
+                contexts()
+                    .flat_map(|c| match &c.highland {
+                        Some(highland) => highland.clone(),
+                        None => vec![f32::NAN; CONTEXT_PX * CONTEXT_PX],
+                    })
+                    .collect::<Vec<f32>>(),
+            )),
+            CONTEXT_PX * CONTEXT_PX,
+            DataType::Float32,
+        ),
     ];
     Ok(RecordBatch::try_new(sample_schema(), columns)?)
 }
@@ -524,13 +552,14 @@ pub fn batch_to_sample_metadata(batch: &RecordBatch) -> Result<Vec<Sample>, Sche
 }
 
 /// The columns [`fill_tensors`] reads: every per-pixel column, and the context window's cell size.
-pub const TENSOR_FILL_COLUMNS: [&str; 6] = [
+pub const TENSOR_FILL_COLUMNS: [&str; 7] = [
     "dem",
     "image",
     "valid",
     "sun_lit",
     "context_dem",
     "context_gsd_m",
+    "context_highland",
 ];
 
 /// Set the raster fields (and the context window) of `samples`, row `i` of `batch` into `samples[i]`, from a batch
@@ -559,6 +588,15 @@ pub fn fill_tensors(batch: &RecordBatch, samples: &mut [Sample]) -> Result<(), S
         }
         None => None,
     };
+    // Absent from shards older than schema 1.6; all NaN where the dataset was built without a unit map.
+    let highland = match batch.column_by_name("context_highland") {
+        Some(_) => {
+            let (highland, len) = list_values::<Float32Array>(batch, "context_highland")?;
+            check_len("context_highland", len, CONTEXT_PX * CONTEXT_PX)?;
+            Some(highland)
+        }
+        None => None,
+    };
     for (i, sample) in samples.iter_mut().enumerate() {
         sample.dem_m = slice_row(dem.values(), i, DEM_PX * DEM_PX);
         sample.image = slice_row(image.values(), i, CROP_PX * CROP_PX);
@@ -567,13 +605,23 @@ pub fn fill_tensors(batch: &RecordBatch, samples: &mut [Sample]) -> Result<(), S
         sample.context = context.map(|(heights, gsd)| ContextWindow {
             gsd_m: gsd.value(i),
             heights_m: slice_row(heights.values(), i, CONTEXT_PX * CONTEXT_PX),
+            highland: highland
+                .map(|h| slice_row(h.values(), i, CONTEXT_PX * CONTEXT_PX))
+                .filter(|h: &Vec<f32>| h.iter().any(|v| v.is_finite())),
         });
     }
     Ok(())
 }
 
 /// Every per-pixel column; everything else is per-sample metadata.
-pub const TENSOR_COLUMNS: [&str; 5] = ["dem", "image", "valid", "sun_lit", "context_dem"];
+pub const TENSOR_COLUMNS: [&str; 6] = [
+    "dem",
+    "image",
+    "valid",
+    "sun_lit",
+    "context_dem",
+    "context_highland",
+];
 
 /// The metadata of every row of `batch`: raster fields empty, no context window ([`fill_tensors`] sets them).
 fn decode(batch: &RecordBatch) -> Result<Vec<Sample>, SchemaError> {
@@ -704,10 +752,13 @@ mod tests {
     fn a_batch_without_newer_columns_reads_as_older_schemas_samples() {
         let samples = vec![synthetic_sample(1), synthetic_sample(2)];
         assert!(samples.iter().all(|s| s.crater.is_some()));
+        assert!(samples
+            .iter()
+            .all(|s| s.context.as_ref().is_some_and(|c| c.highland.is_some())));
         let batch = samples_to_batch(&samples).unwrap();
         assert_eq!(batch_to_samples(&batch).unwrap(), samples);
-        // Schema 1.3 had every column but the crater relief; 1.2 none of the three crater ones; 1.1 neither the
-        // two context ones.
+        // Schema 1.4 had every column but the context's highland fraction; 1.3 nor the crater relief; 1.2 none of
+        // the three crater ones; 1.1 neither the two context ones.
         let older = |prefixes: &[&str], dropped: usize| {
             let keep: Vec<usize> = (0..batch.num_columns())
                 .filter(|&k| {
@@ -718,7 +769,20 @@ mod tests {
             assert_eq!(keep.len(), batch.num_columns() - dropped);
             batch_to_samples(&batch.project(&keep).unwrap()).unwrap()
         };
-        for (read, written) in older(&["crater_relief"], 1).iter().zip(&samples) {
+        let without_highland = |s: &Sample| Sample {
+            context: s.context.clone().map(|c| ContextWindow {
+                highland: None,
+                ..c
+            }),
+            ..s.clone()
+        };
+        for (read, written) in older(&["context_highland"], 1).iter().zip(&samples) {
+            assert_eq!(*read, without_highland(written));
+        }
+        for (read, written) in older(&["crater_relief", "context_highland"], 2)
+            .iter()
+            .zip(&samples)
+        {
             let crater = written.crater.map(|c| CraterPosition {
                 relief_to_diameter: None,
                 ..c
@@ -727,20 +791,23 @@ mod tests {
                 *read,
                 Sample {
                     crater,
-                    ..written.clone()
+                    ..without_highland(written)
                 }
             );
         }
-        for (read, written) in older(&["crater_"], 3).iter().zip(&samples) {
+        for (read, written) in older(&["crater_", "context_highland"], 4)
+            .iter()
+            .zip(&samples)
+        {
             assert_eq!(
                 *read,
                 Sample {
                     crater: None,
-                    ..written.clone()
+                    ..without_highland(written)
                 }
             );
         }
-        for (read, written) in older(&["crater_", "context_"], 5).iter().zip(&samples) {
+        for (read, written) in older(&["crater_", "context_"], 6).iter().zip(&samples) {
             assert_eq!(
                 *read,
                 Sample {

@@ -53,6 +53,11 @@ pub fn synthetic_sample(i: usize) -> Sample {
             heights_m: (0..CONTEXT_PX * CONTEXT_PX)
                 .map(|k| (k as f32 * 0.05 + i as f32).cos() * 200.0 - 1400.0)
                 .collect(),
+            highland: Some(
+                (0..CONTEXT_PX * CONTEXT_PX)
+                    .map(|k| ((k + i) % 5) as f32 / 4.0)
+                    .collect(),
+            ),
         }),
         crater: Some(CraterPosition {
             rho: 0.25 * i as f64,
@@ -104,7 +109,7 @@ pub fn write_dataset(
     Ok(manifest)
 }
 
-/// Columns schema 1.1 did not have: the context window's (1.2) and the crater frame's (1.3, 1.4).
+/// Columns schema 1.1 did not have: the context window's (1.2, 1.6) and the crater frame's (1.3, 1.4).
 pub fn is_newer_than_1_1(column: &str) -> bool {
     column.starts_with("context_") || column.starts_with("crater_")
 }

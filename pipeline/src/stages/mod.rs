@@ -238,7 +238,11 @@ pub fn pipeline_scoped(
     if let Some(path) = catalogue.as_ref().filter(|p| !p.exists()) {
         anyhow::bail!("{}: crater catalogue not found; check inputs.crater_catalogue in the manifest (paths are relative to the manifest)", path.display());
     }
-    let catalogue5 = catalogue.clone();
+    let unit_map = m.inputs.unit_map.as_ref().map(|p| m.resolve(p));
+    if let Some(path) = unit_map.as_ref().filter(|p| !p.exists()) {
+        anyhow::bail!("{}: unit map not found; check inputs.unit_map in the manifest (paths are relative to the manifest)", path.display());
+    }
+    let (catalogue5, unit_map5) = (catalogue.clone(), unit_map.clone());
     let group_rows = row_group_rows(m.publish.rows_per_shard);
     let progress5 = progress.clone();
     let project = Stage {
@@ -248,8 +252,9 @@ pub fn pipeline_scoped(
         // 5: the train DEM statistic is summed per ortho (partitions merge to the same bits). 6: every sample
         // carries its crater frame, NaN without a catalogue (schema 1.3). 7: tensor pages of at most
         // `TENSOR_PAGE_BYTES` (same values, other bytes: a one-row read decompresses an eighth of what it did).
-        // 8: the crater frame carries its crater's relief over diameter (schema 1.4).
-        code_version: "8",
+        // 8: the crater frame carries its crater's relief over diameter (schema 1.4). 9: the context window carries
+        // its cells' highland fraction, NaN without a unit map (schema 1.6).
+        code_version: "9",
         // Everything projection reads: assigned positions, the DEM, and each ortho's image and metadata.
         inputs: [
             layout.assignment.clone(),
@@ -258,6 +263,7 @@ pub fn pipeline_scoped(
         ]
         .into_iter()
         .chain(catalogue.clone())
+        .chain(unit_map.clone())
         .chain(images.iter().cloned())
         .chain(metadata.iter().cloned())
         .collect(),
@@ -296,8 +302,12 @@ pub fn pipeline_scoped(
                     )
                 })
                 .transpose()?;
+            let unit_map = unit_map5
+                .as_ref()
+                .map(|path| dataset::contract::context::read_unit_map(path, dem))
+                .transpose()?;
             project::run(
-                (dem, crater_frames.as_ref()),
+                (dem, crater_frames.as_ref(), unit_map.as_ref()),
                 &orthos,
                 &l5.assignment,
                 &pp,

@@ -304,9 +304,9 @@ impl TrainDemStatistic {
 /// Stage: project every assigned centre, ortho by ortho (sorted), crops in parallel in chunks of one row group,
 /// and stream accepted samples into their split's file; rejections are counted per ortho and reason. With
 /// `crater_frames` (the catalogue's, or draws of its simulated errors), each sample is placed in its crater's
-/// frame.
+/// frame; with a `unit_map`, each context window carries its cells' highland fraction.
 pub fn run(
-    (dem, crater_frames): (&Raster, Option<&FramedCatalogue>),
+    (dem, crater_frames, unit_map): (&Raster, Option<&FramedCatalogue>, Option<&Raster>),
     orthos: &[super::ingest::OrthoRecord],
     assignment_path: &std::path::Path,
     params: &ProjectParams,
@@ -350,6 +350,7 @@ pub fn run(
     let (send, receive) = std::sync::mpsc::sync_channel::<Vec<(usize, Sample)>>(0);
     let field = &HeightField::new(&dem.data, dem.width, dem.height, dem.transform);
     let context = &ContextSampler::new(dem, params.context_gsd_m);
+    let units = &unit_map.map(|map| ContextSampler::new(map, params.context_gsd_m));
     std::thread::scope(|scope| -> anyhow::Result<()> {
         let writer_thread = scope.spawn(move || -> anyhow::Result<TrainDemStatistic> {
             let mut writers = out
@@ -436,6 +437,9 @@ pub fn run(
                             sample.context = Some(ContextWindow {
                                 gsd_m: params.context_gsd_m,
                                 heights_m: context.window(sample.center_x_m, sample.center_y_m),
+                                highland: units
+                                    .as_ref()
+                                    .map(|u| u.window(sample.center_x_m, sample.center_y_m)),
                             });
                             sample.crater = crater_frames.and_then(|frames| {
                                 let crop_mean_m = crop_interior(&sample.dem_m).sum::<f64>()
