@@ -118,6 +118,10 @@ impl Dihedral {
             context: sample.context.as_ref().map(|c| ContextWindow {
                 gsd_m: c.gsd_m,
                 heights_m: self.apply_raster(&c.heights_m, CONTEXT_PX),
+                highland: c
+                    .highland
+                    .as_ref()
+                    .map(|h| self.apply_raster(h, CONTEXT_PX)),
             }),
             ..sample.clone()
         }
@@ -176,6 +180,15 @@ mod tests {
                     (a * (j - 15.5) * g + b * (15.5 - i) * g) as f32
                 })
                 .collect(),
+            // The unit map's window as the same plane: it must turn as the heights do.
+            highland: Some(
+                (0..CONTEXT_PX * CONTEXT_PX)
+                    .map(|k| {
+                        let (j, i) = ((k % CONTEXT_PX) as f64, (k / CONTEXT_PX) as f64);
+                        (a * (j - 15.5) * g + b * (15.5 - i) * g) as f32
+                    })
+                    .collect(),
+            ),
         });
         // (east, north) gradient of a row-major north-first raster of cell size `cell`, from two differences.
         let gradient = |z: &[f32], n: usize, cell: f64| {
@@ -187,7 +200,9 @@ mod tests {
             let d = Dihedral::from_index(index);
             let turned = d.apply(&sample);
             let dem = gradient(&turned.dem_m, DEM_PX, 5.0);
-            let context = gradient(&turned.context.unwrap().heights_m, CONTEXT_PX, g);
+            let turned_context = turned.context.unwrap();
+            let context = gradient(&turned_context.heights_m, CONTEXT_PX, g);
+            assert_eq!(turned_context.highland.unwrap(), turned_context.heights_m);
             assert!(
                 (dem.0 - context.0).abs() < 1e-4 && (dem.1 - context.1).abs() < 1e-4,
                 "{d:?}: DEM gradient {dem:?}, context gradient {context:?}"

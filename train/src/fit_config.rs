@@ -7,8 +7,9 @@ use dataset::science::brdf::BrdfModel;
 use crate::data::{StreamConfig, CONTEXT_CHANNELS};
 use crate::model::UNetConfig;
 
-/// The `config.json` format this build writes: version 13 since 2026-12-06 (version 12 lacks
-/// `crater_relief_input`, which loads as false; version 11 lacks
+/// The `config.json` format this build writes: version 14 since 2026-12-06 (version 13 lacks `unit_input`, which
+/// loads as false; version 12 also lacks
+/// `crater_relief_input`, which loads as false; version 11 also lacks
 /// `crater_frame_input`, which loads as false: the crater input is the height alone, and `also_validate_on`, which
 /// loads as empty: validation on `--data`'s held-out tiles alone; version 10 also lacks `crater_input`,
 /// which loads as false; version 9 also lacks `also_train_on`,
@@ -19,7 +20,7 @@ use crate::model::UNetConfig;
 /// every run had before the field existed (constant learning rate, relief input only, no context window). From
 /// version 2 on every field is written and required, and a new field means a new version with its conversion
 /// in `StoredFitConfig`.
-pub const FIT_CONFIG_VERSION: u32 = 13;
+pub const FIT_CONFIG_VERSION: u32 = 14;
 
 /// Everything that defines a run (saved as `config.json`; a resume must match it). The network's head starts
 /// at the model's uniform least-squares fit ([`crate::model::UNet::with_uniform_head`]), unconstrained or
@@ -56,6 +57,9 @@ pub struct FitConfig {
     /// Feed the framing crater's relief over diameter as one more frame plane
     /// ([`crate::data::ContextNormalisation::crater_relief`]); needs `crater_frame_input`.
     pub crater_relief_input: bool,
+    /// Feed the context window's highland fraction from a site's unit map, and where it is mapped
+    /// ([`crate::data::ContextNormalisation::units`]); needs `context_input`.
+    pub unit_input: bool,
     /// Keep an exponential moving average of the weights with this decay ([`crate::weight_average`]), validated and
     /// checkpointed beside the raw network; `None`: no average.
     pub ema_decay: Option<f64>,
@@ -114,6 +118,7 @@ struct StoredFitConfig {
     crater_frame_input: Option<bool>,
     also_validate_on: Option<Vec<String>>,
     crater_relief_input: Option<bool>,
+    unit_input: Option<bool>,
 }
 
 /// A key that is in the file, whatever its value (`null` included): serde alone reads a missing `Option` field
@@ -244,6 +249,11 @@ impl TryFrom<StoredFitConfig> for FitConfig {
                 .crater_relief_input
                 .ok_or_else(|| required("crater_relief_input"))?
         };
+        let unit_input = if version < 14 {
+            false
+        } else {
+            stored.unit_input.ok_or_else(|| required("unit_input"))?
+        };
         Ok(Self {
             version: FIT_CONFIG_VERSION,
             model: stored.model,
@@ -260,6 +270,7 @@ impl TryFrom<StoredFitConfig> for FitConfig {
             crater_input,
             crater_frame_input,
             crater_relief_input,
+            unit_input,
             ema_decay,
             steep_weight,
             head_hidden,
@@ -284,6 +295,7 @@ impl FitConfig {
                     + usize::from(self.crater_input)
                     + 2 * usize::from(self.crater_frame_input)
                     + usize::from(self.crater_relief_input)
+                    + 2 * usize::from(self.unit_input)
             } else {
                 0
             })
@@ -436,6 +448,7 @@ mod tests {
             crater_input: true,
             crater_frame_input: true,
             crater_relief_input: true,
+            unit_input: true,
             ema_decay: Some(0.995),
             steep_weight: 3.0,
             head_hidden: 32,
@@ -447,9 +460,20 @@ mod tests {
             also_validate_on: vec!["g2r-many-craters-seed7".into()],
         };
         let json = serde_json::to_string(&config).unwrap();
-        assert!(json.contains(r#""version":13"#), "{json}");
+        assert!(json.contains(r#""version":14"#), "{json}");
         assert_eq!(serde_json::from_str::<FitConfig>(&json).unwrap(), config);
-        assert_eq!(config.net_config().context_channels, CONTEXT_CHANNELS + 5);
+        assert_eq!(config.net_config().context_channels, CONTEXT_CHANNELS + 7);
+        let cut = json.replace(r#","unit_input":true"#, "");
+        let err = serde_json::from_str::<FitConfig>(&cut)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("`unit_input`"), "{err}");
+        // Version 13 wrote everything but `unit_input`: its context had no unit planes.
+        let v13 = cut.replace(r#""version":14"#, r#""version":13"#);
+        let loaded = serde_json::from_str::<FitConfig>(&v13).unwrap();
+        assert!(loaded.crater_relief_input && !loaded.unit_input);
+        assert_eq!(loaded.net_config().context_channels, CONTEXT_CHANNELS + 5);
+        let json = v13;
         let cut = json.replace(r#","context_input":true"#, "");
         let err = serde_json::from_str::<FitConfig>(&cut)
             .unwrap_err()

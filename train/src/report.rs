@@ -547,6 +547,7 @@ pub fn run_job<B: TrainOps>(job: &ReportJob, device: &B::Device) -> Result<Repor
                 batch_size: 8,
                 input: trained.input,
                 crater_frames,
+                unit_map: None,
                 crater_level: trained.crater_level.clone(),
             };
             let rows = overlap_rows::<B>(

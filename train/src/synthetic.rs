@@ -128,6 +128,18 @@ pub fn synthetic_samples(n: usize, seed: u64) -> Vec<Sample> {
                 context: Some(ContextWindow {
                     gsd_m: 512.0,
                     heights_m: vec![origin_height_m as f32; CONTEXT_PX * CONTEXT_PX],
+                    // Highland on the east of the window, mare on the west, the boundary moving with the sample;
+                    // the first row unmapped.
+                    highland: Some(
+                        (0..CONTEXT_PX * CONTEXT_PX)
+                            .map(|k| match (k / CONTEXT_PX, k % CONTEXT_PX) {
+                                (0, _) => f32::NAN,
+                                (_, col) => {
+                                    f32::from(u8::from(col + i % CONTEXT_PX >= CONTEXT_PX / 2))
+                                }
+                            })
+                            .collect(),
+                    ),
                 }),
                 crater: Some(CraterPosition {
                     rho: 0.2 * i as f64,

@@ -53,6 +53,7 @@ fn m2_config() -> FitConfig {
         crater_input: false,
         crater_frame_input: false,
         crater_relief_input: false,
+        unit_input: false,
     }
 }
 

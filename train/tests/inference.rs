@@ -277,6 +277,7 @@ fn context_input(crater_rms_m: Option<f64>) -> InputNormalisation {
             crater_rms_m,
             crater_frame: false,
             crater_relief: None,
+            units: false,
         }),
     }
 }
@@ -351,6 +352,7 @@ fn symmetry_mean_is_an_equivariant_ensemble_of_the_eight_views() {
             crater_rms_m: None,
             crater_frame: false,
             crater_relief: None,
+            units: false,
         }),
     };
     let net = random_net_with(1, CONTEXT_CHANNELS);
@@ -460,6 +462,7 @@ fn infer_framed(
         batch_size: 4,
         input,
         crater_frames: frames.map(std::sync::Arc::new),
+        unit_map: None,
         crater_level: None,
     };
     infer_params(
@@ -629,6 +632,7 @@ fn a_crater_level_sets_the_level_of_the_crops_in_its_band_only() {
             batch_size: 4,
             input: InputNormalisation::relief(20.0),
             crater_frames: frames,
+            unit_map: None,
             crater_level: level,
         };
         infer_params(
@@ -690,6 +694,7 @@ fn report_overlap_rows_apply_the_crater_level_as_infer_does() {
         batch_size: 4,
         input: InputNormalisation::relief(20.0),
         crater_frames: frames,
+        unit_map: None,
         crater_level: Some(train::testing::constant_crater_level(0.0, 1.0, 0.4, 1.0)),
     };
     let device = Default::default();

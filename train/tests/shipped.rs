@@ -58,6 +58,7 @@ fn loads_and_infers_scales_near_its_uniform_start(name: &str) {
         batch_size: 4,
         input: trained.input,
         crater_frames: None,
+        unit_map: None,
         crater_level: None,
     };
     // 2 × 1.6 km of plain at the region's heights with a 400 m bowl.

@@ -63,6 +63,7 @@ fn config(
         crater_input: false,
         crater_frame_input: false,
         crater_relief_input: false,
+        unit_input: false,
     }
 }
 
@@ -297,7 +298,7 @@ fn stopping_and_resuming_gives_the_same_network_as_an_uninterrupted_run() {
     let source: Arc<dyn SampleSource> = Arc::new(LocalSource::open(tmp.path()).unwrap());
     // Cosine schedule: the resumed half must continue the decay from the saved step, not restart it. With the
     // elevation plane and the context input (its crater planes as a frame: the synthetic samples lie 0.25 radii
-    // apart, so some are framed and some past the reach, and their craters' relief), the resumed half must feed the network what the first
+    // apart, so some are framed and some past the reach, and their craters' relief; and the unit map's planes), the resumed half must feed the network what the first
     // half did; the hidden layer before the head must be checkpointed with the rest.
     let cfg = FitConfig {
         lr_schedule: train::fit_config::LrSchedule::Cosine,
@@ -313,6 +314,7 @@ fn stopping_and_resuming_gives_the_same_network_as_an_uninterrupted_run() {
         crater_input: true,
         crater_frame_input: true,
         crater_relief_input: true,
+        unit_input: true,
         ..config(BrdfModel::M2, 2, 1e-3, 12, true)
     };
     let device = Default::default();
@@ -323,7 +325,8 @@ fn stopping_and_resuming_gives_the_same_network_as_an_uninterrupted_run() {
     assert!(
         input.crater_frame_input()
             && input.crater_relief().is_some()
-            && input.context_channels() == train::data::CONTEXT_CHANNELS + 4
+            && input.units()
+            && input.context_channels() == train::data::CONTEXT_CHANNELS + 6
     );
     let split = tmp.path().join("split");
     // Stop mid-epoch (step 4 of 6 is batch 1 of epoch 1), then resume to the end.

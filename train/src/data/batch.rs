@@ -64,6 +64,7 @@ impl HostBatch {
                     &crop,
                     &context.heights_m,
                     s.crater.as_ref(),
+                    context.highland.as_deref(),
                     &mut b.context_input,
                 );
             }

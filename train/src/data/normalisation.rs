@@ -59,6 +59,13 @@ pub struct ContextNormalisation {
     /// existed have none.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub crater_relief: Option<ReliefNormalisation>,
+    /// Feed the window's highland fraction from the site's unit map (the sample's `context_highland`) as a plane,
+    /// 2·fraction − 1 where mapped and 0 where not, and a plane that is 1 where mapped (`--unit-input`). A crater
+    /// wall is bright fresh material of the ground it cuts, highland or mare, and with heights relative to the
+    /// crop no crop tells which: a unit map does, as a catalogue tells where the crater is. A sample without a
+    /// map is fed as unmapped everywhere. Runs written before it existed have none.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub units: bool,
 }
 
 /// Mean and std of the framing craters' relief over diameter over framed train crops (each crop counts once,
@@ -119,7 +126,20 @@ impl ContextNormalisation {
             crater_rms_m: None,
             crater_frame: false,
             crater_relief: None,
+            units: false,
         })
+    }
+
+    /// Refuse a `--unit-input` run whose train crops carry no unit map at all: it would learn nothing from the
+    /// planes and read a map at inference as something it never saw.
+    pub fn check_units_mapped<'a>(samples: impl IntoIterator<Item = &'a Sample>) -> Result<()> {
+        let mapped = samples
+            .into_iter()
+            .any(|s| s.context.as_ref().is_some_and(|c| c.highland.is_some()));
+        if !mapped {
+            bail!("no train crop carries a unit map's highland fraction: publish the dataset with inputs.unit_map in the pipeline manifest (schema 1.6), or train without --unit-input");
+        }
+        Ok(())
     }
 
     /// Statistics of the [`framed`] train crops' crater relief over diameter, for `--crater-relief-input`. A
@@ -271,6 +291,12 @@ impl InputNormalisation {
                 source.describe()
             );
         }
+        if self.units() && minor.is_none_or(|m| m < 6) {
+            bail!(
+                "{}: dataset schema {version} has no unit map planes, but the run feeds them (--unit-input): re-run `g2r-pipeline run` with inputs.unit_map to publish schema 1.6",
+                source.describe()
+            );
+        }
         Ok(())
     }
 
@@ -282,7 +308,13 @@ impl InputNormalisation {
                 + usize::from(c.crater_rms_m.is_some())
                 + 2 * usize::from(c.crater_rms_m.is_some() && c.crater_frame)
                 + usize::from(self.crater_relief().is_some())
+                + 2 * usize::from(c.units)
         })
+    }
+
+    /// Whether the run feeds the unit map's planes ([`ContextNormalisation::units`]).
+    pub fn units(&self) -> bool {
+        self.context.is_some_and(|c| c.units)
     }
 
     /// The relief plane's statistics, when the run feeds one (only as part of a crater frame).
@@ -324,13 +356,16 @@ impl InputNormalisation {
     /// (`heights_m`, as in [`Self::push_planes`]) over the context std, 0 where a cell has no DEM; with an
     /// absolute context, the window's heights normalised as the elevation plane, 0 where no DEM; with a crater
     /// input, the crop's crater-relative height over its train RMS in every cell (as a frame, then ρ over the
-    /// reach and the framed plane, 0, 1 and 0 when not [`framed`]); then the mask. Panics when the run has no
-    /// context input, or feeds the crater height alone and `crater` is `None` (checked when a run starts).
+    /// reach and the framed plane, 0, 1 and 0 when not [`framed`]); with a unit input, the cells' highland
+    /// fraction `highland` as 2·fraction − 1 and where it is mapped, 0 and 0 where not (or without a map); then the
+    /// mask. Panics when the run has no context input, or feeds the crater height alone and `crater` is `None`
+    /// (checked when a run starts).
     pub fn push_context(
         &self,
         heights_m: &[f64],
         context_m: &[f32],
         crater: Option<&CraterPosition>,
+        highland: Option<&[f32]>,
         out: &mut Vec<f64>,
     ) {
         let c = self
@@ -392,6 +427,13 @@ impl InputNormalisation {
                 }
             }
         }
+        if c.units {
+            let cells = context_m.len();
+            let highland = highland.inspect(|h| assert_eq!(h.len(), cells, "unit window size"));
+            let at = |k: usize| highland.map(|h| h[k]).filter(|f| f.is_finite());
+            out.extend((0..cells).map(|k| at(k).map_or(0.0, |f| 2.0 * f64::from(f) - 1.0)));
+            out.extend((0..cells).map(|k| f64::from(u8::from(at(k).is_some()))));
+        }
         out.extend(context_m.iter().map(|z| f64::from(u8::from(z.is_finite()))));
     }
 }
@@ -449,7 +491,11 @@ mod tests {
         s.dem_m = vec![crop_m; DEM_PX * DEM_PX];
         let mut heights_m = vec![f32::NAN; CONTEXT_PX * CONTEXT_PX];
         heights_m[..context_m.len()].copy_from_slice(context_m);
-        s.context = Some(dataset::contract::schema::ContextWindow { gsd_m, heights_m });
+        s.context = Some(dataset::contract::schema::ContextWindow {
+            gsd_m,
+            heights_m,
+            highland: None,
+        });
         s
     }
 
@@ -468,6 +514,7 @@ mod tests {
             &[-1200.0, f64::NAN, -1204.0],
             &context_window(),
             None,
+            None,
             &mut out,
         );
         (out, CONTEXT_PX * CONTEXT_PX)
@@ -483,6 +530,7 @@ mod tests {
                 crater_rms_m: Some(50.0),
                 crater_frame: false,
                 crater_relief: None,
+                units: false,
             }),
             ..InputNormalisation::relief(2.0)
         };
@@ -496,6 +544,7 @@ mod tests {
             &[-1200.0, f64::NAN, -1204.0],
             &context_window(),
             Some(&crater),
+            None,
             &mut out,
         );
         let n = CONTEXT_PX * CONTEXT_PX;
@@ -538,6 +587,7 @@ mod tests {
                 crater_rms_m: Some(50.0),
                 crater_frame: true,
                 crater_relief: None,
+                units: false,
             }),
             ..InputNormalisation::relief(2.0)
         };
@@ -550,6 +600,7 @@ mod tests {
                 &[-1200.0, f64::NAN, -1204.0],
                 &context_window(),
                 crater.as_ref(),
+                None,
                 &mut out,
             );
             assert_eq!(out.len(), 5 * n);
@@ -615,6 +666,7 @@ mod tests {
                     mean: 0.07,
                     std: 0.01,
                 }),
+                units: false,
             }),
             ..InputNormalisation::relief(2.0)
         };
@@ -622,7 +674,13 @@ mod tests {
         assert_eq!(input.context_channels(), 6);
         let planes = |crater: Option<CraterPosition>| {
             let mut out = Vec::new();
-            input.push_context(&[-1200.0], &context_window(), crater.as_ref(), &mut out);
+            input.push_context(
+                &[-1200.0],
+                &context_window(),
+                crater.as_ref(),
+                None,
+                &mut out,
+            );
             assert_eq!(out.len(), 6 * n);
             (1..5).map(|k| out[k * n]).collect::<Vec<f64>>()
         };
@@ -654,6 +712,7 @@ mod tests {
                 crater_rms_m: None,
                 crater_frame: false,
                 crater_relief: None,
+                units: false,
             }),
             ..InputNormalisation::relief(2.0)
         };
@@ -689,6 +748,7 @@ mod tests {
                 crater_rms_m: None,
                 crater_frame: false,
                 crater_relief: None,
+                units: false,
             }),
             ..InputNormalisation::relief(2.0)
         };
@@ -706,7 +766,13 @@ mod tests {
         // The same terrain raised by 50 m: the relative plane is unchanged, the absolute one moves by 50 / 5.
         let raised: Vec<f32> = context_window().iter().map(|z| z + 50.0).collect();
         let mut moved = Vec::new();
-        input.push_context(&[-1150.0, f64::NAN, -1154.0], &raised, None, &mut moved);
+        input.push_context(
+            &[-1150.0, f64::NAN, -1154.0],
+            &raised,
+            None,
+            None,
+            &mut moved,
+        );
         assert_eq!(moved[..n], out[..n]);
         assert_eq!(moved[n..n + 3], [12.0, 8.0, 9.6]);
         let json = serde_json::to_string(&input.context).unwrap();
@@ -740,5 +806,49 @@ mod tests {
         assert!(err.to_string().contains("schema 1.2"), "{err}");
         let flat = [sample_with_context(-1000.0, &[-1000.0, -1000.0], 512.0)];
         assert!(ContextNormalisation::of_samples(&flat).is_err());
+    }
+
+    /// The unit planes: 2·fraction − 1 and 1 where the map has the cell, 0 and 0 where it has not or there is no
+    /// map, between the crater planes and the mask; and a run whose train crops have no map is refused.
+    #[test]
+    fn the_unit_map_is_fed_as_a_signed_fraction_and_where_it_is_mapped() {
+        let input = InputNormalisation {
+            context: Some(ContextNormalisation {
+                gsd_m: 512.0,
+                std_m: 4.0,
+                absolute: false,
+                crater_rms_m: None,
+                crater_frame: false,
+                crater_relief: None,
+                units: true,
+            }),
+            ..InputNormalisation::relief(2.0)
+        };
+        let n = CONTEXT_PX * CONTEXT_PX;
+        assert_eq!(input.context_channels(), CONTEXT_CHANNELS + 2);
+        let mut highland = vec![f32::NAN; n];
+        highland[..3].copy_from_slice(&[1.0, 0.0, 0.25]);
+        let planes = |highland: Option<&[f32]>| {
+            let mut out = Vec::new();
+            input.push_context(&[-1200.0], &context_window(), None, highland, &mut out);
+            assert_eq!(out.len(), 4 * n);
+            out
+        };
+        let mapped = planes(Some(&highland));
+        assert_eq!(mapped[n..n + 4], [1.0, -1.0, -0.5, 0.0]);
+        assert_eq!(mapped[2 * n..2 * n + 4], [1.0, 1.0, 1.0, 0.0]);
+        // The DEM mask stays last: the window's first three cells have DEM.
+        assert_eq!(mapped[3 * n..3 * n + 4], [1.0, 1.0, 1.0, 0.0]);
+        let unmapped = planes(None);
+        assert!(unmapped[n..3 * n].iter().all(|&v| v == 0.0));
+        assert_eq!(unmapped[..n], mapped[..n]);
+        assert_eq!(unmapped[3 * n..], mapped[3 * n..]);
+
+        let mut sample = sample_with_context(-1200.0, &context_window()[..3], 512.0);
+        sample.context.as_mut().unwrap().highland = None;
+        let err = ContextNormalisation::check_units_mapped([&sample]).unwrap_err();
+        assert!(err.to_string().contains("inputs.unit_map"), "{err}");
+        sample.context.as_mut().unwrap().highland = Some(highland);
+        ContextNormalisation::check_units_mapped([&sample]).unwrap();
     }
 }

@@ -45,6 +45,9 @@ pub struct InferOptions {
     /// The DEM's crater frames, for a run that feeds a crater input (`--crater-input`): built from the catalogue
     /// the training data was published with.
     pub crater_frames: Option<std::sync::Arc<CraterFrames>>,
+    /// The site's unit map (`dataset::contract::context::read_unit_map`), for a run that feeds one
+    /// (`--unit-input`); without it such a run sees every crop as unmapped, as it was trained to.
+    pub unit_map: Option<std::sync::Arc<Raster>>,
     /// The run's crater level ([`crate::crater_level`]): it sets the level of the crops in its band of a crater's
     /// frame (needs `crater_frames`; without them the maps are the network's alone, and [`ParamMaps`] says so).
     pub crater_level: Option<CraterLevel>,
@@ -159,6 +162,17 @@ pub fn infer_params<B: TrainOps>(
         .input
         .context
         .map(|c| dataset::contract::context::ContextSampler::new(dem, c.gsd_m));
+    // The unit map's windows, on the same cells, for a run that feeds them.
+    let units = match (&options.input.context, &options.unit_map) {
+        (Some(c), Some(map)) if c.units => Some(dataset::contract::context::ContextSampler::new(
+            map, c.gsd_m,
+        )),
+        (Some(c), None) if c.units => {
+            tracing::info!("no unit map: every crop is fed as unmapped");
+            None
+        }
+        _ => None,
+    };
     for (b, batch) in origins.chunks(options.batch_size.max(1)).enumerate() {
         let mut input = Vec::with_capacity(batch.len() * options.input.channels() * npx);
         let mut context_input = Vec::new();
@@ -193,10 +207,12 @@ pub fn infer_params<B: TrainOps>(
                 let window = sampler.window(x, y);
                 // Only a run that feeds the crater input gets it.
                 let crater_input = crater_frames.and(crater);
+                let highland = units.as_ref().map(|u| u.window(x, y));
                 options.input.push_context(
                     &crop,
                     &window,
                     crater_input.as_ref(),
+                    highland.as_deref(),
                     &mut context_input,
                 );
             }
@@ -367,6 +383,8 @@ pub struct InferJob<'a> {
     pub dem_std_m: Option<f64>,
     /// The DEM's crater frames, for runs that feed a crater input.
     pub crater_frames: Option<std::sync::Arc<CraterFrames>>,
+    /// The site's unit map, for runs that feed one.
+    pub unit_map: Option<std::sync::Arc<Raster>>,
 }
 
 /// Every member's parameter maps over the whole DEM, averaged. `progress(member, done, total)` reports batches.
@@ -387,6 +405,7 @@ pub fn run_job<B: TrainOps>(
             batch_size: job.batch_size,
             input,
             crater_frames: job.crater_frames.clone(),
+            unit_map: job.unit_map.clone(),
             crater_level: trained.crater_level.clone(),
         };
         members.push(

@@ -74,13 +74,19 @@ pub fn input_normalisation(
                 ContextNormalisation::crater_relief_of_samples(&samples).with_context(on_train)
             })
             .transpose()?;
+        if config.unit_input {
+            ContextNormalisation::check_units_mapped(&samples).with_context(on_train)?;
+        }
         input.context = Some(ContextNormalisation {
             absolute: config.context_absolute,
             crater_rms_m,
             crater_frame: config.crater_frame_input,
             crater_relief,
+            units: config.unit_input,
             ..context
         });
+    } else if config.unit_input {
+        bail!("the unit map is fed beside the context window: the run needs --context-input");
     }
     Ok(input)
 }

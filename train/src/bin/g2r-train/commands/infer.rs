@@ -31,6 +31,11 @@ pub struct InferArgs {
     pub dem_std_m: Option<f64>,
     #[command(flatten)]
     pub craters: CraterCatalogueArgs,
+    /// The site's mare/highland unit map, for a run trained with --unit-input: a GDAL raster in the DEM's CRS, 0
+    /// mare, 1 highland, nodata unmapped (a geologic map through gdal_rasterize, or a thresholded FeO map).
+    /// Without it such a run treats every crop as unmapped.
+    #[arg(long, value_name = "RASTER")]
+    pub unit_map: Option<PathBuf>,
 }
 
 pub fn run(args: InferArgs) -> Result<()> {
@@ -42,6 +47,7 @@ pub fn run(args: InferArgs) -> Result<()> {
         batch,
         dem_std_m,
         craters,
+        unit_map,
     } = args;
     let progress = dataset::progress::Progress::start("infer", "batches", 0);
     let raster = dataset::science::raster::read_raster(&dem)?;
@@ -53,6 +59,11 @@ pub fn run(args: InferArgs) -> Result<()> {
                 .map(std::sync::Arc::new)
         })
         .transpose()?;
+    let unit_map = unit_map
+        .map(|path| {
+            dataset::contract::context::read_unit_map(&path, &raster).map(std::sync::Arc::new)
+        })
+        .transpose()?;
     let job = train::inference::InferJob {
         runs: &paths,
         checkpoint: runs.checkpoint,
@@ -62,6 +73,7 @@ pub fn run(args: InferArgs) -> Result<()> {
         batch_size: batch,
         dem_std_m,
         crater_frames,
+        unit_map,
     };
     let maps = with_backend!(runs.backend, B => {
         train::inference::run_job::<Inner<B>>(&job, &Default::default(), |member, done, total| {

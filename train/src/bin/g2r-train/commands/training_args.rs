@@ -84,6 +84,13 @@ pub struct TrainArgs {
     /// the crop's own context window sees only part of the crater.
     #[arg(long, requires = "crater_frame_input")]
     pub crater_relief_input: bool,
+    /// Feed the context window's mare/highland units from the site's unit map (the dataset's context_highland,
+    /// schema 1.6: publish it with inputs.unit_map in the pipeline manifest; `infer --unit-map` at inference) and
+    /// where the map has them. A crater's wall is fresh material of the ground it cuts, and with heights relative
+    /// to the crop nothing in a crop says whether that ground is mare or highland; a geologic or FeO map does.
+    /// Crops without a map are fed as unmapped, so one model runs with a map or without.
+    #[arg(long, requires = "context_input")]
+    pub unit_input: bool,
     /// Also keep an exponential moving average of the weights with this decay (e.g. 0.995; the first steps
     /// average over about a ninth of the steps taken). It is validated beside the raw network every epoch
     /// (metrics.jsonl `ema_val`) and checkpointed as ema-best/ and last/ema; eval, infer and report load
@@ -210,6 +217,7 @@ impl TrainArgs {
             crater_input: self.crater_input,
             crater_frame_input: self.crater_frame_input,
             crater_relief_input: self.crater_relief_input,
+            unit_input: self.unit_input,
             ema_decay: self.ema,
             steep_weight: self.steep_weight,
             head_hidden: self.head_hidden,
