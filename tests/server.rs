@@ -474,6 +474,7 @@ fn trainer_over_http_gets_the_same_first_epoch_batches_as_from_local_files() {
             crater_rms_m: None,
             crater_frame: false,
             crater_relief: None,
+            units: false,
         }),
     };
     let from_local: Vec<_> = EpochStream::start(
