@@ -797,3 +797,66 @@ fn infer_frames_craters_with_the_minimum_diameter_the_run_was_trained_with() {
     let frames = crater_frames_for_runs(&[&unrecorded], &dem, &catalogue, Some(100.0)).unwrap();
     assert!(!frames.is_empty());
 }
+
+/// A unit-input network reads the unit map `infer` is given: two maps give two outputs, and a map that has no
+/// unit anywhere gives exactly what no map gives (every crop fed as unmapped, as the network was trained to).
+#[test]
+fn a_unit_map_reaches_a_unit_input_network_and_an_unmapped_site_reads_as_no_map() {
+    let dem = dem(320, 240, 0);
+    let input = InputNormalisation {
+        context: context_input(None)
+            .context
+            .map(|c| ContextNormalisation { units: true, ..c }),
+        ..context_input(None)
+    };
+    assert_eq!(input.context_channels(), CONTEXT_CHANNELS + 2);
+    let net = random_net_with(1, CONTEXT_CHANNELS + 2);
+    // 10 m cells over the DEM's extent, on its CRS: highland everywhere, east of the middle only, or unmapped.
+    let map = |unit: &dyn Fn(usize) -> f32| {
+        let mut r = Raster::new(
+            160,
+            120,
+            GeoTransform::north_up(-800.0, -1_309_000.0, 10.0),
+            dem.crs.clone(),
+            -1.0,
+        );
+        for (k, v) in r.data.iter_mut().enumerate() {
+            *v = unit(k % 160);
+        }
+        std::sync::Arc::new(r)
+    };
+    let run = |unit_map: Option<std::sync::Arc<Raster>>| {
+        let options = InferOptions {
+            overlap: 16,
+            batch_size: 4,
+            input,
+            crater_frames: None,
+            unit_map,
+            crater_level: None,
+        };
+        infer_params(
+            &net,
+            BrdfModel::M2,
+            &dem,
+            &options,
+            &Default::default(),
+            |_, _| {},
+        )
+        .unwrap()
+    };
+    let none = run(None);
+    let unmapped = run(Some(map(&|_| f32::NAN)));
+    assert_eq!(max_abs_diff_where(&none, &unmapped, |_| true), 0.0);
+    let highland = run(Some(map(&|_| 1.0)));
+    let east = run(Some(map(&|col| f32::from(u8::from(col >= 80)))));
+    for (a, b, what) in [
+        (&none, &highland, "no map and a highland map"),
+        (&highland, &east, "two maps"),
+    ] {
+        let moved = max_abs_diff_where(a, b, |_| true);
+        assert!(
+            moved > 1e-3 && moved.is_finite(),
+            "{what}: max change {moved:e}"
+        );
+    }
+}
