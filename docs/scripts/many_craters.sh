@@ -8,9 +8,10 @@
 #   many_craters.sh train OUT RUN VAL SEED...  the recipe trained across the training worlds SEED... (each published
 #                                            with `publish OUT SEED train`; the first is --data, the rest
 #                                            --also-train-on) and validated on their held-out tiles and on world
-#                                            VAL (published `exact`); run again after a stop and it resumes. Then
-#                                            its crater level, with the first world's ground guard (--world);
-#                                            FIT_FLAGS="--unit-input ..." adds flags to the recipe for a trial
+#                                            VAL (published `exact`); run again after a stop and it resumes.
+#                                            FIT_FLAGS="..." adds flags to the recipe for a trial. No crater level:
+#                                            on world 4's validation tiles it made the wall and rim worse than the
+#                                            network alone (docs/experiments.md, thirty-eighth session)
 #   many_craters.sh test OUT SEED RUN [N]    a test world, published three times from the same crops (framed by its
 #                                            exact catalogue, a perturbed one and one listing a phantom 18 km crater:
 #                                            docs/scripts/catalogue_variants.py), and RUN scored on N spread test
@@ -54,11 +55,11 @@ publish() { # DATASET_DIR
 }
 
 # The recipe: the shipped one (train/shipped/README.md) with heights relative to the crop and its surroundings only
-# (no --elevation-input: a new site's datum is not the training worlds') and the crater frame as an input, with the
-# framing crater's relief over diameter (how worn it is).
+# (no --elevation-input: a new site's datum is not the training worlds'), the crater frame as an input, with the
+# framing crater's relief over diameter (how worn it is), and the site's mare/highland unit map.
 recipe=(--model h1 --width 8 --batch 8 --epochs 2 --max-train-samples 32000 --max-val-samples 1024 --lr 1e-3
   --lr-schedule cosine --window 8 --no-dropout --context-input --crater-input --crater-frame-input --crater-relief-input
-  --ema 0.995 --seed 42)
+  --unit-input --ema 0.995 --seed 42)
 read -r -a trial <<< "${FIT_FLAGS:-}"
 
 case $mode in
@@ -72,10 +73,6 @@ case $mode in
     [ -f "$run/config.json" ] && resume=(--resume)
     /usr/bin/time -v "$bin/g2r-train" fit --data data-$first/dataset "${pooled[@]}" --also-validate-on data-$val/dataset \
       --out "$run" "${recipe[@]}" "${trial[@]}" "${resume[@]}" >> "$run.log" 2>> "$run.time"
-    if [ ! -f "$run/crater_level.json" ]; then
-      /usr/bin/time -v "$bin/g2r-train" crater-level --run "$run" --data data-$first/dataset --world world-$first \
-        > "$run.crater-level.md" 2> "$run.crater-level.time"
-    fi
     ;;
   publish)
     role=$4
