@@ -98,6 +98,9 @@ mod tests {
             "context_dem": s.context.as_ref().map(|c| serde_json::json!({
                 "dtype": "float32", "shape": [CONTEXT_PX, CONTEXT_PX], "base64": b64(&f32s(&c.heights_m)), "gsd_m": c.gsd_m,
             })),
+            "context_highland": s.context.as_ref().and_then(|c| c.highland.as_ref()).map(|h| serde_json::json!({
+                "dtype": "float32", "shape": [CONTEXT_PX, CONTEXT_PX], "base64": b64(&f32s(h)), "gsd_m": s.context.as_ref().map(|c| c.gsd_m),
+            })),
         })
     }
 
