@@ -448,6 +448,14 @@ pub fn samples_to_batch(samples: &[Sample]) -> Result<RecordBatch, SchemaError> 
         .iter()
         .flat_map(|s| s.valid.iter().copied())
         .collect();
+    // NaN where a sample's window has no unit map (the column's "absent"), written in place: no per-row vector.
+    let mut highland = Vec::with_capacity(samples.len() * CONTEXT_PX * CONTEXT_PX);
+    for c in contexts() {
+        match &c.highland {
+            Some(window) => highland.extend_from_slice(window),
+            None => highland.resize(highland.len() + CONTEXT_PX * CONTEXT_PX, f32::NAN),
+        }
+    }
     let columns: Vec<ArrayRef> = vec![
         strings(samples.iter().map(|s| s.sample_id.as_str())),
         strings(samples.iter().map(|s| s.split.name())),
@@ -500,14 +508,7 @@ pub fn samples_to_batch(samples: &[Sample]) -> Result<RecordBatch, SchemaError> 
                 .unwrap_or(f64::NAN)
         })),
         list_of(
-            Arc::new(Float32Array::from(
-                contexts()
-                    .flat_map(|c| match &c.highland {
-                        Some(highland) => highland.clone(),
-                        None => vec![f32::NAN; CONTEXT_PX * CONTEXT_PX],
-                    })
-                    .collect::<Vec<f32>>(),
-            )),
+            Arc::new(Float32Array::from(highland)),
             CONTEXT_PX * CONTEXT_PX,
             DataType::Float32,
         ),
