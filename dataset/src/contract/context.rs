@@ -18,6 +18,7 @@
 use std::path::{Path, PathBuf};
 
 use crate::contract::schema::CONTEXT_PX;
+use crate::science::crs::CrsError;
 use crate::science::raster::{read_raster, Raster, RasterError};
 
 /// Blocks per cell edge (at least): sets the block size from the cell size and the DEM's pixel size.
@@ -155,6 +156,8 @@ pub enum UnitMapError {
     Raster(#[from] RasterError),
     #[error("{path}: CRS differs from the DEM's; reproject the unit map with gdalwarp -t_srs to the DEM's CRS")]
     Crs { path: PathBuf },
+    #[error("{path}: its CRS cannot be compared with the DEM's ({source}); give it the DEM's CRS with gdalwarp -t_srs")]
+    CrsConversion { path: PathBuf, source: CrsError },
     #[error("{path}: value {value} at pixel ({col}, {row}) is not a highland fraction in [0, 1]; code mare 0 and highland 1 (gdal_calc.py), other ground as nodata")]
     Value {
         path: PathBuf,
@@ -175,7 +178,14 @@ pub enum UnitMapError {
 pub fn read_unit_map(path: &Path, dem: &Raster) -> Result<Raster, UnitMapError> {
     let map = read_raster(path)?;
     let probes = dem.transform.corners(dem.width, dem.height);
-    if !dem.crs.same_map(&map.crs, &probes).unwrap_or(false) {
+    let same =
+        dem.crs
+            .same_map(&map.crs, &probes)
+            .map_err(|source| UnitMapError::CrsConversion {
+                path: path.to_path_buf(),
+                source,
+            })?;
+    if !same {
         return Err(UnitMapError::Crs {
             path: path.to_path_buf(),
         });
