@@ -4,7 +4,7 @@
 
 use dataset::science::brdf::BrdfModel;
 
-use crate::data::{StreamConfig, CONTEXT_CHANNELS};
+use crate::data::{ContextPlanes, StreamConfig};
 use crate::model::UNetConfig;
 
 /// The `config.json` format this build writes: version 14 since 2026-12-06 (version 13 lacks `unit_input`, which
@@ -290,12 +290,14 @@ impl FitConfig {
         UNetConfig::new(self.model.param_count())
             .with_in_channels(1 + usize::from(self.elevation_input))
             .with_context_channels(if self.context_input {
-                CONTEXT_CHANNELS
-                    + usize::from(self.context_absolute)
-                    + usize::from(self.crater_input)
-                    + 2 * usize::from(self.crater_frame_input)
-                    + usize::from(self.crater_relief_input)
-                    + 2 * usize::from(self.unit_input)
+                ContextPlanes {
+                    absolute: self.context_absolute,
+                    crater: self.crater_input,
+                    crater_frame: self.crater_frame_input,
+                    crater_relief: self.crater_relief_input,
+                    units: self.unit_input,
+                }
+                .count()
             } else {
                 0
             })
@@ -375,6 +377,7 @@ named_enum!(LrSchedule { Constant => "constant", Cosine => "cosine" });
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::data::CONTEXT_CHANNELS;
 
     #[test]
     fn cosine_decays_from_the_base_rate_to_zero_and_constant_stays() {

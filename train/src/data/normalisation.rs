@@ -86,6 +86,34 @@ pub fn framed(crater: Option<&CraterPosition>) -> Option<&CraterPosition> {
 /// context and a crater-relative height add their planes between the two, in that order.
 pub const CONTEXT_CHANNELS: usize = 2;
 
+/// Which optional planes a context input carries beside its [`CONTEXT_CHANNELS`]. [`Self::count`] is the one place
+/// they are counted: the network's width (`FitConfig::net_config`) and the batches'
+/// ([`InputNormalisation::context_channels`]) both come from it, so the two cannot drift.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct ContextPlanes {
+    /// Absolute height (`--context-absolute`).
+    pub absolute: bool,
+    /// Height relative to the framing crater's profile (`--crater-input`).
+    pub crater: bool,
+    /// The crater frame's two planes, ρ and its mask (`--crater-frame-input`).
+    pub crater_frame: bool,
+    /// The framing crater's relief over diameter (`--crater-relief-input`).
+    pub crater_relief: bool,
+    /// The unit map's two planes, highland fraction and mapped mask (`--unit-input`).
+    pub units: bool,
+}
+
+impl ContextPlanes {
+    pub fn count(self) -> usize {
+        CONTEXT_CHANNELS
+            + usize::from(self.absolute)
+            + usize::from(self.crater)
+            + 2 * usize::from(self.crater_frame)
+            + usize::from(self.crater_relief)
+            + 2 * usize::from(self.units)
+    }
+}
+
 impl ContextNormalisation {
     /// From train samples' context windows: their common cell size, and the pooled std of every finite cell's
     /// height relative to its crop's mean.
@@ -303,12 +331,14 @@ impl InputNormalisation {
     /// Context planes per sample (0 without a context input).
     pub fn context_channels(&self) -> usize {
         self.context.map_or(0, |c| {
-            CONTEXT_CHANNELS
-                + usize::from(c.absolute)
-                + usize::from(c.crater_rms_m.is_some())
-                + 2 * usize::from(c.crater_rms_m.is_some() && c.crater_frame)
-                + usize::from(self.crater_relief().is_some())
-                + 2 * usize::from(c.units)
+            ContextPlanes {
+                absolute: c.absolute,
+                crater: c.crater_rms_m.is_some(),
+                crater_frame: c.crater_rms_m.is_some() && c.crater_frame,
+                crater_relief: self.crater_relief().is_some(),
+                units: c.units,
+            }
+            .count()
         })
     }
 
@@ -441,6 +471,19 @@ impl InputNormalisation {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A context input of 512 m cells and 4 m std with no optional plane; tests switch on the ones they need.
+    fn plain_context() -> ContextNormalisation {
+        ContextNormalisation {
+            gsd_m: 512.0,
+            std_m: 4.0,
+            absolute: false,
+            crater_rms_m: None,
+            crater_frame: false,
+            crater_relief: None,
+            units: false,
+        }
+    }
     use dataset::contract::schema::{CONTEXT_PX, DEM_PX};
 
     #[test]
@@ -524,13 +567,8 @@ mod tests {
     fn a_crater_input_feeds_the_crops_relative_height_over_its_rms_before_the_mask() {
         let input = InputNormalisation {
             context: Some(ContextNormalisation {
-                gsd_m: 512.0,
-                std_m: 4.0,
-                absolute: false,
                 crater_rms_m: Some(50.0),
-                crater_frame: false,
-                crater_relief: None,
-                units: false,
+                ..plain_context()
             }),
             ..InputNormalisation::relief(2.0)
         };
@@ -581,13 +619,9 @@ mod tests {
     fn a_crater_frame_input_feeds_height_radius_and_framed_and_an_unframed_crop_as_none() {
         let input = InputNormalisation {
             context: Some(ContextNormalisation {
-                gsd_m: 512.0,
-                std_m: 4.0,
-                absolute: false,
                 crater_rms_m: Some(50.0),
                 crater_frame: true,
-                crater_relief: None,
-                units: false,
+                ..plain_context()
             }),
             ..InputNormalisation::relief(2.0)
         };
@@ -657,16 +691,13 @@ mod tests {
 
         let input = InputNormalisation {
             context: Some(ContextNormalisation {
-                gsd_m: 512.0,
-                std_m: 4.0,
-                absolute: false,
                 crater_rms_m: Some(50.0),
                 crater_frame: true,
                 crater_relief: Some(ReliefNormalisation {
                     mean: 0.07,
                     std: 0.01,
                 }),
-                units: false,
+                ..plain_context()
             }),
             ..InputNormalisation::relief(2.0)
         };
@@ -705,15 +736,7 @@ mod tests {
     #[test]
     fn context_planes_are_height_above_the_crop_mean_then_the_mask() {
         let input = InputNormalisation {
-            context: Some(ContextNormalisation {
-                gsd_m: 512.0,
-                std_m: 4.0,
-                absolute: false,
-                crater_rms_m: None,
-                crater_frame: false,
-                crater_relief: None,
-                units: false,
-            }),
+            context: Some(plain_context()),
             ..InputNormalisation::relief(2.0)
         };
         // Crop mean over the finite heights: (−1200 − 1204) / 2 = −1202.
@@ -742,13 +765,8 @@ mod tests {
                 std_m: 5.0,
             }),
             context: Some(ContextNormalisation {
-                gsd_m: 512.0,
-                std_m: 4.0,
                 absolute: true,
-                crater_rms_m: None,
-                crater_frame: false,
-                crater_relief: None,
-                units: false,
+                ..plain_context()
             }),
             ..InputNormalisation::relief(2.0)
         };
@@ -814,13 +832,8 @@ mod tests {
     fn the_unit_map_is_fed_as_a_signed_fraction_and_where_it_is_mapped() {
         let input = InputNormalisation {
             context: Some(ContextNormalisation {
-                gsd_m: 512.0,
-                std_m: 4.0,
-                absolute: false,
-                crater_rms_m: None,
-                crater_frame: false,
-                crater_relief: None,
                 units: true,
+                ..plain_context()
             }),
             ..InputNormalisation::relief(2.0)
         };
