@@ -111,18 +111,24 @@ pub struct CraterPosition {
     /// The crop's mean height minus the crater's azimuthal median profile at `rho` (at [`PROFILE_RHO_MAX`] past
     /// it), metres.
     pub relative_height_m: f64,
-    /// The crater's relief over its diameter ([`RELIEF_CREST_RHO_MAX`]); `None` in shards older than schema 1.4.
+    /// The crater's relief over its diameter ([`rim_relief_to_diameter`]); `None` in shards older than schema 1.4.
     pub relief_to_diameter: Option<f64>,
 }
 
-/// The crest of a crater's relief is its median profile's highest ring within this many radii (past the rim,
-/// so a catalogue diameter a few per cent small still finds it), its floor the lowest ring within one radius.
-///
-/// Why: crest minus floor over diameter is the depth/diameter ratio by which crater morphometry dates a
-/// crater's wear; a fresh crater is deeper for its size and its wall and ejecta are brighter, fresh material
-/// not yet darkened by space weathering. It is read from the DEM and the catalogue's centre and diameter alone,
-/// so a new site gives it as the training worlds do.
+/// Rays from the catalogued centre along which [`rim_relief_to_diameter`] reads the rim and floor (5° apart).
+pub const RELIEF_RAYS: usize = 72;
+/// Each ray's rim crest is its highest DEM cell from this many radii ...
+pub const RELIEF_CREST_RHO_MIN: f64 = 0.7;
+/// ... out to this many (past the rim, so a catalogue diameter several per cent small still finds it).
 pub const RELIEF_CREST_RHO_MAX: f64 = 1.5;
+/// Each ray's floor is its lowest DEM cell inside this many radii (a complex crater's flat floor spans about half
+/// its diameter; a simple crater's bowl bottoms out at its centre).
+pub const RELIEF_FLOOR_RHO_MAX: f64 = 0.6;
+/// Step along a ray, in radii.
+pub const RELIEF_STEP_RHO: f64 = 0.01;
+/// A crater is measured only where at least this many of its rays cross DEM at both their crest and floor (a
+/// ninth of them: a crater at the DEM's corner still has a quadrant's worth).
+pub const RELIEF_MIN_RAYS: usize = 8;
 
 /// One crater's frame on the map.
 #[derive(Debug, Clone)]
@@ -133,7 +139,7 @@ struct Frame {
     radius_m: f64,
     /// Median height of each ring, metres; ring `i` spans `i..i+1` × [`PROFILE_BIN_RHO`].
     profile_m: Vec<f64>,
-    /// Crest minus floor of `profile_m` over the diameter ([`RELIEF_CREST_RHO_MAX`]).
+    /// [`rim_relief_to_diameter`].
     relief_to_diameter: f64,
 }
 
@@ -146,22 +152,6 @@ impl Frame {
     }
 
     /// The profile's height at `rho` (clamped to the profile's reach), linear between ring centres.
-    /// Crest minus floor of the profile over the diameter ([`RELIEF_CREST_RHO_MAX`]); rings are taken by
-    /// their centres.
-    fn relief_to_diameter(&self) -> f64 {
-        let ring_rho = |i: usize| (i as f64 + 0.5) * PROFILE_BIN_RHO;
-        let within = |reach: f64| {
-            self.profile_m
-                .iter()
-                .enumerate()
-                .filter(move |&(i, _)| ring_rho(i) < reach)
-                .map(|(_, &z)| z)
-        };
-        let crest = within(RELIEF_CREST_RHO_MAX).fold(f64::NEG_INFINITY, f64::max);
-        let floor = within(1.0).fold(f64::INFINITY, f64::min);
-        (crest - floor) / (2.0 * self.radius_m)
-    }
-
     fn profile_at(&self, rho: f64) -> f64 {
         let t = (rho.min(PROFILE_RHO_MAX) / PROFILE_BIN_RHO - 0.5).max(0.0);
         let last = self.profile_m.len() - 1;
@@ -178,7 +168,8 @@ pub struct FramesReport {
     pub catalogued: usize,
     /// Smaller than the minimum diameter.
     pub too_small: usize,
-    /// At least the minimum diameter, but with no DEM within [`PROFILE_RHO_MAX`] radii.
+    /// At least the minimum diameter, but with no DEM within [`PROFILE_RHO_MAX`] radii, or too little on its rim
+    /// and floor to measure its relief ([`rim_relief_to_diameter`]).
     pub off_the_dem: usize,
     pub framed: usize,
 }
@@ -242,7 +233,7 @@ impl CraterFrames {
         if frames.is_empty() {
             bail!(
                 "{}: no crater frames the DEM ({} catalogued, {} under the minimum diameter of {min_diameter_m} m, {} \
-                 with no DEM within {PROFILE_RHO_MAX} radii): lower the minimum diameter (project.crater_frame_min_diameter_m, \
+                 with no DEM within {PROFILE_RHO_MAX} radii or too little on rim and floor): lower the minimum diameter (project.crater_frame_min_diameter_m, \
                  --crater-frame-min-diameter-m) or leave the catalogue out",
                 catalogue.display(),
                 report.catalogued,
@@ -342,8 +333,68 @@ fn profile(
             }
         })
         .collect();
-    frame.relief_to_diameter = frame.relief_to_diameter();
+    frame.relief_to_diameter = rim_relief_to_diameter(dem, centre, map_to_en, radius_m)?;
     Some(frame)
+}
+
+/// A crater's relief over its diameter: along each of [`RELIEF_RAYS`] rays from the catalogued centre, the highest
+/// DEM cell from [`RELIEF_CREST_RHO_MIN`] to [`RELIEF_CREST_RHO_MAX`] radii (the rim crest) minus the lowest inside
+/// [`RELIEF_FLOOR_RHO_MAX`] (the floor), the median over the rays that cross DEM at both, over the diameter.
+/// `None` when fewer than [`RELIEF_MIN_RAYS`] rays do (a crater mostly off the DEM).
+///
+/// Why: crest minus floor over diameter is the depth/diameter ratio by which crater morphometry dates a crater's
+/// wear; a fresh crater is deeper for its size and its wall and ejecta are brighter, fresh material not yet
+/// darkened by space weathering. It is read from the DEM and the catalogue's centre and diameter alone, so a new
+/// site gives it as the training worlds do. Each ray finds the crest wherever it lies, so a catalogue centre off
+/// by a tenth of a radius moves no crest, where a ring's median at a fixed radius mixes rim with wall and ejecta
+/// and reads the crater shallower than an exact catalogue would (docs/scripts/relief_estimators.py measures both);
+/// and each ray's floor is the one beside its stretch of wall, so a mare/highland boundary across the crater does
+/// not add its offset. The median lets a few rays through a superposed crater or a DEM blunder go.
+pub fn rim_relief_to_diameter(
+    dem: &Raster,
+    centre: (f64, f64),
+    map_to_en: [[f64; 2]; 2],
+    radius_m: f64,
+) -> Option<f64> {
+    let m = map_to_en;
+    let det = m[0][0] * m[1][1] - m[0][1] * m[1][0];
+    let t = dem.transform;
+    // The DEM cell nearest ground offset (east, north) from the centre, if it holds a height.
+    let height = |east: f64, north: f64| {
+        let dx = (m[1][1] * east - m[0][1] * north) / det;
+        let dy = (m[0][0] * north - m[1][0] * east) / det;
+        let (col, row) = t.map_to_pixel(centre.0 + dx, centre.1 + dy);
+        let (col, row) = (col.round(), row.round());
+        let inside = col >= 0.0 && row >= 0.0 && col < dem.width as f64 && row < dem.height as f64;
+        Some(dem.get(col as usize, row as usize))
+            .filter(|z| inside && z.is_finite())
+            .map(f64::from)
+    };
+    let steps = (RELIEF_CREST_RHO_MAX / RELIEF_STEP_RHO).round() as usize;
+    let mut reliefs: Vec<f32> = (0..RELIEF_RAYS)
+        .filter_map(|ray| {
+            let azimuth = std::f64::consts::TAU * ray as f64 / RELIEF_RAYS as f64;
+            let (mut crest, mut floor) = (f64::NEG_INFINITY, f64::INFINITY);
+            for step in 0..steps {
+                let rho = step as f64 * RELIEF_STEP_RHO;
+                let along = rho * radius_m;
+                let Some(z) = height(along * azimuth.cos(), along * azimuth.sin()) else {
+                    continue;
+                };
+                if rho < RELIEF_FLOOR_RHO_MAX {
+                    floor = floor.min(z);
+                }
+                if rho >= RELIEF_CREST_RHO_MIN {
+                    crest = crest.max(z);
+                }
+            }
+            (crest.is_finite() && floor.is_finite()).then_some((crest - floor) as f32)
+        })
+        .collect();
+    if reliefs.len() < RELIEF_MIN_RAYS {
+        return None;
+    }
+    median(&mut reliefs).map(|relief| relief / (2.0 * radius_m))
 }
 
 /// Median of the values (the mean of the middle two for an even count); `None` for none.
@@ -431,20 +482,20 @@ mod tests {
     }
 
     /// The fixture's crater rises `slope` metres per radius from its centre to its crest at ρ 1.2: its relief is
-    /// 1.2 × slope over its diameter, within a ring's rise at the floor (the centre ring's median sits a few
-    /// metres up its slope). The ratio is the crater's shape, not its size: half the crater at half the depth
+    /// 1.2 × slope over its diameter, within a pixel's rise at the floor (the cell nearest the centre lies half a
+    /// pixel's diagonal from it). The ratio is the crater's shape, not its size: half the crater at half the depth
     /// reads the same; at half the depth alone, half of it.
     #[test]
-    fn relief_to_diameter_is_the_profiles_crest_minus_floor_over_the_diameter() {
+    fn relief_to_diameter_is_the_crest_minus_floor_over_the_diameter() {
         let relief = |radius: f64, slope: f64| {
             let (dem, crater) = crater_dem(radius, slope, 0.0);
             let frames = CraterFrames::new(&dem, &[crater], 1000.0).unwrap().0;
             let p = frames.position(0.5 * radius, 0.0, 0.0).unwrap();
             let ratio = p.relief_to_diameter.unwrap();
-            let ring_rise = slope * PROFILE_BIN_RHO / (2.0 * radius);
+            let pixel_rise = slope * 20.0 / radius / (2.0 * radius);
             let expected = 1.2 * slope / (2.0 * radius);
             assert!(
-                (ratio - expected).abs() < ring_rise,
+                (ratio - expected).abs() < pixel_rise,
                 "radius {radius} m, slope {slope} m: {ratio} against {expected}"
             );
             ratio
@@ -452,6 +503,79 @@ mod tests {
         let fresh = relief(6000.0, 1600.0);
         assert!((relief(3000.0, 800.0) - fresh).abs() < 1e-3);
         assert!((relief(6000.0, 800.0) - fresh / 2.0).abs() < 1e-3);
+    }
+
+    /// A bowl with a sharp rim, on the fixture's map: −`depth` + (depth + rim) ρ² inside the rim, rim ρ⁻³ past it,
+    /// plus `east_offset_m` east of the centre (a unit boundary through the crater). Its relief over diameter is
+    /// (depth + rim) / (2 × radius).
+    fn sharp_rim_dem(radius_m: f64, depth_m: f64, rim_m: f64, east_offset_m: f64) -> Raster {
+        let (mut dem, _) = crater_dem(radius_m, 0.0, 0.0);
+        for row in 0..dem.height {
+            for col in 0..dem.width {
+                let (x, y) = dem.transform.pixel_center(col as f64, row as f64);
+                let rho = x.hypot(y) / radius_m;
+                let crater = if rho <= 1.0 {
+                    -depth_m + (depth_m + rim_m) * rho * rho
+                } else {
+                    rim_m * rho.powi(-3)
+                };
+                let unit = if x > 0.0 { east_offset_m } else { 0.0 };
+                dem.data[row * dem.width + col] = (-2000.0 + crater + unit) as f32;
+            }
+        }
+        dem
+    }
+
+    /// A catalogue centre off by a tenth of a radius (600 m on a 12 km crater, twice the error the training
+    /// publications simulate) still finds the rim on every ray: the relief stays within 3 % of the crater's
+    /// (a ring's median at ρ 1 would mix wall and ejecta around the rim and lose about 5 %), as it does with
+    /// the exact centre. The slack is the rim's fall within a ray's step (0.01 radii) and the floor rays that
+    /// start a tenth of a radius up the bowl.
+    #[test]
+    fn a_catalogue_centre_a_tenth_of_a_radius_off_still_finds_the_rim() {
+        let (radius, depth, rim) = (6000.0, 840.0, 240.0);
+        let dem = sharp_rim_dem(radius, depth, rim, 0.0);
+        let expected = (depth + rim) / (2.0 * radius);
+        let identity = [[1.0, 0.0], [0.0, 1.0]];
+        for centre in [(0.0, 0.0), (600.0, 0.0), (-420.0, 420.0)] {
+            // The map is true to scale at the equator, where the fixture lies: map offsets are ground metres.
+            let relief = rim_relief_to_diameter(&dem, centre, identity, radius).unwrap();
+            assert!(
+                (relief / expected - 1.0).abs() < 0.03,
+                "centre {centre:?}: {relief} against {expected}"
+            );
+        }
+    }
+
+    /// Mare lies hundreds of metres below highland; with the boundary through the crater each ray's crest and
+    /// floor are on one side of it, so the offset adds nothing to the relief.
+    #[test]
+    fn a_unit_boundary_across_the_crater_adds_nothing_to_its_relief() {
+        let identity = [[1.0, 0.0], [0.0, 1.0]];
+        let relief = |offset: f64| {
+            let dem = sharp_rim_dem(6000.0, 840.0, 240.0, offset);
+            rim_relief_to_diameter(&dem, (0.0, 0.0), identity, 6000.0).unwrap()
+        };
+        let (plain, crossed) = (relief(0.0), relief(300.0));
+        assert!((plain - crossed).abs() < 1e-6, "{plain} against {crossed}");
+    }
+
+    /// A crater whose floor lies off the DEM has no relief to read, and is counted off the DEM, not framed with
+    /// a made-up one.
+    #[test]
+    fn a_crater_with_its_floor_off_the_dem_is_not_framed() {
+        let (dem, crater) = crater_dem(6000.0, 1600.0, 0.0);
+        // 14.5 km east of the centre: the DEM's edge (10 km) is within reach (18 km), the floor (3.6 km) is not.
+        let (lon_deg, lat_deg) = dem.crs.to_lonlat_deg(14_500.0, 0.0).unwrap();
+        let beyond = CatalogueCrater {
+            lon_deg,
+            lat_deg,
+            ..crater
+        };
+        let report = CraterFrames::new(&dem, &[crater, beyond], 1000.0)
+            .unwrap()
+            .1;
+        assert_eq!((report.framed, report.off_the_dem), (1, 1));
     }
 
     #[test]

@@ -253,8 +253,10 @@ pub fn pipeline_scoped(
         // carries its crater frame, NaN without a catalogue (schema 1.3). 7: tensor pages of at most
         // `TENSOR_PAGE_BYTES` (same values, other bytes: a one-row read decompresses an eighth of what it did).
         // 8: the crater frame carries its crater's relief over diameter (schema 1.4). 9: the context window carries
-        // its cells' highland fraction, NaN without a unit map (schema 1.6).
-        code_version: "9",
+        // its cells' highland fraction, NaN without a unit map (schema 1.6). 10: the crater's relief read along
+        // rays from rim crest to floor, not from the ring medians (dataset::contract::crater_frame); a crater with
+        // too little DEM on its rim and floor is no longer framed.
+        code_version: "10",
         // Everything projection reads: assigned positions, the DEM, and each ortho's image and metadata.
         inputs: [
             layout.assignment.clone(),

@@ -79,8 +79,8 @@ pub struct TrainArgs {
     #[arg(long, requires = "crater_input")]
     pub crater_frame_input: bool,
     /// Feed the framing crater's relief over its diameter as one more frame plane (the dataset's
-    /// crater_relief_to_diameter, schema 1.4: the crater's median profile's crest minus its floor, read from the
-    /// DEM around the catalogued crater). A fresh crater is deep for its size and its wall and ejecta are bright;
+    /// crater_relief_to_diameter, schema 1.4: the crater's rim crest minus its floor along rays from the catalogued
+    /// centre, read from the DEM). A fresh crater is deep for its size and its wall and ejecta are bright;
     /// the crop's own context window sees only part of the crater.
     #[arg(long, requires = "crater_frame_input")]
     pub crater_relief_input: bool,
