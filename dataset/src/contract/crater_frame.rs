@@ -366,8 +366,9 @@ pub fn rim_relief_to_diameter(
         let (col, row) = t.map_to_pixel(centre.0 + dx, centre.1 + dy);
         let (col, row) = (col.round(), row.round());
         let inside = col >= 0.0 && row >= 0.0 && col < dem.width as f64 && row < dem.height as f64;
-        Some(dem.get(col as usize, row as usize))
-            .filter(|z| inside && z.is_finite())
+        inside
+            .then(|| dem.get(col as usize, row as usize))
+            .filter(|z| z.is_finite())
             .map(f64::from)
     };
     let steps = (RELIEF_CREST_RHO_MAX / RELIEF_STEP_RHO).round() as usize;
@@ -576,6 +577,12 @@ mod tests {
             .unwrap()
             .1;
         assert_eq!((report.framed, report.off_the_dem), (1, 1));
+        // One at the DEM's south-east corner: its rays leave through the last row and column, and it is measured
+        // from the quarter of them that stay on the DEM (the fixture's plain there is level: no relief).
+        let corner = dem.transform.pixel_center(999.0, 999.0);
+        let relief =
+            rim_relief_to_diameter(&dem, corner, [[1.0, 0.0], [0.0, 1.0]], 2000.0).unwrap();
+        assert!(relief.abs() < 1e-9, "{relief}");
     }
 
     #[test]
