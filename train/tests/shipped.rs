@@ -23,8 +23,8 @@ fn the_tycho_full_model_loads_and_infers_scales_near_its_uniform_start() {
 
 #[test]
 fn the_many_craters_model_loads_and_infers_scales_near_its_uniform_start() {
-    // Its crater level was retired on validation: on the held-out world it made the wall and rim worse than the
-    // network alone (train/shipped/README.md).
+    // The recipe fits no crater level: on the held-out world the last one made the wall and rim worse than the
+    // network alone, and it was retired on validation (train/shipped/README.md).
     loads_and_infers_scales_near_its_uniform_start("many-craters-ray-relief-h1", false);
 }
 
