@@ -3,7 +3,10 @@
 # --bins). Each world is the preset `many-craters` at a seed; its manifest is manifests/many-craters.toml with the
 # seed, paths and name changed, written beside the world.
 #
-#   many_craters.sh publish OUT SEED train   a training world: framed by 8 error draws of its catalogue (the manifest's)
+#   many_craters.sh publish OUT SEED train   a training world: framed by 8 error draws of its catalogue (the manifest's),
+#                                            at coverage $TRAIN_COVERAGE (default 9.65, half the manifest's 19.3:
+#                                            the fit draws 32,000 samples, so six worlds at half weigh alike and fit
+#                                            the disk)
 #   many_craters.sh publish OUT SEED exact   a validation world: framed by its exact catalogue
 #   many_craters.sh train OUT RUN VAL SEED...  the recipe trained across the training worlds SEED... (each published
 #                                            with `publish OUT SEED train`; the first is --data, the rest
@@ -78,7 +81,8 @@ case $mode in
     role=$4
     world
     case $role in
-      train) manifest g2r-many-craters-$seed world-$seed/truth/complex_craters.csv data-$seed ;;
+      train) manifest g2r-many-craters-$seed world-$seed/truth/complex_craters.csv data-$seed \
+               -e "s/^coverage = .*/coverage = ${TRAIN_COVERAGE:-9.65}/" ;;
       exact) manifest g2r-many-craters-$seed world-$seed/truth/complex_craters.csv data-$seed \
                -e '/^crater_catalogue_error = /d' ;;
       *) echo "publish: role must be train or exact, not $role" >&2; exit 2 ;;
