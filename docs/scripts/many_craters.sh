@@ -24,7 +24,7 @@
 # A test world differs from a training world's publication only in size: coverage 4 (not 19.3) and 85 % of its tiles in
 # test (5 % val, 10 % train, where the honest Hapke scale's calibration crops come from), since nothing trains on it.
 # Each step is skipped when its output exists; the pipeline's stages/ are deleted after publication, for disk (a
-# world is ~10 GB, a training publication ~6 GB). Timings go to OUT/*.time (/usr/bin/time -v).
+# world is ~10 GB, a training publication ~3 GB at half coverage). Timings go to OUT/*.time (/usr/bin/time -v).
 set -euo pipefail
 repo=$(cd "$(dirname "$0")/../.." && pwd)
 bin=$repo/target/release
