@@ -7,7 +7,8 @@ use dataset::science::brdf::BrdfModel;
 use crate::data::{ContextPlanes, StreamConfig};
 use crate::model::UNetConfig;
 
-/// The `config.json` format this build writes: version 14 since 2026-12-06 (version 13 lacks `unit_input`, which
+/// The `config.json` format this build writes: version 15 since 2026-12-07 (version 14 lacks `log_coefficients`,
+/// which loads as false: a linear output; version 13 also lacks `unit_input`, which
 /// loads as false; version 12 also lacks
 /// `crater_relief_input`, which loads as false; version 11 also lacks
 /// `crater_frame_input`, which loads as false: the crater input is the height alone, and `also_validate_on`, which
@@ -20,7 +21,7 @@ use crate::model::UNetConfig;
 /// every run had before the field existed (constant learning rate, relief input only, no context window). From
 /// version 2 on every field is written and required, and a new field means a new version with its conversion
 /// in `StoredFitConfig`.
-pub const FIT_CONFIG_VERSION: u32 = 14;
+pub const FIT_CONFIG_VERSION: u32 = 15;
 
 /// Everything that defines a run (saved as `config.json`; a resume must match it). The network's head starts
 /// at the model's uniform least-squares fit ([`crate::model::UNet::with_uniform_head`]), unconstrained or
@@ -75,6 +76,8 @@ pub struct FitConfig {
     /// Start the head at the non-negative least-squares uniform fit
     /// ([`crate::uniform_fit::Calibration::model_uniform_nonnegative`]) rather than the unconstrained one.
     pub nonnegative_start: bool,
+    /// The network outputs the exponential of its head ([`UNetConfig::log_coefficients`]).
+    pub log_coefficients: bool,
     /// Decoupled weight decay (Burn's AdamW): every optimiser step first shrinks each weight by the step's learning
     /// rate times this, then applies the Adam update. `None`: plain Adam, no decay.
     pub weight_decay: Option<f64>,
@@ -119,6 +122,7 @@ struct StoredFitConfig {
     also_validate_on: Option<Vec<String>>,
     crater_relief_input: Option<bool>,
     unit_input: Option<bool>,
+    log_coefficients: Option<bool>,
 }
 
 /// A key that is in the file, whatever its value (`null` included): serde alone reads a missing `Option` field
@@ -254,6 +258,13 @@ impl TryFrom<StoredFitConfig> for FitConfig {
         } else {
             stored.unit_input.ok_or_else(|| required("unit_input"))?
         };
+        let log_coefficients = if version < 15 {
+            false
+        } else {
+            stored
+                .log_coefficients
+                .ok_or_else(|| required("log_coefficients"))?
+        };
         Ok(Self {
             version: FIT_CONFIG_VERSION,
             model: stored.model,
@@ -277,6 +288,7 @@ impl TryFrom<StoredFitConfig> for FitConfig {
             crop_level,
             film,
             nonnegative_start,
+            log_coefficients,
             weight_decay,
             also_train_on,
             also_validate_on,
@@ -306,6 +318,7 @@ impl FitConfig {
             .with_head_hidden(self.head_hidden)
             .with_crop_level(self.crop_level)
             .with_film(self.film)
+            .with_log_coefficients(self.log_coefficients)
     }
 
     /// The settings in which `given` differs from `self`, one `name: saved → given` entry each, in name order,
@@ -458,14 +471,27 @@ mod tests {
             crop_level: true,
             film: true,
             nonnegative_start: true,
+            log_coefficients: true,
             weight_decay: Some(0.01),
             also_train_on: vec!["g2r-tycho-full-seed44".into()],
             also_validate_on: vec!["g2r-many-craters-seed7".into()],
         };
         let json = serde_json::to_string(&config).unwrap();
-        assert!(json.contains(r#""version":14"#), "{json}");
+        assert!(json.contains(r#""version":15"#), "{json}");
         assert_eq!(serde_json::from_str::<FitConfig>(&json).unwrap(), config);
         assert_eq!(config.net_config().context_channels, CONTEXT_CHANNELS + 7);
+        assert!(config.net_config().log_coefficients);
+        let cut = json.replace(r#","log_coefficients":true"#, "");
+        let err = serde_json::from_str::<FitConfig>(&cut)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("`log_coefficients`"), "{err}");
+        // Version 14 wrote everything but `log_coefficients`: its network's output was linear.
+        let v14 = cut.replace(r#""version":15"#, r#""version":14"#);
+        let loaded = serde_json::from_str::<FitConfig>(&v14).unwrap();
+        assert!(loaded.unit_input && !loaded.log_coefficients);
+        assert!(!loaded.net_config().log_coefficients);
+        let json = v14;
         let cut = json.replace(r#","unit_input":true"#, "");
         let err = serde_json::from_str::<FitConfig>(&cut)
             .unwrap_err()

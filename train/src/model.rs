@@ -59,6 +59,14 @@ pub struct UNetConfig {
     /// elevation means another unit than on the plains: docs/crater-diagnosis.md). Needs a context input.
     #[config(default = false)]
     pub film: bool,
+    /// The head (with the level branch's offset) gives each coefficient's natural logarithm, and the network
+    /// outputs its exponential. A linear head adds what the context says (the unit under the crop) to what the
+    /// crop's terrain says (a bright fresh wall); albedo factors multiply (composition times maturity times
+    /// slope), and in logarithms a sum is a product. With a linear output the unit's step learned on the plains
+    /// is too small on a wall half again as bright (docs/experiments.md, forty-first session). Positive
+    /// coefficients only: the uniform start must be positive.
+    #[config(default = false)]
+    pub log_coefficients: bool,
 }
 
 /// Hidden units of the crop-level branch ([`UNetConfig::crop_level`]).
@@ -175,6 +183,9 @@ pub struct UNet<B: Backend> {
     level: Option<CropLevel<B>>,
     film: Option<Film<B>>,
     pool: MaxPool2d,
+    /// [`UNetConfig::log_coefficients`]. A constant of the module: not in its record, so checkpoints written
+    /// before it existed load unchanged, and the run's `config.json` sets it.
+    log_coefficients: bool,
 }
 
 impl UNetConfig {
@@ -246,6 +257,7 @@ impl UNetConfig {
             level,
             film,
             pool: MaxPool2dConfig::new([2, 2]).init(),
+            log_coefficients: self.log_coefficients,
         }
     }
 
@@ -273,8 +285,9 @@ impl UNetConfig {
 }
 
 impl<B: Backend> UNet<B> {
-    /// Start the head at a uniform model: zero weights and `bias` (raw parameters, one per output channel), so
-    /// every pixel's raw parameters are `bias` whatever the input. `fit` starts here with the model's uniform
+    /// Start the head at a uniform model: zero weights and `bias` (raw parameters, one per output channel; their
+    /// logarithms with [`UNetConfig::log_coefficients`]), so every pixel's raw parameters are `bias` whatever the
+    /// input. `fit` starts here with the model's uniform
     /// least-squares fit: step 0 renders the honest uniform baseline, and training spends its steps on the
     /// spatial variation alone. (Burn's default head made the first renderings O(1) I/F against targets of
     /// ~0.03, and a zero head black ones: the first epochs went on the output's scale; docs/experiments.md.)
@@ -310,7 +323,8 @@ impl<B: Backend> UNet<B> {
     }
 
     /// `[N, C, 128, 128]` input planes (and `[N, C', 32, 32]` context planes when the network has a context
-    /// encoder) → `[N, P, 128, 128]` raw BRDF parameters. Panics when `context` does not match the network.
+    /// encoder) → `[N, P, 128, 128]` raw BRDF parameters (the exponential of the head's output with
+    /// [`UNetConfig::log_coefficients`]). Panics when `context` does not match the network.
     pub fn forward(&self, x: Tensor<B, 4>, context: Option<Tensor<B, 4>>) -> Tensor<B, 4>
     where
         B: TrainOps,
@@ -402,7 +416,7 @@ impl<B: Backend> UNet<B> {
             ),
             None => joined_conv(&self.head, x),
         };
-        match (&self.level, crop_elevation) {
+        let out = match (&self.level, crop_elevation) {
             (Some(level), Some(elevation)) => {
                 let inputs = match &features {
                     Some(f) => Tensor::cat(vec![elevation, f.clone()], 1),
@@ -415,6 +429,11 @@ impl<B: Backend> UNet<B> {
                 out + offset.reshape([n, p, 1, 1]).expand([n, p, h, w])
             }
             _ => out,
+        };
+        if self.log_coefficients {
+            out.exp()
+        } else {
+            out
         }
     }
 }
@@ -475,5 +494,39 @@ mod tests {
             })
             .sum();
         assert!(moved > 0.0, "no gradient reached the modulation");
+    }
+
+    /// With log coefficients the network's output is the exponential of what the same weights give with a linear
+    /// output, and the head's bias receives the analytic gradient: ∂Σ exp(z)/∂bias = Σ exp(z), since the bias
+    /// adds to every pixel's z.
+    #[test]
+    fn log_coefficients_exponentiate_the_linear_output_and_carry_its_gradient() {
+        let device = Default::default();
+        let config = UNetConfig::new(1)
+            .with_context_channels(2)
+            .with_base_width(4)
+            .with_dropout(false);
+        let x = Tensor::<Ad, 4>::random([2, 1, 128, 128], Distribution::Normal(0.0, 1.0), &device);
+        let context =
+            Tensor::<Ad, 4>::random([2, 2, 32, 32], Distribution::Normal(0.0, 1.0), &device);
+        let linear = config.init::<Ad>(&device);
+        let a = linear.forward(x.clone(), Some(context.clone()));
+        // The same weights (cloned after the forward pass: Burn initialises parameters lazily, on first use).
+        let mut logarithmic = linear.clone();
+        logarithmic.log_coefficients = true;
+        let b = logarithmic.forward(x, Some(context));
+        let worst = (a.clone().exp() - b.clone()).abs().max().into_scalar();
+        assert_eq!(worst, 0.0, "exp of the linear output differs by {worst}");
+
+        let total = b.sum();
+        let expected: f32 = total.clone().into_scalar();
+        let grads = total.backward();
+        let bias = logarithmic.head.bias.as_ref().expect("the head has a bias");
+        let got: f32 = bias.grad(&grads).expect("a gradient").into_scalar();
+        let relative = ((got - expected) / expected).abs();
+        assert!(
+            relative < 1e-5,
+            "bias gradient {got} against the output's sum {expected} (relative {relative:e}, tolerance 1e-5)"
+        );
     }
 }

@@ -56,6 +56,7 @@ fn config(
         crop_level: false,
         film: false,
         nonnegative_start: false,
+        log_coefficients: false,
         weight_decay: None,
         also_train_on: Vec::new(),
         also_validate_on: Vec::new(),
@@ -254,6 +255,91 @@ fn a_nonnegative_start_renders_the_nonnegative_uniform_fit() {
     );
 }
 
+/// `log_coefficients` starts the head at the logarithm of the uniform fit: an H1 run stopped after one step at a
+/// vanishing rate still renders H1's uniform coefficient everywhere. A model whose unconstrained fit has a
+/// coefficient below 0 is refused with the flag named, before anything is written.
+#[test]
+fn log_coefficients_start_at_the_uniform_fit_and_refuse_a_negative_one() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    train::testing::write_synthetic_dataset(
+        tmp.path(),
+        synthetic_samples(8, 1),
+        synthetic_samples(4, 2),
+    );
+    let source: Arc<dyn SampleSource> = Arc::new(LocalSource::open(tmp.path()).unwrap());
+    let uniform = train::uniform_fit::calibrate(
+        &*source,
+        train::training::UNIFORM_INIT_SAMPLES,
+        BrdfModel::H1,
+    )
+    .unwrap();
+    assert!(uniform.model_uniform[0] > 0.0);
+
+    let mut cfg = config(BrdfModel::H1, 1, 1e-12, 8, false);
+    cfg.log_coefficients = true;
+    cfg.stream.augment = false;
+    let run = tmp.path().join("run");
+    fit::<Ad>(
+        source.clone(),
+        &cfg,
+        &run,
+        false,
+        Some(1),
+        &Default::default(),
+        false,
+    )
+    .unwrap();
+    let got = fingerprint(&run, &cfg);
+    let input = train::run_dir::run_input(&run, &cfg).unwrap();
+    let batch = HostBatch::from_samples(&synthetic_samples(2, 77), &input);
+    let planar: Vec<f64> = (0..batch.len() * CROP_PX * CROP_PX)
+        .map(|_| inverse_leaky_relu(uniform.model_uniform[0]))
+        .collect();
+    let want = reference_render(BrdfModel::H1, &batch, &planar);
+    let scale = want.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    let worst = got
+        .iter()
+        .zip(&want)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0, f64::max)
+        / scale;
+    assert!(
+        worst <= 1e-5,
+        "{worst:e} from the uniform H1 render (tolerance 1e-5)"
+    );
+
+    let (model, _) = [BrdfModel::H3, BrdfModel::L3, BrdfModel::M2]
+        .into_iter()
+        .map(|m| {
+            let fit =
+                train::uniform_fit::calibrate(&*source, train::training::UNIFORM_INIT_SAMPLES, m)
+                    .unwrap();
+            (m, fit)
+        })
+        .find(|(_, fit)| fit.model_uniform.iter().any(|&c| c < 0.0))
+        .expect("no candidate's unconstrained fit is negative on these crops");
+    let mut cfg = config(model, 1, 1e-12, 8, false);
+    cfg.log_coefficients = true;
+    let refused = tmp.path().join("refused");
+    let err = fit::<Ad>(
+        source,
+        &cfg,
+        &refused,
+        false,
+        Some(1),
+        &Default::default(),
+        false,
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(err.contains("--log-coefficients"), "{err}");
+    assert!(
+        !refused.join("last").exists(),
+        "a refused run wrote a checkpoint"
+    );
+}
+
 /// The network's inference output on fixed samples: weights and BatchNorm running stats in one vector.
 fn fingerprint(run: &Path, cfg: &FitConfig) -> Vec<f64> {
     fingerprint_of(run, "last/model", cfg)
@@ -310,6 +396,7 @@ fn stopping_and_resuming_gives_the_same_network_as_an_uninterrupted_run() {
         crop_level: true,
         film: false,
         nonnegative_start: false,
+        log_coefficients: false,
         context_absolute: false,
         crater_input: true,
         crater_frame_input: true,

@@ -198,10 +198,17 @@ pub(super) fn start_or_resume<B: TrainBackend>(
             &fit.model_uniform
         };
         tracing::info!(coefficients = ?start, nonnegative = config.nonnegative_start, samples = fit.samples, "head = uniform fit");
-        let raw: Vec<f64> = start
-            .iter()
-            .map(|&c| dataset::science::brdf::inverse_leaky_relu(c))
-            .collect();
+        let raw: Vec<f64> = if config.log_coefficients {
+            if let Some(c) = start.iter().find(|&&c| c <= 0.0) {
+                bail!("--log-coefficients needs every coefficient of the uniform start above 0, and the {} uniform fit has {c}: drop --log-coefficients (a model whose fit needs a coefficient at or below 0 keeps the linear output)", config.model.name());
+            }
+            start.iter().map(|c| c.ln()).collect()
+        } else {
+            start
+                .iter()
+                .map(|&c| dataset::science::brdf::inverse_leaky_relu(c))
+                .collect()
+        };
         let net = net.with_uniform_head(&raw, device);
         let average = config.ema_decay.map(|_| net.valid());
         (net, Cursor::start(), Vec::new(), input, average)

@@ -127,6 +127,11 @@ pub struct TrainArgs {
     /// (two negative) when unconstrained.
     #[arg(long)]
     pub nonnegative_start: bool,
+    /// The head gives each coefficient's logarithm and the network outputs its exponential, so what the context
+    /// says (the unit under the crop) and what the crop's terrain says (a fresh wall) multiply, as albedo factors
+    /// do, where a linear output adds them. Every coefficient of the uniform start must be above 0 (H1's is).
+    #[arg(long)]
+    pub log_coefficients: bool,
     /// Decoupled weight decay (AdamW): every step first shrinks each weight by the step's learning rate times
     /// this, then takes Adam's step (0.01 is PyTorch's AdamW default: with --lr 1e-3 a weight no gradient holds
     /// up shrinks by 1e-5 a step). A regulariser: it pulls toward zero the weights the gradients do not hold up
@@ -224,6 +229,7 @@ impl TrainArgs {
             crop_level: self.crop_level,
             film: self.film,
             nonnegative_start: self.nonnegative_start,
+            log_coefficients: self.log_coefficients,
             weight_decay: self.weight_decay,
             // Named once the datasets are open ([`training_source`]).
             also_train_on: Vec::new(),
