@@ -46,6 +46,7 @@ pub fn config() -> FitConfig {
         crop_level: false,
         film: false,
         nonnegative_start: false,
+        log_coefficients: false,
         weight_decay: None,
         also_train_on: Vec::new(),
         also_validate_on: Vec::new(),
