@@ -189,16 +189,7 @@ fn a_nonnegative_start_renders_the_nonnegative_uniform_fit() {
         synthetic_samples(4, 2),
     );
     let source: Arc<dyn SampleSource> = Arc::new(LocalSource::open(tmp.path()).unwrap());
-    let (model, uniform) = [BrdfModel::H3, BrdfModel::L3, BrdfModel::M2]
-        .into_iter()
-        .map(|m| {
-            let fit =
-                train::uniform_fit::calibrate(&*source, train::training::UNIFORM_INIT_SAMPLES, m)
-                    .unwrap();
-            (m, fit)
-        })
-        .find(|(_, fit)| fit.model_uniform.iter().any(|&c| c < 0.0))
-        .expect("no candidate's unconstrained fit is negative on these crops");
+    let (model, uniform) = negative_start_model(&*source);
     assert!(uniform.model_uniform_nonnegative.iter().all(|&c| c >= 0.0));
 
     let mut cfg = config(model, 1, 1e-12, 8, false);
@@ -230,14 +221,7 @@ fn a_nonnegative_start_renders_the_nonnegative_uniform_fit() {
             .collect();
         reference_render(model, &batch, &planar)
     };
-    let worst = |want: &[f64]| {
-        let scale = want.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-        got.iter()
-            .zip(want)
-            .map(|(a, b)| (a - b).abs())
-            .fold(0.0, f64::max)
-            / scale
-    };
+    let worst = |want: &[f64]| worst_relative(&got, want);
     let nonnegative = worst(&render(&uniform.model_uniform_nonnegative));
     let unconstrained = worst(&render(&uniform.model_uniform));
     eprintln!(
@@ -296,29 +280,13 @@ fn log_coefficients_start_at_the_uniform_fit_and_refuse_a_negative_one() {
     let planar: Vec<f64> = (0..batch.len() * CROP_PX * CROP_PX)
         .map(|_| inverse_leaky_relu(uniform.model_uniform[0]))
         .collect();
-    let want = reference_render(BrdfModel::H1, &batch, &planar);
-    let scale = want.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-    let worst = got
-        .iter()
-        .zip(&want)
-        .map(|(a, b)| (a - b).abs())
-        .fold(0.0, f64::max)
-        / scale;
+    let worst = worst_relative(&got, &reference_render(BrdfModel::H1, &batch, &planar));
     assert!(
         worst <= 1e-5,
         "{worst:e} from the uniform H1 render (tolerance 1e-5)"
     );
 
-    let (model, _) = [BrdfModel::H3, BrdfModel::L3, BrdfModel::M2]
-        .into_iter()
-        .map(|m| {
-            let fit =
-                train::uniform_fit::calibrate(&*source, train::training::UNIFORM_INIT_SAMPLES, m)
-                    .unwrap();
-            (m, fit)
-        })
-        .find(|(_, fit)| fit.model_uniform.iter().any(|&c| c < 0.0))
-        .expect("no candidate's unconstrained fit is negative on these crops");
+    let (model, _) = negative_start_model(&*source);
     let mut cfg = config(model, 1, 1e-12, 8, false);
     cfg.log_coefficients = true;
     let refused = tmp.path().join("refused");
@@ -338,6 +306,30 @@ fn log_coefficients_start_at_the_uniform_fit_and_refuse_a_negative_one() {
         !refused.join("last").exists(),
         "a refused run wrote a checkpoint"
     );
+}
+
+/// The first of H3, L3 and M2 whose unconstrained uniform fit on `source` has a coefficient below 0, with its fit.
+fn negative_start_model(source: &dyn SampleSource) -> (BrdfModel, train::uniform_fit::Calibration) {
+    [BrdfModel::H3, BrdfModel::L3, BrdfModel::M2]
+        .into_iter()
+        .map(|m| {
+            let fit =
+                train::uniform_fit::calibrate(source, train::training::UNIFORM_INIT_SAMPLES, m)
+                    .unwrap();
+            (m, fit)
+        })
+        .find(|(_, fit)| fit.model_uniform.iter().any(|&c| c < 0.0))
+        .expect("no candidate's unconstrained fit is negative on these crops")
+}
+
+/// The largest absolute difference between two renders, over the largest magnitude of `want`.
+fn worst_relative(got: &[f64], want: &[f64]) -> f64 {
+    let scale = want.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    got.iter()
+        .zip(want)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0, f64::max)
+        / scale
 }
 
 /// The network's inference output on fixed samples: weights and BatchNorm running stats in one vector.
