@@ -62,7 +62,7 @@ for world, evaluation in zip(pairs[0::2], pairs[1::2]):
             f"{world} crater {key[0]} (degradation {degradation:.2f}) wall, {key[1]}: {group['crops']} crops, "
             f"truth {factor:.3f}, model {group['model']:.3f}"
         )
-for name, chosen in (("all", groups), ("highland", None), ("mare", None)):
+for name in ("all", "highland", "mare"):
     chosen = [g for g in groups if g["crops"] >= MIN_CROPS and (name == "all" or g["unit"] == name)]
     if len(chosen) < 2:
         continue
