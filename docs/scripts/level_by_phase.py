@@ -1,6 +1,7 @@
 """Where a model's brightness level goes wrong with the viewing geometry: for each `g2r-train eval` output
 directory, the crops grouped by ground (terrain class and unit under their centre) and by phase angle band, with the
-mean level (a method's mean brightness over the ground truth's) of the learned model and of `oracle_model_form`
+learned / paper-Hapke SSE of the group, the mean level (a method's mean brightness over the ground truth's) of the
+learned model and of `oracle_model_form`
 (the truth's own maps fitted by the run's model form: the best any network of that form can render), and their
 crop counts. A level that falls with phase in both says the model form cannot follow the truth's angular shape
 there; a gap between them in every band says the fit falls short of what the form allows.
@@ -34,7 +35,9 @@ for evaluation in sys.argv[1:]:
             mean = lambda key: sum(im["level"][key] for im in band) / len(band)
             cells.append(f"{mean(learned):.3f} / {mean('oracle_model_form'):.3f} ({len(band)})")
         total = lambda key: sum(im["level"][key] for im in images) / len(images)
+        sse = lambda key: sum(im["metrics"][key]["sse"] for im in images)
         print(
-            f"  {ground} {unit}: {len(images)} crops, learned {total(learned):.3f}, form-oracle "
+            f"  {ground} {unit}: {len(images)} crops, learned / paper-Hapke {sse(learned) / sse('hapke_paper'):.3f}, "
+            f"level learned {total(learned):.3f}, form-oracle "
             f"{total('oracle_model_form'):.3f}, oracle {total('oracle'):.3f}; by phase " + ", ".join(cells)
         )
