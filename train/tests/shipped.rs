@@ -1,5 +1,5 @@
 //! The shipped models (`train/shipped/tycho-full-h1`, the recipe of docs/results.md trained at publication scale,
-//! and `many-craters-six-worlds-h1`, issue 62's recipe across worlds) are run directories like any `fit --out`: each loads with
+//! and `many-craters-steep-h1`, issue 62's recipe across worlds) are run directories like any `fit --out`: each loads with
 //! the default checkpoint and infers on a lunar DEM out of the box, with scales near the Moon-wide fit it started
 //! from.
 
@@ -25,7 +25,7 @@ fn the_tycho_full_model_loads_and_infers_scales_near_its_uniform_start() {
 fn the_many_craters_model_loads_and_infers_scales_near_its_uniform_start() {
     // The recipe fits no crater level: on the held-out world the last one made the wall and rim worse than the
     // network alone, and it was retired on validation (train/shipped/README.md).
-    loads_and_infers_scales_near_its_uniform_start("many-craters-six-worlds-h1", false);
+    loads_and_infers_scales_near_its_uniform_start("many-craters-steep-h1", false);
 }
 
 fn loads_and_infers_scales_near_its_uniform_start(name: &str, keeps_crater_level: bool) {
@@ -86,7 +86,7 @@ fn infers_scales_near_its_uniform_start(trained: &train::run_dir::TrainedRun<Fle
     assert_eq!(scales.len(), dem.width * dem.height);
     assert!(scales.iter().all(|s| s.is_finite()), "finite everywhere");
     // H1 multiplies the Moon-wide Hapke I/F. Each run started from its uniform fit (1.25 for tycho-full-h1, 1.19 for
-    // many-craters-six-worlds-h1, as its fit logged); their worlds' maria and highlands differ by 1.5x in albedo and
+    // many-craters-steep-h1, as its fit logged); their worlds' maria and highlands differ by 1.5x in albedo and
     // fresh material brightens by up to 1.6x, so a trained map stays within a factor 2.5 of that start on average.
     let mean = scales.iter().sum::<f64>() / scales.len() as f64;
     assert!((0.5..3.1).contains(&mean), "mean scale {mean}");
