@@ -15,6 +15,11 @@
 #                                            FIT_FLAGS="..." adds flags to the recipe for a trial. No crater level:
 #                                            on world 4's validation tiles it made the wall and rim worse than the
 #                                            network alone (docs/experiments.md, thirty-eighth session)
+#   many_craters.sh demo OUT RUN             the demo world (preset demo, seed 42) with the many-craters preset's unit map,
+#                                            framed by its one complex crater (manifests/demo-craters.csv; 5 km, under
+#                                            the training worlds' 8.3-14 km, so the frame's minimum diameter is lowered
+#                                            to 4 km) and published as a test world; RUN scored on all its test crops,
+#                                            framed and not: OUT/demo/eval-RUNNAME-{exact,unframed}
 #   many_craters.sh test OUT SEED RUN [N]    a test world, published three times from the same crops (framed by its
 #                                            exact catalogue, a perturbed one and one listing a phantom 18 km crater:
 #                                            docs/scripts/catalogue_variants.py), and RUN scored on N spread test
@@ -116,5 +121,33 @@ case $mode in
     score perturbed perturbed
     score phantom phantom
     ;;
-  *) echo "usage: many_craters.sh publish OUT SEED train|exact | train OUT RUN VAL SEED... | test OUT SEED RUN [N]" >&2; exit 2 ;;
+  demo)
+    run=$3
+    case $run in /*) ;; *) run=../$run ;; esac  # from OUT/demo
+    mkdir -p demo
+    cd demo
+    if [ ! -f world/world.json ]; then
+      { cat "$repo/manifests/world-demo.toml"
+        sed -n '/^\[unit_map\]/,/^displacement_wavelength_m/p' "$repo/manifests/world-many-craters.toml"
+      } > world-demo-units.toml
+      "$bin/g2r-pipeline" synth --config world-demo-units.toml --seed 42 --out world > world.log 2>&1
+    fi
+    sed -e 's#\.\./out/demo-world#world#g' -e 's#\.\./out/demo-dataset#dataset#' \
+        -e "s|^# crater_catalogue = .*|crater_catalogue = \"$repo/manifests/demo-craters.csv\"|" \
+        -e 's|^# unit_map = .*|unit_map = "world/map/units.tif"|' \
+        -e 's/^context_gsd_m = .*/&\ncrater_frame_min_diameter_m = 4000.0/' \
+        -e 's/^val_fraction = .*/val_fraction = 0.05/' -e 's/^test_fraction = .*/test_fraction = 0.85/' \
+        "$repo/manifests/demo.toml" > manifest-dataset.toml
+    publish dataset
+    for variant in exact unframed; do
+      scored=eval-$(basename "$run")-$variant
+      flags=()
+      [ $variant = unframed ] && flags=(--without-crater-frames)
+      if [ ! -f $scored/metrics.json ]; then
+        "$bin/g2r-train" eval --run "$run" --data dataset/dataset --split test --world world --out $scored \
+          "${flags[@]}" > $scored.log 2>&1
+      fi
+    done
+    ;;
+  *) echo "usage: many_craters.sh publish OUT SEED train|exact | train OUT RUN VAL SEED... | test OUT SEED RUN [N] | demo OUT RUN" >&2; exit 2 ;;
 esac
