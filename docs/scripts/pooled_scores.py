@@ -1,5 +1,6 @@
 """Learned / paper-Hapke SSE of one or more `g2r-train eval` outputs, each alone and pooled: overall, the Hapke → oracle
-gap closed, and by terrain class, class × unit and incidence band. Pooled as the records pool (60.18 on): each
+gap closed, and by terrain class, class × unit, incidence band and whether the crop's inputs lay within the run's
+training range (evaluations of runs that keep one). Pooled as the records pool (60.18 on): each
 method's pixel MSE times its crops, summed over the evaluations, so a bigger split weighs more; a ratio of pooled
 pixel MSEs equals the ratio of pooled per-image SSEs, since every crop has the same pixel count.
 
@@ -12,7 +13,7 @@ import os
 import sys
 
 LEARNED, BASELINE, ORACLE = 'learned', 'hapke_paper', 'oracle'
-BREAKDOWNS = ('terrain_class', 'terrain_class_and_unit', 'incidence_deg')
+BREAKDOWNS = ('terrain_class', 'terrain_class_and_unit', 'incidence_deg', 'training_range')
 
 
 def overall(metrics):
@@ -54,7 +55,8 @@ def report(name, whole, breakdowns):
     for by in BREAKDOWNS:
         cells = [f"{group} {ratio(scores):.3f} ({scores[LEARNED][0]})"
                  for group, scores in breakdowns[by].items() if scores[BASELINE][1] > 0]
-        print(f"  by {by}: " + "; ".join(cells))
+        if cells:
+            print(f"  by {by}: " + "; ".join(cells))
 
 
 def main(dirs):

@@ -549,6 +549,8 @@ pub fn run_job<B: TrainOps>(job: &ReportJob, device: &B::Device) -> Result<Repor
                 crater_frames,
                 unit_map: None,
                 crater_level: trained.crater_level.clone(),
+                input_range: trained.input_range.clone(),
+                clamp_crater_relief: false,
             };
             let rows = overlap_rows::<B>(
                 &trained.net,

@@ -1,5 +1,5 @@
 //! A run directory: what defines a run (`config.json`: [`FitConfig`], versioned in [`crate::fit_config`]), its input normalisation
-//! (`normalisation.json`), its history (`metrics.jsonl`), its checkpoints
+//! (`normalisation.json`) and range (`input_range.json`), its history (`metrics.jsonl`), its checkpoints
 //! (`best/`, `ema-best/`, `last/` with the optimiser state and the resume [`Cursor`]), and loading trained runs for
 //! `eval`, `infer` and `report`.
 
@@ -12,7 +12,9 @@ use burn::prelude::*;
 use burn::record::{FullPrecisionSettings, NamedMpkFileRecorder, Recorder};
 use burn::tensor::backend::AutodiffBackend;
 
-use crate::data::InputNormalisation;
+use crate::data::{
+    InputNormalisation, InputRange, SampleSource, INPUT_RANGE_FILE, INPUT_RANGE_SAMPLES,
+};
 use crate::fit_config::FitConfig;
 use crate::metrics::AggregateMetrics;
 use crate::model::UNet;
@@ -201,6 +203,41 @@ pub fn load_normalisation(run: &Path) -> Result<RunNormalisation> {
     read_json(&run.join("normalisation.json"))
 }
 
+/// A run's input range (`input_range.json`), `None` when it keeps none (trained before ranges were kept:
+/// [`record_input_range`] measures one).
+pub fn load_input_range(run: &Path) -> Result<Option<InputRange>> {
+    let path = run.join(INPUT_RANGE_FILE);
+    if !path.exists() {
+        return Ok(None);
+    }
+    read_json(&path).map(Some)
+}
+
+/// Measure the range of a run's inputs over the train split of `source`, the publications `datasets` (in the pool's
+/// order), and keep it in the run (`input_range.json`). They must be the ones the run trained on, in its order
+/// (its normalisation's dataset, then its config's `also_train_on`): a range over other data would count the wrong
+/// crops as outside.
+pub fn record_input_range(
+    run: &Path,
+    source: &dyn SampleSource,
+    datasets: Vec<String>,
+) -> Result<InputRange> {
+    let config: FitConfig = read_json(&run.join("config.json"))?;
+    let trained_on: Vec<String> = std::iter::once(load_normalisation(run)?.dataset)
+        .chain(config.also_train_on)
+        .collect();
+    if datasets != trained_on {
+        bail!(
+            "{}: the run trained on {trained_on:?}, but the data given holds {datasets:?}: give the same publications \
+             in the same order (--data, then each --also-train-on)",
+            run.display()
+        );
+    }
+    let range = InputRange::of_source(source, datasets, INPUT_RANGE_SAMPLES)?;
+    write_json(&run.join(INPUT_RANGE_FILE), &range)?;
+    Ok(range)
+}
+
 /// The input normalisation a run's network was trained with, checked against its config (planes it expects).
 pub fn run_input(run: &Path, config: &FitConfig) -> Result<InputNormalisation> {
     let input = load_normalisation(run)?.input;
@@ -294,6 +331,9 @@ pub struct TrainedRun<B: Backend> {
     /// The crater level kept beside the network (`crater_level.json`, written by `g2r-train crater-level`):
     /// `eval` and `infer` set each crater crop's level with it.
     pub crater_level: Option<crate::crater_level::CraterLevel>,
+    /// The range its inputs spanned over its train crops (`input_range.json`), against which `eval` and `infer`
+    /// count the crops they are given; `None` for runs trained before it was kept.
+    pub input_range: Option<crate::data::InputRange>,
 }
 
 /// A finished (or interrupted) run's config, input normalisation and network in inference mode, from the chosen
@@ -325,12 +365,14 @@ pub fn load_trained<B: Backend>(
         .map(|p| p.display().to_string())
         .unwrap_or_else(|_| checkpoint.display().to_string());
     let crater_level = crate::crater_level::load(run, config.model)?;
+    let input_range = load_input_range(run)?;
     Ok(TrainedRun {
         config,
         input,
         net,
         checkpoint,
         crater_level,
+        input_range,
     })
 }
 

@@ -79,6 +79,7 @@ fn eval_rows_equal_validation_and_direct_baselines() {
         panels: 2,
         symmetry_mean: false,
         without_crater_frames: false,
+        clamp_crater_relief: false,
     };
     let input = InputNormalisation::relief(source.manifest().dem_std_m);
     let calibration = calibrate(&source, 6, BrdfModel::M2).unwrap();
@@ -106,6 +107,7 @@ fn eval_rows_equal_validation_and_direct_baselines() {
         net: net.clone(),
         checkpoint: "best/model.mpk".into(),
         crater_level: None,
+        input_range: None,
     }];
     let report = evaluate(
         &runs,
@@ -271,6 +273,7 @@ fn ensemble_learned_is_the_mean_of_its_members_renderings() {
                     .init::<Flex>(&device),
                 checkpoint: format!("seed-{seed}"),
                 crater_level: None,
+                input_range: None,
             }
         })
         .collect();
@@ -282,6 +285,7 @@ fn ensemble_learned_is_the_mean_of_its_members_renderings() {
         panels: 0,
         symmetry_mean: false,
         without_crater_frames: false,
+        clamp_crater_relief: false,
     };
     let members: Vec<Vec<f64>> = runs
         .iter()
@@ -512,6 +516,7 @@ fn a_crater_level_sets_learned_in_its_band_and_keeps_the_network_beside_it() {
         net,
         checkpoint: "last/model.mpk".into(),
         crater_level: Some(level),
+        input_range: None,
     }];
     let options = EvalOptions {
         split: Split::Val,
@@ -521,6 +526,7 @@ fn a_crater_level_sets_learned_in_its_band_and_keeps_the_network_beside_it() {
         panels: 0,
         symmetry_mean: false,
         without_crater_frames: false,
+        clamp_crater_relief: false,
     };
     let calibration = calibrate(&source, 6, BrdfModel::H1).unwrap();
     let mut seen = Vec::new();

@@ -464,6 +464,8 @@ fn infer_framed(
         crater_frames: frames.map(std::sync::Arc::new),
         unit_map: None,
         crater_level: None,
+        input_range: None,
+        clamp_crater_relief: false,
     };
     infer_params(
         net,
@@ -634,6 +636,8 @@ fn a_crater_level_sets_the_level_of_the_crops_in_its_band_only() {
             crater_frames: frames,
             unit_map: None,
             crater_level: level,
+            input_range: None,
+            clamp_crater_relief: false,
         };
         infer_params(
             &net,
@@ -696,6 +700,8 @@ fn report_overlap_rows_apply_the_crater_level_as_infer_does() {
         crater_frames: frames,
         unit_map: None,
         crater_level: Some(train::testing::constant_crater_level(0.0, 1.0, 0.4, 1.0)),
+        input_range: None,
+        clamp_crater_relief: false,
     };
     let device = Default::default();
     let overlaps = [0, 16];
@@ -833,6 +839,8 @@ fn a_unit_map_reaches_a_unit_input_network_and_an_unmapped_site_reads_as_no_map(
             crater_frames: None,
             unit_map,
             crater_level: None,
+            input_range: None,
+            clamp_crater_relief: false,
         };
         infer_params(
             &net,
@@ -859,4 +867,89 @@ fn a_unit_map_reaches_a_unit_input_network_and_an_unmapped_site_reads_as_no_map(
             "{what}: max change {moved:e}"
         );
     }
+}
+
+/// `infer` counts every crop once against the run's training range: with overlap 0 on a DEM of whole crops, the crops
+/// are the DEM's 128-px tiles, and those whose height std lies above the range are the ones counted above it.
+#[test]
+fn infer_counts_the_crops_whose_inputs_lie_outside_the_training_range() {
+    use train::data::{InputRange, Interval};
+    let dem = dem(3 * CROP_PX, 2 * CROP_PX, 0);
+    // Each tile's height std over its finite heights, computed here from the DEM.
+    let mut stds: Vec<f64> = (0..2)
+        .flat_map(|tr| (0..3).map(move |tc| (tc, tr)))
+        .map(|(tc, tr)| {
+            let heights: Vec<f64> = (0..CROP_PX * CROP_PX)
+                .map(|k| {
+                    let (c, r) = (tc * CROP_PX + k % CROP_PX, tr * CROP_PX + k / CROP_PX);
+                    f64::from(dem.data[r * dem.width + c])
+                })
+                .filter(|z| z.is_finite()) // the DEM's holes
+                .collect();
+            let mean = heights.iter().sum::<f64>() / heights.len() as f64;
+            (heights.iter().map(|z| (z - mean).powi(2)).sum::<f64>() / heights.len() as f64).sqrt()
+        })
+        .collect();
+    stds.sort_by(f64::total_cmp);
+    assert!(stds[2] < stds[3], "tiles of distinct roughness: {stds:?}");
+    let range = InputRange {
+        crops: 1,
+        datasets: vec!["synthetic".into()],
+        inputs: [(
+            "crop_height_std_m".to_string(),
+            Interval {
+                min: 0.0,
+                max: (stds[2] + stds[3]) / 2.0,
+            },
+        )]
+        .into(),
+    };
+    let options = InferOptions {
+        overlap: 0,
+        batch_size: 4,
+        input: InputNormalisation::relief(20.0),
+        crater_frames: None,
+        unit_map: None,
+        crater_level: None,
+        input_range: Some(range),
+        clamp_crater_relief: false,
+    };
+    let net = random_net();
+    let maps = infer_params(
+        &net,
+        BrdfModel::M2,
+        &dem,
+        &options,
+        &Default::default(),
+        |_, _| {},
+    )
+    .unwrap();
+    assert_eq!(maps.crops, 6);
+    let report = maps.inputs_outside_training_range.unwrap();
+    assert_eq!((report.crops, report.outside_any), (6, 3));
+    let count = report.inputs["crop_height_std_m"];
+    assert_eq!((count.crops, count.below, count.above), (6, 0, 3));
+    assert!(
+        (count.seen.max - stds[5]).abs() <= 1e-9 * stds[5],
+        "{count:?} against {stds:?}"
+    );
+    assert!(
+        (count.seen.min - stds[0]).abs() <= 1e-9 * stds[0],
+        "{count:?} against {stds:?}"
+    );
+    // Clamping a relief needs a run that feeds one.
+    let err = infer_params(
+        &net,
+        BrdfModel::M2,
+        &dem,
+        &InferOptions {
+            clamp_crater_relief: true,
+            ..options
+        },
+        &Default::default(),
+        |_, _| {},
+    )
+    .err()
+    .expect("a relief-only run has no relief to clamp");
+    assert!(err.to_string().contains("--crater-relief-input"), "{err}");
 }

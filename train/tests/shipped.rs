@@ -69,6 +69,8 @@ fn infers_scales_near_its_uniform_start(trained: &train::run_dir::TrainedRun<Fle
         crater_frames: None,
         unit_map: None,
         crater_level: None,
+        input_range: None,
+        clamp_crater_relief: false,
     };
     // 2 × 1.6 km of plain at the region's heights with a 400 m bowl.
     let dem = train::testing::bowl_dem(400, 320, -1400.0);

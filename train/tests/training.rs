@@ -859,3 +859,151 @@ fn a_pool_of_publications_trains_as_one_holding_both_train_splits() {
             .unwrap();
     assert_eq!(saved.also_train_on, ["more"]);
 }
+
+/// A fit keeps the range its inputs spanned over the train crops (`input_range.json`); `eval` counts the crops
+/// outside it, and with `clamp_crater_relief` feeds each crater's relief at the range's edge, exactly as a
+/// dataset that carried the edge value.
+#[test]
+fn a_run_keeps_its_input_range_and_eval_counts_and_clamps_against_it() {
+    use dataset::contract::schema::Split;
+    use train::evaluation::{evaluate, EvalOptions};
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    // synthetic_samples places sample i at ρ = 0.2 i with relief 0.04 + 0.01 i: framed (ρ < 3) for i < 15.
+    let train_samples = synthetic_samples(40, 5);
+    // Validation: the first four train crops (so every other input is within range), their reliefs replaced.
+    let with_reliefs = |reliefs: [f64; 4]| -> Vec<_> {
+        train_samples[..4]
+            .iter()
+            .zip(reliefs)
+            .map(|(s, r)| {
+                let mut s = s.clone();
+                s.crater.as_mut().unwrap().relief_to_diameter = Some(r);
+                s
+            })
+            .collect()
+    };
+    let data = tmp.path().join("data");
+    train::testing::write_synthetic_dataset(
+        &data,
+        train_samples.clone(),
+        with_reliefs([0.30, 0.01, 0.10, 0.12]),
+    );
+    let source: Arc<dyn SampleSource> = Arc::new(LocalSource::open(&data).unwrap());
+    let cfg = FitConfig {
+        context_input: true,
+        crater_input: true,
+        crater_frame_input: true,
+        crater_relief_input: true,
+        ..config(BrdfModel::M2, 1, 1e-3, 8, false)
+    };
+    let device = Default::default();
+    let run = tmp.path().join("run");
+    fit::<Ad>(source.clone(), &cfg, &run, false, None, &device, false).unwrap();
+    let trained =
+        train::run_dir::load_trained::<Flex>(&run, train::run_dir::Checkpoint::Auto, &device)
+            .unwrap();
+    let range = trained
+        .input_range
+        .clone()
+        .expect("fit keeps input_range.json");
+    assert_eq!(range.crops, 40);
+    let relief = range.inputs["crater_relief_to_diameter"];
+    assert_eq!((relief.min, relief.max), (0.04, 0.04 + 0.01 * 14.0));
+    let off_dem = range.inputs["context_off_dem"];
+    assert_eq!((off_dem.min, off_dem.max), (0.0, 0.0));
+
+    let options = EvalOptions {
+        split: Split::Val,
+        max_samples: None,
+        batch_size: 4,
+        calibration_samples: 8,
+        panels: 0,
+        symmetry_mean: false,
+        without_crater_frames: false,
+        clamp_crater_relief: false,
+    };
+    let eval = |source: &dyn SampleSource, clamp: bool| {
+        let calibration = train::uniform_fit::calibrate(source, 8, BrdfModel::M2).unwrap();
+        let options = EvalOptions {
+            clamp_crater_relief: clamp,
+            ..options.clone()
+        };
+        evaluate(
+            std::slice::from_ref(&trained),
+            source,
+            &options,
+            calibration,
+            None,
+            &device,
+            |_, _, _| Ok(()),
+        )
+        .unwrap()
+    };
+    let learned_sse = |report: &train::evaluation::EvalReport| {
+        report
+            .methods
+            .iter()
+            .find(|m| m.name == "learned")
+            .unwrap()
+            .aggregate
+            .sse
+    };
+    let raw = eval(source.as_ref(), false);
+    let counted = raw.inputs_outside_training_range.as_ref().unwrap();
+    assert_eq!((counted.crops, counted.outside_any), (4, 2));
+    let relief_count = counted.inputs["crater_relief_to_diameter"];
+    assert_eq!((relief_count.below, relief_count.above), (1, 1));
+    assert_eq!((relief_count.seen.min, relief_count.seen.max), (0.01, 0.30));
+    let within: Vec<Option<bool>> = raw
+        .per_image
+        .iter()
+        .map(|i| i.within_training_range)
+        .collect();
+    assert_eq!(within, [Some(false), Some(false), Some(true), Some(true)]);
+    let by_range = raw
+        .breakdowns
+        .iter()
+        .find(|b| b.by == "training_range")
+        .unwrap();
+    let groups: Vec<(&str, usize)> = by_range
+        .groups
+        .iter()
+        .map(|g| (g.group.as_str(), g.images))
+        .collect();
+    assert_eq!(groups, [("inputs within", 2), ("an input outside", 2)]);
+    // Clamped, the crops render exactly as crops that carried the range's edges.
+    let clamped = eval(source.as_ref(), true);
+    assert!(clamped.learned_crater_relief_clamped);
+    let edges = tmp.path().join("edges");
+    train::testing::write_synthetic_dataset(
+        &edges,
+        train_samples.clone(),
+        with_reliefs([relief.max, relief.min, 0.10, 0.12]),
+    );
+    let at_edges = eval(&LocalSource::open(&edges).unwrap(), false);
+    assert_eq!(learned_sse(&clamped), learned_sse(&at_edges));
+    assert_ne!(learned_sse(&clamped), learned_sse(&raw));
+    // The count is of the site's own inputs, clamped or not.
+    assert_eq!(
+        clamped.inputs_outside_training_range,
+        raw.inputs_outside_training_range
+    );
+
+    // A range over other data is refused: it would count the wrong crops as outside.
+    let other = tmp.path().join("other");
+    train::testing::write_synthetic_dataset(
+        &other,
+        synthetic_samples(8, 9),
+        synthetic_samples(2, 9),
+    );
+    let other_source = LocalSource::open(&other).unwrap();
+    let name = other_source.manifest().name.clone();
+    let err = train::run_dir::record_input_range(&run, &other_source, vec![name, "another".into()])
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("trained on") && err.contains("same publications"),
+        "{err}"
+    );
+}

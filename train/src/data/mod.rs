@@ -1,13 +1,15 @@
 //! Streaming training data: a [`SampleSource`] (local shards, a dataset server over HTTP, or object storage),
 //! the epoch order from [`dataset::contract::planner`], dihedral augmentation, and a background thread that prefetches host
-//! batches while the device computes. In data-flow order: `sources` → `normalisation` (fitted once) →
+//! batches while the device computes. In data-flow order: `sources` → `normalisation` and `input_range` (fitted once) →
 //! `batch` (samples to a host batch) → the epoch stream here.
 
 mod batch;
+mod input_range;
 mod normalisation;
 mod sources;
 
 pub use batch::*;
+pub use input_range::*;
 pub use normalisation::*;
 pub use sources::*;
 

@@ -40,7 +40,10 @@ use dataset::contract::schema::{Sample, Split, CROP_PX};
 use rayon::prelude::*;
 
 use crate::baseline::truth_and_valid;
-use crate::data::{for_each_sample_group, mean_slope_deg, SampleSource};
+use crate::data::{
+    for_each_sample_group, mean_slope_deg, CropInputs, InputRange, RangeCheck, RangeReport,
+    SampleSource,
+};
 use crate::feature_matching::{FeatureMatcher, MatchStats};
 use crate::kernels::TrainOps;
 use crate::metrics::{image_metrics, MetricsAccumulator};
@@ -63,6 +66,10 @@ pub struct EvalOptions {
     /// Feed every crop as if the dataset had no crater catalogue: a crater frame input unframed, no crater
     /// level. Scores what a frame-input run does on a site with no catalogue, against what the catalogue adds.
     pub without_crater_frames: bool,
+    /// Feed each framed crop its crater's relief over diameter clamped into the run's training range
+    /// ([`crate::data::InputRange::clamp_crater_relief`]): what the run renders when a crater fresher than any it
+    /// trained on is fed as the freshest one it saw.
+    pub clamp_crater_relief: bool,
 }
 
 /// Evaluate trained `runs` on a split; writes nothing (see [`write_report`]). One run is the usual case; with
@@ -94,6 +101,14 @@ pub fn evaluate<B: TrainOps>(
             );
         }
     }
+    // The first run names the model, and its training range is the one crops are counted against.
+    let range = runs[0].input_range.as_ref();
+    let clamp = options
+        .clamp_crater_relief
+        .then(|| InputRange::for_clamping(range, &runs[0].input))
+        .transpose()
+        .with_context(|| runs[0].checkpoint.clone())?;
+    let mut range_check = range.map(InputRange::check);
     let mut accumulators: BTreeMap<String, MetricsAccumulator> = BTreeMap::new();
     let matcher = FeatureMatcher::default();
     let mut matches: BTreeMap<&str, MatchStats> = BTreeMap::new();
@@ -119,16 +134,25 @@ pub fn evaluate<B: TrainOps>(
         "eval",
         |samples| {
             for chunk in samples.chunks(options.batch_size) {
-                let unframed: Vec<Sample>;
+                let changed: Vec<Sample>;
                 let fed = if options.without_crater_frames {
-                    unframed = chunk
+                    changed = chunk
                         .iter()
                         .map(|s| Sample {
                             crater: None,
                             ..s.clone()
                         })
                         .collect();
-                    unframed.as_slice()
+                    changed.as_slice()
+                } else if let Some(range) = clamp {
+                    changed = chunk
+                        .iter()
+                        .map(|s| Sample {
+                            crater: s.crater.as_ref().map(|c| range.clamp_crater_relief(c)),
+                            ..s.clone()
+                        })
+                        .collect();
+                    changed.as_slice()
                 } else {
                     chunk
                 };
@@ -151,7 +175,16 @@ pub fn evaluate<B: TrainOps>(
                         score_image(sample, renderings, &matcher, truth_maps)
                     })
                     .collect();
-                for (sample, scored) in chunk.iter().zip(scored) {
+                for (sample, mut scored) in chunk.iter().zip(scored) {
+                    if let Some(check) = range_check.as_mut() {
+                        // The site's own inputs, before any clamping; unframed as fed without frames.
+                        let mut inputs = CropInputs::of_sample(sample);
+                        if options.without_crater_frames {
+                            inputs.crater_relative_height_m = None;
+                            inputs.crater_relief_to_diameter = None;
+                        }
+                        scored.image.within_training_range = Some(!check.add(&inputs));
+                    }
                     framed_crops +=
                         usize::from(sample.crater.is_some() && !options.without_crater_frames);
                     crater_level_crops += usize::from(
@@ -199,6 +232,8 @@ pub fn evaluate<B: TrainOps>(
             .find(|m| m.name == name)
             .map(|m| m.aggregate.sse)
     };
+    let inputs_outside_training_range = range_check.map(RangeCheck::finish);
+    RangeReport::log(inputs_outside_training_range.as_ref());
     let learned = sse("learned").context("no learned metrics")?;
     let paper = sse("hapke_paper").context("no Hapke metrics")?;
     let scaled = sse("hapke_scaled").context("no Hapke metrics")?;
@@ -209,6 +244,8 @@ pub fn evaluate<B: TrainOps>(
         learned_symmetry_mean: options.symmetry_mean,
         learned_ensemble_runs: runs.len(),
         learned_checkpoints: runs.iter().map(|r| r.checkpoint.clone()).collect(),
+        learned_crater_relief_clamped: options.clamp_crater_relief,
+        inputs_outside_training_range,
         calibration: calibration.clone(),
         methods: methods.clone(),
         learned_over_hapke_paper_sse: learned / paper,
@@ -326,6 +363,7 @@ pub(crate) fn image_scores<N: AsRef<str>>(
         highland: ground.map(|g| g.highland),
         mean_slope_deg: mean_slope_deg(sample),
         lit_fraction: lit_fraction(sample, &valid),
+        within_training_range: None,
         level,
         metrics,
     };
@@ -600,6 +638,7 @@ mod tests {
                     highland: Some(highland),
                     mean_slope_deg: 12.0,
                     lit_fraction: 0.97,
+                    within_training_range: None,
                     level: [("learned".to_string(), learned / paper)].into(),
                     metrics,
                 }
@@ -693,6 +732,7 @@ mod tests {
             highland: None,
             mean_slope_deg: 0.0,
             lit_fraction: 1.0,
+            within_training_range: None,
             level: BTreeMap::new(),
             metrics: [("learned", learned), ("hapke_scaled", scaled)]
                 .into_iter()

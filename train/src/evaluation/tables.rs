@@ -23,6 +23,9 @@ pub struct PerImage {
     pub mean_slope_deg: f64,
     /// Mean visible fraction of the sun disk over the crop's valid pixels.
     pub lit_fraction: f64,
+    /// Whether every input of the crop lay within the run's training range (`input_range.json`); `None` when the
+    /// run keeps none.
+    pub within_training_range: Option<bool>,
     /// Each method's mean over the compared pixels divided by the ground truth's: the brightness level it
     /// renders (1 = right on average; the paper's normalisation makes it 1 by construction).
     pub level: BTreeMap<String, f64>,
@@ -41,7 +44,8 @@ pub struct PerGroup {
     pub sse: BTreeMap<String, f64>,
 }
 
-/// The images grouped by one property (terrain class, unit, incidence, slope, lit fraction).
+/// The images grouped by one property (terrain class, unit, incidence, slope, lit fraction, and whether their
+/// inputs lay within the run's training range).
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct Breakdown {
     pub by: String,
@@ -167,6 +171,17 @@ pub fn breakdowns(per_image: &[PerImage]) -> Vec<Breakdown> {
             groups: group_images(per_image, |i| binned(value(i), edges)),
         });
     }
+    if per_image.iter().any(|i| i.within_training_range.is_some()) {
+        out.push(Breakdown {
+            by: "training_range".into(),
+            groups: group_images(per_image, |i| {
+                i.within_training_range.map(|within| match within {
+                    true => Bin(0, "inputs within".into()),
+                    false => Bin(1, "an input outside".into()),
+                })
+            }),
+        });
+    }
     out
 }
 
@@ -227,6 +242,12 @@ pub struct EvalReport {
     pub learned_ensemble_runs: usize,
     /// The checkpoint each run's network came from, relative to its run directory (`--checkpoint`).
     pub learned_checkpoints: Vec<String>,
+    /// "learned" fed each crater's relief over diameter clamped into the run's training range
+    /// (`--clamp-crater-relief`).
+    pub learned_crater_relief_clamped: bool,
+    /// The crops whose inputs lay outside the first run's training range (`input_range.json`); `None` when the
+    /// run keeps none.
+    pub inputs_outside_training_range: Option<crate::data::RangeReport>,
     pub calibration: Calibration,
     pub methods: Vec<MethodResult>,
     /// Mean per-image SSE of learned over hapke_paper (the paper's −38 % is 0.62).
@@ -272,6 +293,14 @@ pub fn markdown(report: &EvalReport) -> String {
         "learned: checkpoint {}.\n\n",
         report.learned_checkpoints.join(", ")
     ));
+    if report.learned_crater_relief_clamped {
+        text.push_str(
+            "learned: each crater's relief over diameter clamped into the run's training range (--clamp-crater-relief).\n\n",
+        );
+    }
+    if let Some(range) = &report.inputs_outside_training_range {
+        text.push_str(&format!("Inputs: {}.\n\n", range.summary()));
+    }
     if report.learned_ensemble_runs > 1 {
         text.push_str(&format!(
             "learned: mean of {} trained runs' renderings (--ensemble).\n\n",

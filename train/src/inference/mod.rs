@@ -31,7 +31,9 @@ use dataset::science::brdf::{leaky_relu, BrdfModel};
 use dataset::science::raster::Raster;
 
 use crate::crater_level::CraterLevel;
-use crate::data::{grid_mean_slope_deg, InputNormalisation};
+use crate::data::{
+    grid_mean_slope_deg, CropInputs, InputNormalisation, InputRange, RangeCheck, RangeReport,
+};
 use crate::kernels::TrainOps;
 use crate::model::UNet;
 use crate::run_dir::{load_ensemble, Checkpoint};
@@ -51,6 +53,10 @@ pub struct InferOptions {
     /// The run's crater level ([`crate::crater_level`]): it sets the level of the crops in its band of a crater's
     /// frame (needs `crater_frames`; without them the maps are the network's alone, and [`ParamMaps`] says so).
     pub crater_level: Option<CraterLevel>,
+    /// The run's training range of inputs (`input_range.json`): crops outside it are counted ([`ParamMaps`]).
+    pub input_range: Option<InputRange>,
+    /// Feed each framed crop its crater's relief over diameter clamped into `input_range`.
+    pub clamp_crater_relief: bool,
 }
 
 /// Parameter maps on the DEM grid: one band per BRDF parameter, LeakyReLU applied, NaN where the DEM has no data.
@@ -63,6 +69,9 @@ pub struct ParamMaps {
     /// Crops whose level the run's crater level set; `None` when it was not applied (no crater level, or no
     /// crater frames to place the crops with).
     pub crater_level_crops: Option<usize>,
+    /// The crops whose inputs lay outside the run's training range (the first member's, for an ensemble); `None`
+    /// when the run keeps none.
+    pub inputs_outside_training_range: Option<RangeReport>,
 }
 
 impl ParamMaps {
@@ -156,6 +165,11 @@ pub fn infer_params<B: TrainOps>(
         _ => None,
     };
     let mut crater_level_crops = 0usize;
+    let clamp = options
+        .clamp_crater_relief
+        .then(|| InputRange::for_clamping(options.input_range.as_ref(), &options.input))
+        .transpose()?;
+    let mut range_check = options.input_range.as_ref().map(InputRange::check);
     let gsd_m = dem.transform.gsd_m();
     // The context windows are cut from the whole DEM, as the project stage cut the training samples'.
     let context = options
@@ -203,14 +217,25 @@ pub fn infer_params<B: TrainOps>(
                     (at, slope)
                 }));
             }
-            if let Some(sampler) = &context {
-                let window = sampler.window(x, y);
-                // Only a run that feeds the crater input gets it.
-                let crater_input = crater_frames.and(crater);
+            // Only a run that feeds the crater input gets it.
+            let crater_input = crater_frames.and(crater);
+            let context_window = context.as_ref().map(|sampler| sampler.window(x, y));
+            if let Some(check) = range_check.as_mut() {
+                check.add(&CropInputs::of(
+                    &crop,
+                    context_window.as_deref(),
+                    crater_input.as_ref(),
+                ));
+            }
+            if let Some(window) = &context_window {
+                let crater_input = match clamp {
+                    Some(range) => crater_input.map(|c| range.clamp_crater_relief(&c)),
+                    None => crater_input,
+                };
                 let highland = units.as_ref().map(|u| u.window(x, y));
                 options.input.push_context(
                     &crop,
-                    &window,
+                    window,
                     crater_input.as_ref(),
                     highland.as_deref(),
                     &mut context_input,
@@ -305,6 +330,7 @@ pub fn infer_params<B: TrainOps>(
         bands,
         crops: origins.len(),
         crater_level_crops: level.map(|_| crater_level_crops),
+        inputs_outside_training_range: range_check.map(RangeCheck::finish),
     })
 }
 
@@ -385,6 +411,8 @@ pub struct InferJob<'a> {
     pub crater_frames: Option<std::sync::Arc<CraterFrames>>,
     /// The site's unit map, for runs that feed one.
     pub unit_map: Option<std::sync::Arc<Raster>>,
+    /// Feed each framed crop its crater's relief over diameter clamped into the run's training range.
+    pub clamp_crater_relief: bool,
 }
 
 /// Every member's parameter maps over the whole DEM, averaged. `progress(member, done, total)` reports batches.
@@ -407,6 +435,8 @@ pub fn run_job<B: TrainOps>(
             crater_frames: job.crater_frames.clone(),
             unit_map: job.unit_map.clone(),
             crater_level: trained.crater_level.clone(),
+            input_range: trained.input_range.clone(),
+            clamp_crater_relief: job.clamp_crater_relief,
         };
         members.push(
             infer_params::<B>(

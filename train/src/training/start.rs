@@ -17,7 +17,8 @@ use crate::fit_config::FitConfig;
 use crate::kernels::TrainBackend;
 use crate::model::UNet;
 use crate::run_dir::{
-    read_history, read_json, run_input, write_json, Cursor, EpochMetrics, Rec, RunNormalisation,
+    read_history, read_json, record_input_range, run_input, write_json, Cursor, EpochMetrics, Rec,
+    RunNormalisation,
 };
 
 /// Train crops the elevation input's mean and std are taken over (spread over the split).
@@ -187,6 +188,11 @@ pub(super) fn start_or_resume<B: TrainBackend>(
                     crater_frame: source.manifest().crater_frame.clone(),
                 },
             )?;
+            // The range the inputs span over the train crops, against which `eval` and `infer` count a new site's.
+            let datasets = std::iter::once(source.manifest().name.clone())
+                .chain(config.also_train_on.iter().cloned())
+                .collect();
+            record_input_range(out, source, datasets)?;
         }
         B::seed(device, keyed_u64(seed, "init", 0));
         let net = net_config.init::<B>(device);

@@ -11,7 +11,8 @@ use train::with_backend;
 use super::RunsArgs;
 
 /// Evaluate a run on held-out tiles against the Hapke baselines, Lunar-Lambert and (with --world) the oracle;
-/// writes metrics.json, metrics.md and PNG panels (GT | each method | |learned - GT|).
+/// writes metrics.json, metrics.md and PNG panels (GT | each method | |learned - GT|), and counts the crops whose
+/// inputs lie outside the run's training range (input_range.json).
 #[derive(Args, Debug)]
 pub struct EvalArgs {
     #[command(flatten)]
@@ -48,6 +49,11 @@ pub struct EvalArgs {
     /// catalogue listing craters that are not there, what it costs).
     #[arg(long)]
     pub without_crater_frames: bool,
+    /// Feed each framed crop its crater's relief over diameter clamped into the run's training range
+    /// (input_range.json): a crater fresher than any the run trained on is fed as the freshest it saw. Against
+    /// the same eval without it, this is what the out-of-range relief costs.
+    #[arg(long, conflicts_with = "without_crater_frames")]
+    pub clamp_crater_relief: bool,
 }
 
 pub fn run(args: EvalArgs) -> Result<()> {
@@ -63,6 +69,7 @@ pub fn run(args: EvalArgs) -> Result<()> {
         panels,
         symmetry_mean,
         without_crater_frames,
+        clamp_crater_relief,
     } = args;
     let source = open_source(&data)?;
     let out = out.unwrap_or_else(|| runs.run.join(format!("eval-{split}")));
@@ -81,6 +88,7 @@ pub fn run(args: EvalArgs) -> Result<()> {
             panels,
             symmetry_mean,
             without_crater_frames,
+            clamp_crater_relief,
         },
     };
     let report = with_backend!(runs.backend, B => {

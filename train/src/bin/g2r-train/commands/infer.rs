@@ -10,7 +10,8 @@ use train::with_backend;
 use super::{CraterCatalogueArgs, RunsArgs};
 
 /// BRDF parameter maps for a whole DEM: overlapping crops blended seamlessly, written as a GeoTIFF on the
-/// DEM's exact grid (same CRS and geotransform; one band per parameter, LeakyReLU applied; NaN nodata).
+/// DEM's exact grid (same CRS and geotransform; one band per parameter, LeakyReLU applied; NaN nodata). Crops
+/// whose inputs lie outside the run's training range (input_range.json) are counted and logged.
 #[derive(Args, Debug)]
 pub struct InferArgs {
     #[command(flatten)]
@@ -36,6 +37,11 @@ pub struct InferArgs {
     /// Without it such a run treats every crop as unmapped.
     #[arg(long, value_name = "RASTER")]
     pub unit_map: Option<PathBuf>,
+    /// Feed each framed crop its crater's relief over diameter clamped into the run's training range
+    /// (input_range.json): a crater fresher than any the run trained on is fed as the freshest it saw, rather than
+    /// extrapolated from. Crops outside the range are counted and logged either way.
+    #[arg(long, requires = "catalogue")]
+    pub clamp_crater_relief: bool,
 }
 
 pub fn run(args: InferArgs) -> Result<()> {
@@ -48,6 +54,7 @@ pub fn run(args: InferArgs) -> Result<()> {
         dem_std_m,
         craters,
         unit_map,
+        clamp_crater_relief,
     } = args;
     let progress = dataset::progress::Progress::start("infer", "batches", 0);
     let raster = dataset::science::raster::read_raster(&dem)?;
@@ -74,6 +81,7 @@ pub fn run(args: InferArgs) -> Result<()> {
         dem_std_m,
         crater_frames,
         unit_map,
+        clamp_crater_relief,
     };
     let maps = with_backend!(runs.backend, B => {
         train::inference::run_job::<Inner<B>>(&job, &Default::default(), |member, done, total| {
@@ -92,6 +100,7 @@ pub fn run(args: InferArgs) -> Result<()> {
         }
         None => {}
     }
+    train::data::RangeReport::log(maps.inputs_outside_training_range.as_ref());
     train::inference::write_params_geotiff(&maps, &raster, overlap, &out)?;
     dataset::outln!(
         "{}: {} x {} px, {} bands ({}), {} crops at overlap {overlap}",

@@ -8,6 +8,7 @@ pub mod crater_level;
 pub mod eval;
 pub mod fit;
 pub mod infer;
+pub mod input_range;
 pub mod model_choice;
 pub mod models;
 pub mod render;
